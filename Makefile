@@ -1,0 +1,47 @@
+# Two commands for a fresh machine that has only Python:
+#   make run   -- create .venv, install, run the main job
+#   make test  -- install the test extras, then ruff, mypy and pytest
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+export OPENBLAS_NUM_THREADS := 1
+export OMP_NUM_THREADS := 1
+
+.PHONY: run test install install-test system-deps bench clean-ipc
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(VENV)/.installed: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e .
+	touch $@
+
+$(VENV)/.installed-test: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $@ $(VENV)/.installed
+
+install: $(VENV)/.installed
+install-test: $(VENV)/.installed-test
+
+# Debian packages the tests need: rt-tests gives cyclictest, the timer baseline.
+system-deps:
+	@if ! command -v cyclictest >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
+	  echo "installing rt-tests (cyclictest) with apt-get"; \
+	  $$SUDO apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq rt-tests >/dev/null; \
+	fi
+
+# The main job: the cycle benchmark until the peg-insertion session exists.
+run: install
+	$(BIN)/redistro bench cycle --rate 1000 --workers 5 --seconds 10 --json runs/bench-cycle.json
+
+test: install-test system-deps
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy redistro
+	$(BIN)/pytest
+
+clean-ipc: install
+	$(BIN)/redistro clean

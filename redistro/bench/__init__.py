@@ -1,0 +1,1 @@
+"""Benchmarks: ``redistro bench cycle`` and ``redistro bench ipc``."""

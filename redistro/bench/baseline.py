@@ -1,0 +1,89 @@
+"""cyclictest as the timer-latency baseline, run in the same invocation."""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+from typing import Any
+
+
+def _rr_permitted(priority: int) -> bool:
+    try:
+        param = os.sched_getparam(0)
+        policy = os.sched_getscheduler(0)
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+        os.sched_setscheduler(0, policy, param)
+    except OSError:
+        return False
+    return True
+
+
+def histogram_percentiles(text: str) -> dict[str, Any] | None:
+    """Parse ``cyclictest -h`` output: (p50, p99, max) in µs and the sample count."""
+    buckets: list[tuple[int, int]] = []
+    overflows = 0
+    max_us = None
+    for line in text.splitlines():
+        if line.startswith("# Histogram Overflows:"):
+            overflows = int(line.split(":")[1].split()[0])
+        elif line.startswith("# Max Latencies:"):
+            max_us = int(line.split(":")[1].split()[0])
+        elif line and line[0].isdigit():
+            parts = line.split()
+            if len(parts) >= 2:
+                buckets.append((int(parts[0]), int(parts[1])))
+    total = sum(c for _, c in buckets) + overflows
+    if not total or max_us is None:
+        return None
+
+    def pct(p: float) -> float:
+        need = math.ceil(p * total)
+        seen = 0
+        for us, count in buckets:
+            seen += count
+            if seen >= need:
+                return float(us)
+        return float(max_us)  # in the overflow bucket
+
+    return {"p50": pct(0.50), "p99": pct(0.99), "max": float(max_us), "samples": total}
+
+
+def cyclictest(rate_hz: float, seconds: float, priority: int) -> dict[str, Any] | None:
+    """Timer wake-up latency of one cyclictest thread at ``rate_hz`` for ``seconds``.
+
+    Returns None when cyclictest is not on PATH.
+    """
+    exe = shutil.which("cyclictest")
+    if exe is None:
+        return None
+    interval_us = max(1, round(1e6 / rate_hz))
+    cmd = [
+        exe,
+        "-q",
+        "-m",
+        "-t",
+        "1",
+        "-i",
+        str(interval_us),
+        "-D",
+        f"{max(1, math.ceil(seconds))}s",
+        "-h",
+        "20000",
+    ]
+    if _rr_permitted(priority):
+        cmd += ["-p", str(priority), "--policy=rr"]
+    else:
+        cmd += ["--policy=other"]
+    try:
+        done = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=seconds + 30, check=False
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return {"error": str(exc), "command": " ".join(cmd)}
+    stats = histogram_percentiles(done.stdout)
+    if stats is None:
+        return {"error": (done.stderr or done.stdout).strip()[:200], "command": " ".join(cmd)}
+    stats["command"] = " ".join(cmd)
+    return stats

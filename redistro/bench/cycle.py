@@ -1,0 +1,198 @@
+"""``redistro bench cycle``: a real manager with N busy workers at a given rate."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from redistro.config import Config
+from redistro.errors import ConfigError
+from redistro.ipc import session as ipc_session
+from redistro.localdata import MAX_PROCS
+from redistro.process.owner import run_node
+from redistro.process.spec import NodeSpec, WorkerSpec
+
+log = logging.getLogger(__name__)
+
+
+def parse_stages(text: str | None, workers: int) -> list[int]:
+    """``"1,1,1"`` (serial), ``"3"`` (one parallel stage of 3), ``"2,1"`` ... -> stage per worker.
+
+    ``serial`` and ``parallel`` are shorthands. Sizes must add up to ``workers``.
+    """
+    if text is None or text == "serial":
+        return list(range(workers))
+    if text == "parallel":
+        return [0] * workers
+    try:
+        sizes = [int(p) for p in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--stages {text}: expected sizes like 2,1 or serial|parallel") from None
+    if any(s < 1 for s in sizes) or sum(sizes) != workers:
+        raise ConfigError(f"--stages {text}: sizes must be >= 1 and add up to --workers {workers}")
+    return [k for k, size in enumerate(sizes) for _ in range(size)]
+
+
+def build_spec(
+    cfg: Config,
+    session_id: str,
+    *,
+    rate_hz: float,
+    workers: int,
+    seconds: float,
+    work_us: float,
+    stages: list[int],
+    pin: bool,
+    message_every: int = 0,
+) -> NodeSpec:
+    node = cfg.bench
+    prio = cfg.scheduling.priorities
+    cpus = node.cpus
+    import os
+
+    online = sorted(os.sched_getaffinity(0))
+    specs = []
+    for i in range(workers):
+        pinned: list[int] = []
+        if pin:
+            same_stage = [j for j in range(workers) if stages[j] == stages[i]]
+            pinned = [online[same_stage.index(i) % len(online)]]
+        specs.append(
+            WorkerSpec(
+                name=f"busy{i}",
+                role="busy",
+                stage=stages[i],
+                cpus=pinned,
+                priority=prio.get("busy", 16),
+                params={"work_us": work_us, "message_every": message_every},
+            )
+        )
+    return NodeSpec(
+        session_id=session_id,
+        node="bench",
+        kind="bench",
+        rate_hz=rate_hz,
+        heartbeat_limit_cycles=node.heartbeat_limit_cycles,
+        workers=specs,
+        robots=["r1", "r2"],
+        cycles=max(1, round(seconds * rate_hz)),
+        startup_timeout_s=cfg.session.startup_timeout_s,
+        shutdown_timeout_s=cfg.session.shutdown_timeout_s,
+        sched_policy=cfg.scheduling.policy,
+        lock_memory=cfg.scheduling.lock_memory,
+        manager_priority=prio.get("manager", 20),
+        cpus=list(cpus),
+    )
+
+
+def check_args(rate_hz: float, workers: int, seconds: float, work_us: float) -> None:
+    if not rate_hz > 0 or rate_hz > 10000:
+        raise ConfigError(f"--rate: expected a number in (0, 10000] Hz, got {rate_hz}")
+    if not 1 <= workers <= MAX_PROCS:
+        raise ConfigError(f"--workers: expected 1..{MAX_PROCS}, got {workers}")
+    if not seconds > 0:
+        raise ConfigError(f"--seconds: expected a number > 0, got {seconds}")
+    if not work_us >= 0:
+        raise ConfigError(f"--work-us: expected a number >= 0, got {work_us}")
+
+
+def run_once(
+    cfg: Config,
+    *,
+    rate_hz: float,
+    workers: int,
+    seconds: float,
+    work_us: float,
+    stages: list[int],
+    pin: bool,
+    message_every: int = 0,
+    announce: bool = True,
+) -> dict[str, Any]:
+    with ipc_session.Session.create() as session:
+        if announce:
+            print(f"session {session.id}", flush=True)
+        spec = build_spec(
+            cfg,
+            session.id,
+            rate_hz=rate_hz,
+            workers=workers,
+            seconds=seconds,
+            work_us=work_us,
+            stages=stages,
+            pin=pin,
+            message_every=message_every,
+        )
+        run_dir = Path(cfg.session.runs_dir) / session.id
+        run_dir.mkdir(parents=True, exist_ok=True)
+        spec.messages_path = str(run_dir / "messages.log")
+        result = run_node(spec, session)
+        result["run_dir"] = str(run_dir)
+    return result
+
+
+def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str, Any]:
+    """The benchmark's figures from a manager result."""
+    cycles = result.get("cycles", 0)
+    comp = [w["compute_us"] for w in result.get("workers", [])]
+    overruns = result.get("missed_ticks", 0) + result.get("worker_overruns", 0)
+    return {
+        "result": result.get("result"),
+        "reason": result.get("reason", ""),
+        "rate_hz": result.get("rate_hz"),
+        "workers": workers,
+        "work_us": work_us,
+        "cycles": cycles,
+        "overruns": overruns,
+        "overrun_fraction": round(overruns / cycles, 6) if cycles else None,
+        "missed_ticks": result.get("missed_ticks", 0),
+        "worker_overruns": result.get("worker_overruns", 0),
+        "late_heartbeats": result.get("late_heartbeats", 0),
+        "missed_heartbeats": result.get("missed_heartbeats", 0),
+        "deadline_misses": result.get("deadline_misses", 0),
+        "lateness_us": result.get("lateness_us", {}),
+        "worker_lateness_us": {
+            "p50": max((w["lateness_us"]["p50"] for w in result.get("workers", [])), default=0),
+            "p99": max((w["lateness_us"]["p99"] for w in result.get("workers", [])), default=0),
+        },
+        "compute_us": {
+            "p50": max((c["p50"] for c in comp), default=0.0),
+            "p99": max((c["p99"] for c in comp), default=0.0),
+        },
+        "makespan_us": result.get("makespan_us", {}),
+        "cpu_percent": result.get("cpu_percent", 0.0),
+        "scheduling": {
+            "manager": result.get("manager", {}).get("scheduling", {}),
+            "workers": {w["name"]: w["scheduling"] for w in result.get("workers", [])},
+        },
+        "session_id": result.get("session_id"),
+        "run_dir": result.get("run_dir"),
+        "messages": result.get("messages", [])[:20],
+        "node_result": result,
+    }
+
+
+def print_summary(label: str, s: dict[str, Any], out: Any = sys.stdout) -> None:
+    lat, comp, span = s["lateness_us"], s["compute_us"], s["makespan_us"]
+    base = s.get("baseline_lateness_us")
+    print(f"{label}: {s['result']} {s['reason']}".rstrip(), file=out)
+    print(
+        f"  {s['cycles']} cycles at {s['rate_hz']} Hz, {s['workers']} workers x "
+        f"{s['work_us']} us; overruns {s['overruns']} ({100 * (s['overrun_fraction'] or 0):.3f}%)"
+        f", missed heartbeats {s['missed_heartbeats']}",
+        file=out,
+    )
+    if lat:
+        print(f"  timer lateness us p50 {lat['p50']} p99 {lat['p99']} max {lat['max']}", file=out)
+    if base and "p99" in base:
+        print(
+            f"  cyclictest     us p50 {base['p50']} p99 {base['p99']} max {base['max']}", file=out
+        )
+    if span:
+        print(
+            f"  cycle makespan us p50 {span['p50']} p99 {span['p99']}; compute us p50 "
+            f"{comp['p50']} p99 {comp['p99']}; cpu {s['cpu_percent']}% of one CPU",
+            file=out,
+        )
+    print(f"  scheduling: manager {s['scheduling']['manager'].get('policy')}", file=out)

@@ -1,0 +1,199 @@
+"""``redistro``: the one command-line entry point.
+
+Nothing heavy is imported at module level: :func:`main` blocks the runtime
+signals before numpy (and its threads) exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any, NoReturn
+
+from redistro.errors import ConfigError, RedistroError
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a bad command line as one ConfigError line."""
+
+    def error(self, message: str) -> NoReturn:
+        raise ConfigError(f"{self.prog}: {message}")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="redistro", description="A multi-process robot controller.")
+    p.add_argument("--config", help="config file (default: config/redistro.yaml if present)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set bench.rate_hz=500",
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    bench = sub.add_parser("bench", help="benchmarks")
+    bsub = bench.add_subparsers(dest="bench", required=True, parser_class=_Parser)
+    c = bsub.add_parser("cycle", help="a real manager with N busy workers")
+    c.add_argument("--rate", type=float, default=None, help="cycle rate [Hz] (bench.rate_hz)")
+    c.add_argument("--workers", type=int, default=5)
+    c.add_argument("--seconds", type=float, default=5.0)
+    c.add_argument("--work-us", type=float, default=0.0, help="busy work per worker per cycle")
+    c.add_argument(
+        "--stages",
+        default=None,
+        help="stage sizes, e.g. 1,1,1 (serial, default), 3 or parallel, 2,1",
+    )
+    c.add_argument("--pin", action="store_true", help="pin each parallel worker to a CPU")
+    c.add_argument(
+        "--compare-stages",
+        action="store_true",
+        help="run the same work serial, then as one parallel stage",
+    )
+    c.add_argument("--no-baseline", action="store_true", help="skip the cyclictest baseline")
+    c.add_argument("--message-every", type=int, default=0, help=argparse.SUPPRESS)
+    c.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+    i = bsub.add_parser("ipc", help="Local Data snapshot vs multiprocessing Pipe and Queue")
+    i.add_argument("--samples", type=int, default=5000)
+    i.add_argument("--gap-us", type=float, default=200.0, help="pause between records")
+    i.add_argument("--json", dest="json_path", default=None)
+
+    sub.add_parser("clean", help="remove IPC objects left by dead sessions")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from redistro.ipc.signals import block_runtime_signals
+
+    block_runtime_signals()
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    try:
+        args = _parser().parse_args(argv)
+        import logging
+
+        logging.basicConfig(
+            level=logging.DEBUG if args.verbose else logging.INFO,
+            format="%(message)s",
+            stream=sys.stderr,
+        )
+        from redistro.config import load_config
+
+        cfg = load_config(args.config, args.set)
+        return _dispatch(args, cfg)
+    except ConfigError as exc:
+        print(f"redistro: error: {exc}", file=sys.stderr)
+        return 2
+    except RedistroError as exc:
+        print(f"redistro: {exc}", file=sys.stderr)
+        return 1
+
+
+def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
+    if args.command == "clean":
+        return _clean()
+    if args.command == "bench" and args.bench == "cycle":
+        return _bench_cycle(args, cfg)
+    if args.command == "bench" and args.bench == "ipc":
+        return _bench_ipc(args)
+    raise ConfigError(f"unknown command {args.command}")
+
+
+def _clean() -> int:
+    from redistro.ipc import session
+
+    removed = session.reap()
+    for name in removed:
+        print(f"removed {name}")
+    live = session.live_sessions()
+    if not removed:
+        print("nothing to remove")
+    if live:
+        print(f"kept {len(live)} live session(s): {', '.join(live)}")
+    return 0
+
+
+def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from redistro.bench import cycle
+    from redistro.bench.baseline import cyclictest
+    from redistro.ipc import session
+    from redistro.process.owner import write_json
+
+    rate = args.rate if args.rate is not None else cfg.bench.rate_hz
+    cycle.check_args(rate, args.workers, args.seconds, args.work_us)
+    stages = cycle.parse_stages(args.stages, args.workers)
+    if args.message_every < 0:
+        raise ConfigError("--message-every: expected >= 0")
+    for name in session.reap():
+        print(f"reaped {name} (left by a dead session)", file=sys.stderr)
+
+    baseline = None
+    if not args.no_baseline:
+        baseline = cyclictest(rate, args.seconds, cfg.scheduling.priorities.get("manager", 20))
+
+    def once(stage_list: list[int], label: str) -> dict[str, Any]:
+        result = cycle.run_once(
+            cfg,
+            rate_hz=rate,
+            workers=args.workers,
+            seconds=args.seconds,
+            work_us=args.work_us,
+            stages=stage_list,
+            pin=args.pin,
+            message_every=args.message_every,
+        )
+        s = cycle.summarize(result, args.workers, args.work_us)
+        if baseline is not None:
+            s["baseline_lateness_us"] = baseline
+        cycle.print_summary(label, s)
+        return s
+
+    if args.compare_stages:
+        serial = once(list(range(args.workers)), "serial")
+        parallel = once([0] * args.workers, "parallel")
+        p50s, p50p = serial["makespan_us"].get("p50"), parallel["makespan_us"].get("p50")
+        out: dict[str, Any] = {
+            "serial": serial,
+            "parallel": parallel,
+            "makespan_speedup_p50": round(p50s / p50p, 2) if p50s and p50p else None,
+        }
+        ok = serial["result"] == "ok" and parallel["result"] == "ok"
+    else:
+        out = once(stages, "bench cycle")
+        ok = out["result"] == "ok"
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0 if ok else 1
+
+
+def _bench_ipc(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from redistro.bench import ipc
+    from redistro.process.owner import write_json
+
+    if args.samples < 10:
+        raise ConfigError(f"--samples: expected >= 10, got {args.samples}")
+    if not args.gap_us >= 0:
+        raise ConfigError(f"--gap-us: expected >= 0, got {args.gap_us}")
+    out = ipc.run(args.samples, args.gap_us)
+    for key in ("localdata", "pipe", "queue"):
+        r = out[key]
+        print(f"{key:10s} median {r['median_us']:8.2f} us  p99 {r['p99_us']:8.2f} us")
+    print(
+        f"Local Data snapshot is {out['speedup_median']['vs_queue']}x faster than "
+        f"multiprocessing.Queue (median)"
+    )
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

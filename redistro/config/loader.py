@@ -1,0 +1,98 @@
+"""Load the YAML config, apply ``--set dotted.key=value`` overrides, validate."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from pathlib import Path
+from typing import Any, get_type_hints
+
+import yaml
+
+from redistro.config.model import Config
+from redistro.config.validate import build
+from redistro.errors import ConfigError
+
+DEFAULT_CONFIG_PATH = Path("config/redistro.yaml")
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``a.b.c=value`` -> (["a", "b", "c"], value parsed as YAML)."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"--set {text}: expected dotted.key=value")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        first = str(exc).splitlines()[0]
+        raise ConfigError(f"--set {key}: value is not valid YAML ({first})") from None
+    return key.split("."), value
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{where}: invalid YAML ({problem})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: <top>: expected a mapping of config sections, got {data!r}")
+    return data
+
+
+def _known_path(cls: type, parts: list[str]) -> bool:
+    """Whether a dotted path names a field (or a key inside a dict field)."""
+    tp: Any = cls
+    for i, part in enumerate(parts):
+        if not (dataclasses.is_dataclass(tp) and isinstance(tp, type)):
+            # Inside a dict field: any key is addressable; validation judges it.
+            return i == len(parts) - 1
+        names = {f.name: f for f in dataclasses.fields(tp)}
+        if part not in names:
+            return False
+        tp = get_type_hints(tp)[part]
+    return True
+
+
+def load_config(path: Path | str | None = None, overrides: list[str] | None = None) -> Config:
+    """Read ``path`` (default: config/redistro.yaml when present), apply overrides.
+
+    Raises ConfigError with one line naming the file or ``--set``, the field,
+    what was expected and what was found.
+    """
+    origin = "<defaults>"
+    data: dict[str, Any] = {}
+    if path is None and DEFAULT_CONFIG_PATH.exists():
+        path = DEFAULT_CONFIG_PATH
+    if path is not None:
+        path = Path(path)
+        data = _read_yaml(path)
+        origin = str(path)
+    data = copy.deepcopy(data)
+    origins: dict[str, str] = {}
+    for text in overrides or []:
+        parts, value = parse_override(text)
+        dotted = ".".join(parts)
+        if not _known_path(Config, parts):
+            raise ConfigError(f"--set {dotted}: no such config key")
+        node = data
+        for i, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                where = ".".join(parts[: i + 1])
+                raise ConfigError(f"{origin}: {where}: expected a mapping, got {child!r}")
+            node = child
+        node[parts[-1]] = value
+        origins[dotted] = f"--set {dotted}"
+    return build(Config, data, origin=origin, origins=origins)

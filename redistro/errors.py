@@ -1,0 +1,39 @@
+"""The project's exceptions: one root, each subclass also a matching builtin."""
+
+from __future__ import annotations
+
+
+class RedistroError(Exception):
+    """Root of every error raised by redistro."""
+
+
+class ConfigError(RedistroError, ValueError):
+    """A config file, task file, override or command line is invalid.
+
+    The message is one line naming where (file, field) and what is wrong.
+    """
+
+
+class IPCError(RedistroError, OSError):
+    """An OS primitive (shared memory, semaphore, signal) failed."""
+
+
+class LayoutError(RedistroError, ValueError):
+    """A Local Data segment does not match the declared layout, or a block is
+    written by a process that is not its declared writer."""
+
+
+class CycleTimeout(RedistroError, TimeoutError):
+    """A wait ran past its deadline on the monotonic clock."""
+
+
+class TornReadTimeout(CycleTimeout):
+    """No consistent snapshot of a block could be taken within the time budget."""
+
+
+class NodeFault(RedistroError, RuntimeError):
+    """A node ended on a fault; `reason` is one of unsafe, starving, abnormal."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason

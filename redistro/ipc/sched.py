@@ -1,0 +1,94 @@
+"""Scheduling: SCHED_RR with the paper's relative priorities when permitted,
+nice values otherwise; CPU affinity; memory locking. Reports what was granted."""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+_MCL_CURRENT = 1
+_MCL_FUTURE = 2
+
+POLICY_CODES = {"default": 0, "SCHED_RR": 1, "nice": 2}
+
+
+@dataclass
+class Granted:
+    """What the OS gave a process.
+
+    policy: ``SCHED_RR``, ``nice`` or ``default``; priority: the RR priority
+    (0 when not RR); nice: the nice value; cpus: allowed CPUs; memory_locked:
+    whether mlockall succeeded; refused: what was asked for and denied.
+    """
+
+    policy: str = "default"
+    priority: int = 0
+    nice: int = 0
+    cpus: list[int] = field(default_factory=list)
+    memory_locked: bool = False
+    refused: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def nice_for(priority: int) -> int:
+    """Map a paper priority (15..19, higher first) to a nice value (-5..-9)."""
+    return max(-20, min(0, 10 - priority))
+
+
+def apply(
+    priority: int, cpus: list[int] | None = None, policy: str = "auto", lock_memory: bool = False
+) -> Granted:
+    """Ask for ``priority`` under ``policy`` (auto | rr | nice | none) and ``cpus``."""
+    granted = Granted()
+    if cpus:
+        try:
+            os.sched_setaffinity(0, cpus)
+        except OSError as exc:
+            granted.refused.append(f"affinity {cpus}: {exc.strerror}")
+    granted.cpus = sorted(os.sched_getaffinity(0))
+
+    if policy in ("auto", "rr"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+            granted.policy, granted.priority = "SCHED_RR", priority
+        except (PermissionError, OSError) as exc:
+            granted.refused.append(f"SCHED_RR {priority}: {exc.strerror}")
+    if granted.policy == "default" and policy in ("auto", "nice"):
+        want = nice_for(priority)
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, want)
+            granted.policy = "nice"
+        except (PermissionError, OSError) as exc:
+            granted.refused.append(f"nice {want}: {exc.strerror}")
+    granted.nice = os.getpriority(os.PRIO_PROCESS, 0)
+
+    if lock_memory:
+        granted.memory_locked = _mlockall(granted)
+    return granted
+
+
+def _mlockall(granted: Granted) -> bool:
+    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    # MCL_FUTURE under a small RLIMIT_MEMLOCK would make later allocations fail,
+    # so only root (CAP_IPC_LOCK, no limit) asks for it.
+    flags = _MCL_CURRENT | (_MCL_FUTURE if os.geteuid() == 0 else 0)
+    if libc.mlockall(flags) == 0:
+        return True
+    granted.refused.append(f"mlockall: {os.strerror(ctypes.get_errno())}")
+    return False
+
+
+def cpu_mask(cpus: list[int]) -> int:
+    mask = 0
+    for cpu in cpus:
+        mask |= 1 << cpu
+    return mask
+
+
+def cpus_of_mask(mask: int) -> list[int]:
+    return [i for i in range(64) if mask >> i & 1]

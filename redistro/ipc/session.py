@@ -1,0 +1,226 @@
+"""Session manifests, liveness locks and the reaper.
+
+A session owns a directory ``<runtime>/<session-id>/`` holding:
+
+- ``lock``: held with ``flock(LOCK_EX)`` by the session owner for its whole life
+  and inherited (same open file description) by every process it spawns, so
+  the lock is free only when every process of the session is gone;
+- ``manifest``: one line per IPC object (``shm /name`` or ``sem /name``),
+  appended under a short ``flock`` *before* the object is created, so a crash
+  between the two never hides an object from the reaper.
+
+The reaper removes the objects of every session whose lock is free, and any
+``/dev/shm`` entry named for a session that has no live lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import logging
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import posix_ipc
+
+from redistro.errors import IPCError
+from redistro.ipc import names
+
+log = logging.getLogger(__name__)
+
+LOCK_FD_ENV = "REDISTRO_SESSION_LOCK_FD"
+
+
+@dataclass
+class Manifest:
+    """Appends object names to a session's manifest file."""
+
+    session_id: str
+    directory: Path
+
+    @property
+    def path(self) -> Path:
+        return self.directory / "manifest"
+
+    def register(self, kind: str, name: str) -> None:
+        line = f"{kind} {name}\n".encode()
+        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            os.write(fd, line)
+        finally:
+            os.close(fd)
+
+    def entries(self) -> list[tuple[str, str]]:
+        try:
+            text = self.path.read_text()
+        except FileNotFoundError:
+            return []
+        out = []
+        for line in text.splitlines():
+            kind, _, name = line.partition(" ")
+            if kind in ("shm", "sem") and name.startswith("/"):
+                out.append((kind, name))
+        return out
+
+    @classmethod
+    def for_session(cls, session_id: str) -> Manifest:
+        return cls(session_id, names.runtime_dir() / session_id)
+
+
+@dataclass
+class Session:
+    """The session owner's handle: id, directory, liveness lock and manifest."""
+
+    id: str
+    directory: Path
+    lock_fd: int
+    manifest: Manifest = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.manifest = Manifest(self.id, self.directory)
+
+    @classmethod
+    def create(cls) -> Session:
+        root = names.runtime_dir()
+        root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        for _ in range(10):
+            sid = names.new_session_id()
+            directory = root / sid
+            try:
+                directory.mkdir(mode=0o700)
+            except FileExistsError:
+                continue
+            try:
+                fd = os.open(directory / "lock", os.O_RDWR | os.O_CREAT, 0o600)
+            except FileNotFoundError:  # reaped between mkdir and open
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                # A reaper took the brand-new directory for a dead one; pick another id.
+                os.close(fd)
+                continue
+            if not directory.exists():  # reaped between mkdir and flock
+                os.close(fd)
+                continue
+            os.set_inheritable(fd, True)
+            return cls(sid, directory, fd)
+        raise IPCError("could not create a session directory")
+
+    def child_env(self) -> dict[str, str]:
+        """Environment entries for a process spawned inside this session."""
+        return {LOCK_FD_ENV: str(self.lock_fd)}
+
+    def close(self) -> list[str]:
+        """Remove whatever the session's processes left, then the session itself.
+
+        Returns the names of objects that had to be removed here (leaks that
+        their creator should have unlinked).
+        """
+        removed = _remove_objects(self.manifest.entries())
+        removed += _remove_entries_of(self.id)
+        shutil.rmtree(self.directory, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            os.close(self.lock_fd)
+        return removed
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        leaked = self.close()
+        if leaked:
+            log.warning("session %s: removed leftover IPC objects: %s", self.id, leaked)
+
+
+def unlink(kind: str, name: str) -> bool:
+    """Unlink a named object; False if it was already gone."""
+    try:
+        if kind == "sem":
+            posix_ipc.unlink_semaphore(name)
+        else:
+            posix_ipc.unlink_shared_memory(name)
+    except posix_ipc.ExistentialError:
+        return False
+    return True
+
+
+def _remove_objects(entries: list[tuple[str, str]]) -> list[str]:
+    return [name for kind, name in entries if unlink(kind, name)]
+
+
+def _remove_entries_of(session_id: str | None, live: set[str] | None = None) -> list[str]:
+    """Unlink /dev/shm entries of ``session_id`` (or of every non-live session)."""
+    removed: list[str] = []
+    try:
+        entries = sorted(os.listdir(names.SHM_DIR))
+    except FileNotFoundError:
+        return removed
+    for entry in entries:
+        sid = names.session_of_entry(entry)
+        if sid is None:
+            continue
+        if session_id is not None and sid != session_id:
+            continue
+        if session_id is None and live is not None and sid in live:
+            continue
+        kind, name = names.entry_to_name(entry)
+        if unlink(kind, name):
+            removed.append(name)
+    return removed
+
+
+def reap() -> list[str]:
+    """Remove the objects of every dead session; return what was removed."""
+    root = names.runtime_dir()
+    live: set[str] = set()
+    removed: list[str] = []
+    if root.is_dir():
+        for directory in sorted(root.iterdir()):
+            if not directory.is_dir() or not names.is_session_id(directory.name):
+                continue
+            lock = directory / "lock"
+            try:
+                fd = os.open(lock, os.O_RDWR)
+            except FileNotFoundError:
+                # No lock file: a dead session, or one being born this instant
+                # (its creator then sees its directory gone and picks a new id).
+                shutil.rmtree(directory, ignore_errors=True)
+                continue
+            try:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    live.add(directory.name)
+                    continue
+                manifest = Manifest(directory.name, directory)
+                removed += _remove_objects(manifest.entries())
+                shutil.rmtree(directory, ignore_errors=True)
+            finally:
+                os.close(fd)
+    removed += _remove_entries_of(None, live)
+    return removed
+
+
+def live_sessions() -> list[str]:
+    """Ids of sessions whose lock is held."""
+    root = names.runtime_dir()
+    out: list[str] = []
+    if not root.is_dir():
+        return out
+    for directory in sorted(root.iterdir()):
+        lock = directory / "lock"
+        try:
+            fd = os.open(lock, os.O_RDWR)
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            out.append(directory.name)
+        finally:
+            os.close(fd)
+    return out

@@ -1,0 +1,110 @@
+"""Real-time signals for cycle synchronization, waited for with sigtimedwait.
+
+No Python signal handlers are used: every process blocks these signals in all
+threads (before any thread exists) and takes them synchronously.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import signal
+import time
+
+SIG_SYNC = signal.SIGRTMIN + 1
+"""Manager -> worker: a new cycle has started. Queued, so a backlog is countable."""
+SIG_END = signal.SIGRTMIN + 2
+"""Manager -> worker: the session ends; go to Cleanup."""
+SIG_ORPHAN = signal.SIGRTMIN + 3
+"""Kernel -> child: the parent died (set with PR_SET_PDEATHSIG)."""
+
+STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+RUNTIME_SIGNALS = frozenset(
+    {SIG_SYNC, SIG_END, SIG_ORPHAN, signal.SIGALRM, signal.SIGCHLD} | STOP_SIGNALS
+)
+
+_PR_SET_PDEATHSIG = 1
+_PR_SET_CHILD_SUBREAPER = 36
+
+
+def block_runtime_signals() -> None:
+    """Block the runtime signals in the calling thread (and threads it starts)."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, RUNTIME_SIGNALS)
+
+
+def unblock_runtime_signals() -> None:
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, RUNTIME_SIGNALS)
+
+
+def wait(signals: frozenset[int] | set[int], timeout_s: float) -> signal.struct_siginfo | None:
+    """Take one of ``signals`` within ``timeout_s`` (monotonic), else None.
+
+    sigtimedwait restarts on EINTR with a recomputed monotonic timeout (PEP 475).
+    """
+    return signal.sigtimedwait(signals, max(0.0, timeout_s))
+
+
+def drain(sig: int) -> int:
+    """Take every pending instance of ``sig`` without waiting; return how many."""
+    count = 0
+    while signal.sigtimedwait({sig}, 0) is not None:
+        count += 1
+    return count
+
+
+def send(pidfd: int, sig: int) -> bool:
+    """Send ``sig`` through a pidfd (safe against pid reuse); False if the process is gone."""
+    try:
+        signal.pidfd_send_signal(pidfd, sig)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _prctl(option: int, value: int) -> None:
+    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    if libc.prctl(option, value, 0, 0, 0) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+
+
+def set_parent_death_signal(sig: int) -> None:
+    """Ask the kernel to send ``sig`` to this process when its parent dies."""
+    _prctl(_PR_SET_PDEATHSIG, sig)
+
+
+def become_subreaper() -> None:
+    """Orphaned descendants re-parent to this process, which can then reap them."""
+    _prctl(_PR_SET_CHILD_SUBREAPER, 1)
+
+
+def children_of(pid: int) -> list[int]:
+    """Pids whose parent is ``pid`` (read from /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", "rb") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        # the command name may hold spaces or parentheses: parse after the last ')'
+        fields = stat[stat.rfind(b")") + 2 :].split()
+        if int(fields[1]) == pid:
+            out.append(int(entry))
+    return out
+
+
+def process_alive(pidfd: int) -> bool:
+    """Whether the process behind a pidfd is still running (not exited)."""
+    import select
+
+    poller = select.poll()
+    poller.register(pidfd, select.POLLIN)
+    return not poller.poll(0)
+
+
+def monotonic_ns() -> int:
+    return time.monotonic_ns()

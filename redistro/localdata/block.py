@@ -1,0 +1,145 @@
+"""Seqlocked blocks: one writer, many readers, never a torn snapshot.
+
+Protocol (the writer is the only process that writes the block):
+
+- write: ``seq += 1`` (now odd), write the payload, ``seq += 1`` (even again);
+- read: load ``seq``; if odd, retry; copy the payload; load ``seq`` again; if
+  it changed, the copy may be torn: count it and retry, until a time budget
+  runs out (then :class:`~redistro.errors.TornReadTimeout`).
+
+Stores and loads are each a separate C call on x86-64 (TSO: stores are not
+reordered with stores, loads not with loads), which is what the protocol needs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+from redistro.errors import TornReadTimeout
+from redistro.localdata.layout import MSG_TEXT, MSGBOX_SLOTS
+
+DEFAULT_READ_BUDGET_S = 0.002
+
+
+class Block:
+    """A view onto one seqlocked block of a mapped segment.
+
+    Reads copy the payload as raw bytes (one memcpy) and view the copy with
+    the payload dtype: a field-by-field structured copy costs ten times more.
+    """
+
+    def __init__(self, name: str, view: np.ndarray[Any, Any]) -> None:
+        self.name = name
+        fields = view.dtype.fields
+        assert fields is not None
+        seq_off = fields["seq"][1]
+        payload, data_off = fields["data"][0], fields["data"][1]
+        raw = view.reshape(1).view(np.uint8)
+        self._seq = raw[seq_off : seq_off + 8].view("<u8")  # shape (1,)
+        self._raw = raw[data_off : data_off + payload.itemsize]
+        self._payload = payload
+        self.data = view["data"]  # 0-d structured view; write only inside write()
+        self.torn = 0  # retries this handle needed (read side)
+
+    @property
+    def seq(self) -> int:
+        return int(self._seq[0])
+
+    @contextmanager
+    def write(self) -> Iterator[np.ndarray[Any, Any]]:
+        """``with block.write() as d: d["q_rad"] = q`` -- the one writer only."""
+        s = int(self._seq[0])
+        if s & 1:  # a writer died mid-write earlier: resume from an even count
+            s += 1
+        self._seq[0] = s + 1
+        try:
+            yield self.data
+        finally:
+            self._seq[0] = s + 2
+
+    def read(self, budget_s: float = DEFAULT_READ_BUDGET_S) -> np.void:
+        """A consistent copy of the payload (a numpy record)."""
+        deadline = 0
+        seq = self._seq
+        while True:
+            s1 = int(seq[0])
+            if not s1 & 1:
+                copy = self._raw.copy()
+                if int(seq[0]) == s1:
+                    return copy.view(self._payload)[0]  # type: ignore[no-any-return]
+            self.torn += 1
+            now = time.monotonic_ns()
+            if deadline == 0:
+                deadline = now + int(budget_s * 1e9)
+            elif now > deadline:
+                raise TornReadTimeout(f"block {self.name}: no consistent snapshot in {budget_s} s")
+
+    def detach(self) -> None:
+        """Drop the views onto the mapping (the segment is being unmapped)."""
+        empty = np.zeros(max(8, self._payload.itemsize), np.uint8)
+        self._seq = empty[:8].view("<u8")
+        self._raw = empty[: self._payload.itemsize]
+        self.data = np.zeros((), self._payload)
+
+    def raw_read(self) -> np.void:
+        """A copy taken without the protocol (tests use it as a negative control)."""
+        return self._raw.copy().view(self._payload)[0]  # type: ignore[no-any-return]
+
+
+class MessageBox:
+    """A process's ring of short text messages; the process writes, the manager reads.
+
+    Each slot is seqlocked on its own; ``head`` counts messages ever written.
+    A reader that falls more than a ring behind counts the lost messages.
+    """
+
+    def __init__(self, view: np.ndarray[Any, Any]) -> None:
+        self._view = view
+        self._head = view["head"]
+        self._slots = view["slots"]
+        self._read = int(self._head)  # reader's position
+        self.lost = 0
+
+    def detach(self) -> None:
+        """Drop the views onto the mapping (the segment is being unmapped)."""
+        view = np.zeros((), self._view.dtype)
+        self._view, self._head, self._slots = view, view["head"], view["slots"]
+
+    def post(self, text: str, level: int = 20) -> None:
+        head = int(self._head)
+        i = head % MSGBOX_SLOTS
+        slot = self._slots[i : i + 1]
+        s = int(slot["seq"][0])
+        s += s & 1
+        slot["seq"] = s + 1
+        slot["number"] = head
+        slot["stamp_ns"] = time.monotonic_ns()
+        slot["level"] = level
+        slot["text"] = text.encode("utf-8", "replace")[:MSG_TEXT]
+        slot["seq"] = s + 2
+        self._head[...] = head + 1
+
+    def drain(self) -> list[tuple[int, int, str]]:
+        """New messages since the last drain: (stamp_ns, level, text)."""
+        head = int(self._head)
+        out: list[tuple[int, int, str]] = []
+        if head - self._read > MSGBOX_SLOTS:
+            self.lost += head - self._read - MSGBOX_SLOTS
+            self._read = head - MSGBOX_SLOTS
+        while self._read < head:
+            i = self._read % MSGBOX_SLOTS
+            slot = self._slots[i : i + 1]
+            s1 = int(slot["seq"][0])
+            copy = slot.copy()[0]
+            if s1 & 1 or int(slot["seq"][0]) != s1 or int(copy["number"]) != self._read:
+                self.lost += 1  # overwritten while, or before, we read it
+            else:
+                text = bytes(copy["text"]).decode("utf-8", "replace")
+                out.append((int(copy["stamp_ns"]), int(copy["level"]), text))
+            self._read += 1
+        return out

@@ -1,0 +1,248 @@
+"""The Local Data layout, declared once as numpy structured dtypes.
+
+A segment is a sequence of blocks, each at a 64-byte (cache-line) boundary so
+that two writers never share a line. Every dynamic block is *seqlocked*: a
+``seq`` counter (odd while its single writer is writing) precedes the payload.
+The table :data:`WRITERS` names the one process role allowed to write each
+block, per node kind; :mod:`redistro.localdata.segment` enforces it.
+
+Units are in the field names: ``_rad``, ``_rad_s``, ``_nm`` (N m), ``_n`` (N),
+``_ns`` (CLOCK_MONOTONIC nanoseconds unless noted).
+"""
+
+from __future__ import annotations
+
+import enum
+import hashlib
+from typing import Any
+
+import numpy as np
+
+MAGIC = b"RDSTLD01"
+VERSION = 1
+DOF = 7
+MAX_PROCS = 16
+MAX_ROBOTS = 4
+MSGBOX_SLOTS = 16
+MSG_TEXT = 112
+NAME = "S16"
+ALIGN = 64
+
+
+class ProcState(enum.IntEnum):
+    """The four process states of the runtime (plus NONE before a process starts)."""
+
+    NONE = 0
+    INITIALIZATION = 1
+    ROUTINE = 2
+    CLEANUP = 3
+    IDLE = 4
+
+
+class SessionStatus(enum.IntEnum):
+    NONE = 0
+    IN_PROGRESS = 1
+    FINISHED = 2
+
+
+def _padded(dtype: np.dtype[Any], align: int = ALIGN) -> np.dtype[Any]:
+    """The same fields at the same offsets, itemsize rounded up to ``align``."""
+    fields = dtype.fields
+    assert fields is not None and dtype.names is not None
+    return _dtype_of(
+        list(dtype.names),
+        [fields[n][0] for n in dtype.names],
+        [fields[n][1] for n in dtype.names],
+        -(-dtype.itemsize // align) * align,
+    )
+
+
+def _dtype_of(names: list[str], formats: list[Any], offsets: list[int], size: int) -> np.dtype[Any]:
+    spec: dict[str, Any] = {
+        "names": names,
+        "formats": formats,
+        "offsets": offsets,
+        "itemsize": size,
+    }
+    return np.dtype(spec)  # type: ignore[call-overload,no-any-return]
+
+
+def seqlocked(payload: np.dtype[Any]) -> np.dtype[Any]:
+    """A block: ``seq`` (u8, odd during a write) then ``data``, padded to 64 bytes."""
+    return _padded(np.dtype([("seq", "<u8"), ("data", payload)]))
+
+
+# -- header and static data (written once by the manager before any attach) --
+
+HEADER = np.dtype(
+    [
+        ("magic", "S8"),
+        ("layout_hash", "<u8"),
+        ("version", "<u4"),
+        ("n_procs", "<u4"),
+        ("n_robots", "<u4"),
+        ("creator_pid", "<i4"),
+        ("created_unix_ns", "<i8"),  # CLOCK_REALTIME, for people
+        ("session_id", "S32"),
+        ("node", "S32"),
+    ]
+)
+
+
+def static_dtype(n_procs: int, n_robots: int) -> np.dtype[Any]:
+    return np.dtype(
+        [
+            ("rate_hz", "<f8"),
+            ("period_ns", "<i8"),
+            ("heartbeat_limit_cycles", "<u4"),
+            ("node_kind", NAME),
+            ("proc_names", NAME, (n_procs,)),
+            ("proc_roles", NAME, (n_procs,)),
+            ("proc_stage", "<i4", (n_procs,)),
+            ("robot_names", NAME, (n_robots,)),
+        ]
+    )
+
+
+# -- local dynamic data --
+
+MANAGER = np.dtype(
+    [
+        ("state", "u1"),
+        ("estop", "u1"),
+        ("cycle", "<u8"),  # cycles the manager has run (one per tick taken)
+        ("tick_due_ns", "<i8"),  # when the current cycle's tick was due
+        ("tick_ns", "<i8"),  # when the manager took it
+        ("missed_ticks", "<u8"),
+        ("pid", "<i4"),
+    ]
+)
+
+PROC_STATUS = np.dtype(
+    [
+        ("pid", "<i4"),
+        ("state", "u1"),
+        ("estop_request", "u1"),
+        ("sched_policy", "u1"),  # redistro.ipc.sched.POLICY_CODES
+        ("sched_priority", "<i2"),
+        ("nice", "<i2"),
+        ("cpu_mask", "<u8"),
+        ("heartbeat_cycle", "<u8"),  # last manager cycle this process completed
+        ("wake_ns", "<i8"),
+        ("done_ns", "<i8"),
+        ("cycles", "<u8"),
+        ("overruns", "<u8"),  # wake-ups that found more than one sync queued
+        ("stage_timeouts", "<u8"),  # cycles skipped because a previous stage did not finish
+        ("torn_reads", "<u8"),  # snapshot attempts that had to be retried
+        ("cpu_s", "<f8"),  # CPU time spent in Routine (written at Cleanup)
+        ("lateness_us", "<f4", (3,)),  # p50, p99, max over the run (written at Cleanup)
+        ("compute_us", "<f4", (3,)),
+    ]
+)
+
+MSG_SLOT = _padded(
+    np.dtype(
+        [
+            ("seq", "<u8"),
+            ("number", "<u8"),  # which message (0, 1, 2, ...) the slot holds
+            ("stamp_ns", "<i8"),
+            ("level", "u1"),
+            ("text", f"S{MSG_TEXT}"),
+        ]
+    )
+)
+MSGBOX = _padded(np.dtype([("head", "<u8"), ("slots", MSG_SLOT, (MSGBOX_SLOTS,))]))
+
+EXCHANGE = np.dtype(  # data exchange status: freshness of the data from the other node
+    [("updates", "<u8"), ("last_update_ns", "<i8"), ("dropped", "<u8"), ("fresh", "u1")]
+)
+COUNTER = np.dtype([("count", "<u8"), ("stamp_ns", "<i8")])
+HOME = np.dtype([("home_switch", "u1", (DOF,)), ("stamp_ns", "<i8")])
+
+# -- local copy of Robot Group Shared Data, per robot --
+
+COMMAND = np.dtype(
+    [
+        ("stamp_ns", "<i8"),  # command time stamp (when the command was produced)
+        ("seq_src", "<u8"),  # the producer's command counter
+        ("tau_nm", "<f8", (DOF,)),  # joint torque commands [N m]
+        ("q_cmd_rad", "<f8", (DOF,)),  # joint position commands [rad]
+        ("joint_on", "u1", (DOF,)),
+        ("session_status", "u1"),  # SessionStatus
+    ]
+)
+FEEDBACK = np.dtype(
+    [
+        ("stamp_ns", "<i8"),  # sampling time stamp
+        ("seq_src", "<u8"),
+        ("q_rad", "<f8", (DOF,)),
+        ("qd_rad_s", "<f8", (DOF,)),
+        ("tau_nm", "<f8", (DOF,)),  # joint torques [N m]
+        ("wrench", "<f8", (6,)),  # end-effector force [N] (xyz) and torque [N m] (xyz)
+        ("estop", "u1"),
+    ]
+)
+
+# block name -> (payload dtype, count kind): "one", "proc" (per process), "robot" (per robot)
+BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
+    "manager": (MANAGER, "one"),
+    "proc": (PROC_STATUS, "proc"),
+    "exchange": (EXCHANGE, "one"),
+    "starving_sent": (COUNTER, "one"),
+    "starving_delivered": (COUNTER, "one"),
+    "command_stamp": (COUNTER, "one"),
+    "home": (HOME, "robot"),
+    "command": (COMMAND, "robot"),
+    "feedback": (FEEDBACK, "robot"),
+}
+
+SELF = "<self>"
+"""Writer of a per-process block: the process that owns that row."""
+
+# block -> node kind -> role of its one writer. "*" applies to any node kind.
+WRITERS: dict[str, dict[str, str]] = {
+    "manager": {"*": "manager"},
+    "proc": {"*": SELF},
+    "msgbox": {"*": SELF},
+    "exchange": {"*": "ddm"},
+    "starving_sent": {"*": "sender"},
+    "starving_delivered": {"*": "ddm"},
+    "command_stamp": {"*": "sender"},
+    "home": {"*": "acquisition"},
+    "command": {"esc": "ddm", "ssc": "worker", "bench": "busy"},
+    "feedback": {"esc": "acquisition", "ssc": "ddm", "bench": "busy"},
+}
+
+
+def segment_dtype(n_procs: int, n_robots: int) -> np.dtype[Any]:
+    """The whole segment for a node with ``n_procs`` processes and ``n_robots`` robots."""
+    if not 1 <= n_procs <= MAX_PROCS:
+        raise ValueError(f"n_procs must be 1..{MAX_PROCS}, got {n_procs}")
+    if not 0 <= n_robots <= MAX_ROBOTS:
+        raise ValueError(f"n_robots must be 0..{MAX_ROBOTS}, got {n_robots}")
+    fields: list[tuple[str, np.dtype[Any], tuple[int, ...]]] = [
+        ("header", _padded(HEADER), ()),
+        ("static", _padded(static_dtype(n_procs, n_robots)), ()),
+    ]
+    counts = {"one": (), "proc": (n_procs,), "robot": (n_robots,)}
+    for name, (payload, kind) in BLOCKS.items():
+        fields.append((name, seqlocked(payload), counts[kind]))
+        if name == "proc":
+            fields.append(("msgbox", MSGBOX, (n_procs,)))
+    names: list[str] = []
+    formats: list[Any] = []
+    offsets: list[int] = []
+    offset = 0
+    for name, dt, shape in fields:
+        names.append(name)
+        formats.append((dt, shape) if shape else dt)
+        offsets.append(offset)
+        count = int(np.prod(shape)) if shape else 1
+        offset += -(-dt.itemsize * count // ALIGN) * ALIGN
+    return _dtype_of(names, formats, offsets, offset)
+
+
+def layout_hash(n_procs: int, n_robots: int) -> int:
+    """A 64-bit hash of the declared layout; attach refuses a segment that differs."""
+    descr = repr(segment_dtype(n_procs, n_robots).descr) + f"v{VERSION}"
+    return int.from_bytes(hashlib.sha256(descr.encode()).digest()[:8], "little")

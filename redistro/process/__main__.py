@@ -1,0 +1,47 @@
+"""Process entry point: ``python -m redistro.process {manager|worker} ...``.
+
+The runtime signals are blocked and the math libraries limited to one thread
+*before* anything that may start a thread (numpy/OpenBLAS, pybullet,
+pinocchio) is imported: a process-directed signal landing on such a thread
+would kill the process.
+"""
+
+import os
+import sys
+
+from redistro.ipc.signals import block_runtime_signals
+
+block_runtime_signals()
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import logging
+
+    parser = argparse.ArgumentParser(prog="python -m redistro.process")
+    sub = parser.add_subparsers(dest="what", required=True)
+    m = sub.add_parser("manager")
+    m.add_argument("--spec", required=True)
+    w = sub.add_parser("worker")
+    w.add_argument("--spec", required=True)
+    w.add_argument("--index", type=int, required=True)
+    w.add_argument("--manager-pid", type=int, required=True)
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=os.environ.get("REDISTRO_LOG_LEVEL", "INFO"),
+        format="%(message)s",
+        stream=sys.stderr,
+    )
+    if args.what == "manager":
+        from redistro.process.manager import run_manager
+
+        return run_manager(args.spec)
+    from redistro.process.worker import run_worker
+
+    return run_worker(args.spec, args.index, args.manager_pid)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,479 @@
+"""The Manager: interval timer, sync signals, heartbeat check, fault termination.
+
+One manager per node. Initialization creates the node's Local Data and
+semaphores, runs :meth:`Manager.initialize` (the ESC freezes its robot there,
+before any worker exists), spawns the workers and waits until each is ready.
+Routine takes one timer tick per cycle: checks heartbeats, prints message
+boxes, publishes the cycle and sends the sync signal to every worker. Worker
+exits are seen at once (SIGCHLD, reaped through wait4 and watched through
+pidfds). Cleanup ends the workers, reaps them, writes the result and removes
+every IPC object the node created.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+from redistro.errors import NodeFault
+from redistro.ipc import names, sched, signals
+from redistro.ipc.sem import Semaphore
+from redistro.ipc.session import LOCK_FD_ENV, Manifest
+from redistro.ipc.timer import IntervalTimer
+from redistro.localdata import Block, LocalData, MessageBox, ProcState
+from redistro.process.spawn import spawn
+from redistro.process.spec import NodeSpec
+from redistro.process.stats import Samples
+
+log = logging.getLogger(__name__)
+
+ROUTINE_WAIT = (
+    frozenset({signal.SIGALRM, signal.SIGCHLD, signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
+)
+START_WAIT = frozenset({signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
+
+
+def describe_status(status: int) -> str:
+    if os.WIFSIGNALED(status):
+        return f"killed by {signal.Signals(os.WTERMSIG(status)).name}"
+    if os.WIFEXITED(status):
+        return f"exited with code {os.WEXITSTATUS(status)}"
+    return f"status {status:#x}"
+
+
+def _triple(values: Any) -> dict[str, float]:
+    return {k: round(float(v), 1) for k, v in zip(("p50", "p99", "max"), values, strict=True)}
+
+
+def _iso(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
+
+
+class _Child:
+    def __init__(self, name: str, pid: int, pidfd: int) -> None:
+        self.name = name
+        self.pid = pid
+        self.pidfd = pidfd
+        self.status: int | None = None
+        self.cpu_total_s = 0.0
+
+    @property
+    def alive(self) -> bool:
+        return self.status is None
+
+
+class Manager:
+    """Base manager; node kinds (ESC, SSC) subclass it and override the hooks."""
+
+    def __init__(self, spec: NodeSpec, spec_path: str) -> None:
+        self.spec = spec
+        self.spec_path = spec_path
+        self.timer = IntervalTimer(spec.rate_hz)
+        self.cycle = 0
+        self.result: dict[str, Any] = {"result": "ok", "reason": ""}
+        self.children: list[_Child] = []
+        self.lateness = Samples()
+        self.makespan = Samples()
+        self.tick_work = Samples()
+        self.missed_ticks = 0
+        self.late_heartbeats = 0
+        self.missed_heartbeats = 0
+        self.deadline_misses = 0
+        self.hung: set[int] = set()
+        self.messages: list[dict[str, Any]] = []
+        self.messages_lost = 0
+        self.ld: LocalData | None = None
+        self.sems: list[Semaphore] = []
+        self.rows: list[Block] = []
+        self.boxes: list[MessageBox] = []
+        self._msg_file: Any = None
+        self._routine_start = 0.0
+        self._routine_end = 0.0
+        self._cpu_start = 0.0
+        self._cpu_end = 0.0
+        self.granted: sched.Granted | None = None
+        self._due_ns = 0
+
+    # -- hooks --
+
+    def initialize(self) -> None:
+        """Runs after Local Data exists and before any worker is spawned."""
+
+    def on_fault(self, reason: str, message: str) -> None:
+        """Runs first on any fault (the ESC freezes its robot here)."""
+
+    def cleanup(self) -> None:
+        """Runs after every worker has been reaped."""
+
+    # -- the four states --
+
+    def run(self) -> int:
+        started = time.time()
+        signals.set_parent_death_signal(signals.SIG_ORPHAN)
+        if self.spec.owner_pid and os.getppid() != self.spec.owner_pid:
+            return 3
+        if self.spec.messages_path:
+            self._msg_file = open(self.spec.messages_path, "a", buffering=1)  # noqa: SIM115
+        try:
+            self._initialization()
+            self._routine()
+        except NodeFault as fault:
+            self._fault(fault.reason, str(fault))
+        except Exception as exc:
+            log.exception("manager of %s failed", self.spec.node)
+            self._fault("abnormal", f"manager error: {exc!r}")
+        finally:
+            self._cleanup(started)
+        return 0 if self.result["result"] == "ok" else 1
+
+    def _initialization(self) -> None:
+        spec = self.spec
+        self.granted = sched.apply(
+            spec.manager_priority, spec.cpus, spec.sched_policy, spec.lock_memory
+        )
+        manifest = Manifest.for_session(spec.session_id)
+        stage_of = {}
+        for k, group in enumerate(spec.stages()):
+            for j in group:
+                stage_of[j] = k
+        self.ld = ld = LocalData.create(
+            spec.session_id,
+            spec.node,
+            node_kind=spec.kind,
+            proc_names=[w.name for w in spec.workers],
+            proc_roles=[w.role for w in spec.workers],
+            proc_stages=[stage_of[j] for j in range(len(spec.workers))],
+            robot_names=spec.robots,
+            rate_hz=spec.rate_hz,
+            period_ns=self.timer.period_ns,
+            heartbeat_limit_cycles=spec.heartbeat_limit_cycles,
+            manifest=manifest,
+        )
+        self.block = ld.writer("manager", role="manager")
+        self.rows = [ld.block("proc", j) for j in range(len(spec.workers))]
+        self.boxes = [ld.msgbox(j) for j in range(len(spec.workers))]
+        self.last_stage = spec.stages()[-1]
+        with self.block.write() as d:
+            d["state"] = ProcState.INITIALIZATION
+            d["pid"] = os.getpid()
+        self.ready = Semaphore.create(
+            names.object_name(spec.session_id, spec.node, "ready"), manifest
+        )
+        self.sems.append(self.ready)
+        for j in range(len(spec.workers)):
+            self.sems.append(
+                Semaphore.create(names.object_name(spec.session_id, spec.node, f"go{j}"), manifest)
+            )
+
+        self.initialize()
+
+        lock_fd = os.environ.get(LOCK_FD_ENV)
+        pass_fds = (int(lock_fd),) if lock_fd else ()
+        for j, w in enumerate(spec.workers):
+            proc = spawn(
+                [
+                    "worker",
+                    "--spec",
+                    self.spec_path,
+                    "--index",
+                    str(j),
+                    "--manager-pid",
+                    str(os.getpid()),
+                ],
+                pass_fds=pass_fds,
+            )
+            self.children.append(_Child(w.name, proc.pid, os.pidfd_open(proc.pid)))
+            proc.returncode = 0  # reaped by wait4 below, not by Popen
+        self._wait_ready()
+
+    def _wait_ready(self) -> None:
+        deadline = time.monotonic() + self.spec.startup_timeout_s
+        n_ready = 0
+        while n_ready < len(self.children):
+            if self.ready.acquire(0.02):
+                n_ready += 1
+                continue
+            self._check_children()
+            info = signals.wait(START_WAIT, 0)
+            if info is not None:
+                raise NodeFault("abnormal", self._stop_text(info.si_signo) + " during start-up")
+            self._drain_messages()
+            if time.monotonic() > deadline:
+                late = [
+                    c.name
+                    for c, r in zip(self.children, self.rows, strict=True)
+                    if int(r.read()["state"]) != ProcState.ROUTINE
+                ]
+                raise NodeFault(
+                    "abnormal",
+                    f"workers not ready within {self.spec.startup_timeout_s} s: {', '.join(late)}",
+                )
+
+    def _routine(self) -> None:
+        spec = self.spec
+        tick_timeout = max(0.5, 100 * self.timer.period_s)
+        with self.block.write() as d:
+            d["state"] = ProcState.ROUTINE
+        import gc
+
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self._routine_start = time.monotonic()
+        self._cpu_start = time.process_time()
+        self.timer.start()
+        try:
+            while True:
+                info = signals.wait(ROUTINE_WAIT, tick_timeout)
+                if info is None:
+                    raise NodeFault("abnormal", f"no timer tick for {tick_timeout} s")
+                sig = info.si_signo
+                if sig == signal.SIGCHLD:
+                    self._check_children()
+                    continue
+                if sig != signal.SIGALRM:
+                    raise NodeFault("abnormal", self._stop_text(sig))
+                now = time.monotonic_ns()
+                due, late, missed = self.timer.due(now)
+                self.lateness.add(late)
+                self.missed_ticks += missed
+                if self.cycle:
+                    self._check_heartbeats()
+                self._drain_messages()
+                if spec.cycles and self.cycle >= spec.cycles:
+                    return
+                self.cycle += 1
+                with self.block.write() as d:
+                    d["cycle"] = self.cycle
+                    d["tick_due_ns"] = due
+                    d["tick_ns"] = now
+                    d["missed_ticks"] = self.missed_ticks
+                for child in self.children:
+                    signals.send(child.pidfd, signals.SIG_SYNC)
+                self._due_ns = due
+                self.tick_work.add(time.monotonic_ns() - now)
+        finally:
+            self.timer.stop()
+            self._routine_end = time.monotonic()
+            self._cpu_end = time.process_time()
+            gc.enable()
+
+    def _stop_text(self, sig: int) -> str:
+        if sig == signals.SIG_ORPHAN:
+            return "session owner died"
+        return f"interrupted by {signal.Signals(sig).name}"
+
+    # -- checks --
+
+    def _check_children(self) -> None:
+        """Reap any worker that exited; a worker exit during the session is a fault."""
+        for child in self.children:
+            if not child.alive:
+                continue
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+            if pid == 0:
+                continue
+            child.status = status
+            child.cpu_total_s = usage.ru_utime + usage.ru_stime
+            raise NodeFault(
+                "abnormal",
+                f"worker {child.name} (pid {child.pid}) died: "
+                f"{describe_status(status)} at cycle {self.cycle}",
+            )
+
+    def _check_heartbeats(self) -> None:
+        """Each worker must have signed the cycle that just ended; ``limit`` misses is a hang."""
+        limit = self.spec.heartbeat_limit_cycles
+        snaps = [row.read() for row in self.rows]
+        for j, snap in enumerate(snaps):
+            age = self.cycle - int(snap["heartbeat_cycle"])
+            if age == 1:
+                self.late_heartbeats += 1  # signed late; may still come
+            elif age > 1:
+                self.missed_heartbeats += 1  # a whole cycle without a sign-up
+            if age >= limit:
+                self.hung.add(j)
+                child = self.children[j]
+                raise NodeFault(
+                    "abnormal",
+                    f"worker {child.name} (pid {child.pid}) missed "
+                    f"{age} heartbeats (limit {limit}) at cycle {self.cycle}",
+                )
+        if all(int(snaps[j]["heartbeat_cycle"]) == self.cycle for j in self.last_stage):
+            span = max(int(snaps[j]["done_ns"]) for j in self.last_stage) - self._due_ns
+            self.makespan.add(span)
+            if span > self.timer.period_ns:
+                self.deadline_misses += 1
+
+    def _drain_messages(self) -> None:
+        for child, box in zip(self.children, self.boxes, strict=True):
+            for stamp_ns, level, text in box.drain():
+                self._message(child.name, level, text, stamp_ns)
+
+    def _message(self, process: str, level: int, text: str, stamp_ns: int | None = None) -> None:
+        line = f"[{self.spec.node}/{process}] {text}"
+        log.log(level, "%s", line)
+        if self._msg_file is not None:
+            stamp = (stamp_ns or time.monotonic_ns()) / 1e9
+            self._msg_file.write(f"{stamp:.6f} {logging.getLevelName(level)} {line}\n")
+        if len(self.messages) < 200:
+            self.messages.append(
+                {"process": process, "level": logging.getLevelName(level), "text": text}
+            )
+
+    def _fault(self, reason: str, message: str) -> None:
+        if self.result["result"] != "ok":
+            return  # the first fault is the cause; later ones are consequences
+        self.result.update(result=reason, reason=message)
+        self._message("manager", logging.ERROR, f"{reason}: {message}")
+        if self.ld is not None:
+            with self.block.write() as d:
+                d["estop"] = 1
+        try:
+            self.on_fault(reason, message)
+        except Exception:
+            log.exception("on_fault hook failed")
+
+    # -- cleanup --
+
+    def _cleanup(self, started: float) -> None:
+        try:
+            self.timer.stop()
+            if self.ld is not None:
+                with self.block.write() as d:
+                    d["state"] = ProcState.CLEANUP
+            self._end_workers()
+            try:
+                self.cleanup()
+            except Exception as exc:
+                log.exception("cleanup hook failed")
+                self._fault("abnormal", f"cleanup error: {exc!r}")
+            self._collect(started)
+        finally:
+            for child in self.children:
+                os.close(child.pidfd)
+            for sem in self.sems:
+                sem.close()
+                sem.unlink()
+            if self.ld is not None:
+                self.ld.close()
+                self.ld.unlink()
+            self._write_result()
+            if self._msg_file is not None:
+                self._msg_file.close()
+
+    def _end_workers(self) -> None:
+        for j, child in enumerate(self.children):
+            if child.alive:
+                # A hung worker gets no chance to clean up: it would not take it.
+                signals.send(child.pidfd, signal.SIGKILL if j in self.hung else signals.SIG_END)
+        deadline = time.monotonic() + self.spec.shutdown_timeout_s
+        while any(c.alive for c in self.children):
+            self._reap_quietly()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            signals.wait(frozenset({signal.SIGCHLD}), min(remaining, 0.05))
+        for child in self.children:
+            if child.alive:
+                self._message(
+                    "manager", logging.WARNING, f"worker {child.name} did not end in time; killed"
+                )
+                signals.send(child.pidfd, signal.SIGKILL)
+                _, status, usage = os.wait4(child.pid, 0)
+                child.status = status
+                child.cpu_total_s = usage.ru_utime + usage.ru_stime
+
+    def _reap_quietly(self) -> None:
+        for child in self.children:
+            if child.alive:
+                pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+                if pid:
+                    child.status = status
+                    child.cpu_total_s = usage.ru_utime + usage.ru_stime
+
+    def _collect(self, started: float) -> None:
+        self._drain_messages()
+        self.messages_lost = sum(b.lost for b in self.boxes)
+        routine_s = max(0.0, self._routine_end - self._routine_start)
+        workers: list[dict[str, Any]] = []
+        cpu_s = max(0.0, self._cpu_end - self._cpu_start)
+        for j, child in enumerate(self.children):
+            row = self.rows[j].read()
+            w = self.spec.workers[j]
+            cpu_s += float(row["cpu_s"])
+            workers.append(
+                {
+                    "name": w.name,
+                    "role": w.role,
+                    "pid": child.pid,
+                    "stage": w.stage,
+                    "cycles": int(row["cycles"]),
+                    "overruns": int(row["overruns"]),
+                    "stage_timeouts": int(row["stage_timeouts"]),
+                    "torn_reads": int(row["torn_reads"]),
+                    "lateness_us": _triple(row["lateness_us"]),
+                    "compute_us": _triple(row["compute_us"]),
+                    "cpu_s": round(float(row["cpu_s"]), 3),
+                    "scheduling": {
+                        "policy": {v: k for k, v in sched.POLICY_CODES.items()}[
+                            int(row["sched_policy"])
+                        ],
+                        "priority": int(row["sched_priority"]),
+                        "nice": int(row["nice"]),
+                        "cpus": sched.cpus_of_mask(int(row["cpu_mask"])),
+                    },
+                    "exit": describe_status(child.status)
+                    if child.status is not None
+                    else "unknown",
+                }
+            )
+        ended = time.time()
+        self.result.update(
+            {
+                "node": self.spec.node,
+                "kind": self.spec.kind,
+                "session_id": self.spec.session_id,
+                "started": _iso(started),
+                "ended": _iso(ended),
+                "rate_hz": self.spec.rate_hz,
+                "period_us": self.timer.period_ns / 1e3,
+                "cycles": self.cycle,
+                "routine_s": round(routine_s, 3),
+                "missed_ticks": self.missed_ticks,
+                "worker_overruns": sum(int(w["overruns"]) for w in workers),
+                "late_heartbeats": self.late_heartbeats,
+                "missed_heartbeats": self.missed_heartbeats,
+                "deadline_misses": self.deadline_misses,
+                "lateness_us": self.lateness.summary_us(),
+                "makespan_us": self.makespan.summary_us(),
+                "manager_work_us": self.tick_work.summary_us(),
+                "cpu_s": round(cpu_s, 3),
+                "cpu_percent": round(100 * cpu_s / routine_s, 1) if routine_s else 0.0,
+                "manager": {
+                    "pid": os.getpid(),
+                    "scheduling": self.granted.as_dict() if self.granted else {},
+                },
+                "workers": workers,
+                "messages": self.messages,
+                "messages_lost": self.messages_lost,
+            }
+        )
+
+    def _write_result(self) -> None:
+        if not self.spec.result_path:
+            return
+        path = Path(self.spec.result_path)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.result, indent=1))
+        os.replace(tmp, path)
+
+
+def run_manager(spec_path: str) -> int:
+    spec = NodeSpec.load(spec_path)
+    return Manager(spec, spec_path).run()

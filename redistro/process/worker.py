@@ -1,0 +1,224 @@
+"""The Worker base: wait for the sync signal, run one cycle, sign the heartbeat.
+
+Subclasses override :meth:`Worker.initialize`, :meth:`Worker.step` and
+:meth:`Worker.cleanup`; the loop, stage ordering, heartbeat, overrun counting
+and manager watch live here.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from typing import Any
+
+from redistro.ipc import names, sched, signals
+from redistro.ipc.sem import Semaphore
+from redistro.localdata import LocalData, MessageBox, ProcState
+from redistro.process.spec import NodeSpec, WorkerSpec
+from redistro.process.stats import Samples
+
+log = logging.getLogger(__name__)
+
+WAIT_SET = frozenset({signals.SIG_SYNC, signals.SIG_END, signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
+
+
+class Worker:
+    """Base class of every worker process of a node."""
+
+    def __init__(self, spec: NodeSpec, index: int, ld: LocalData) -> None:
+        self.spec = spec
+        self.index = index
+        self.me: WorkerSpec = spec.workers[index]
+        self.params: dict[str, Any] = self.me.params
+        self.ld = ld
+        self.msgbox: MessageBox = ld.msgbox(index)
+        self.cycle = 0
+
+    # -- hooks for subclasses --
+
+    def initialize(self) -> None:
+        """Initialization: open what the worker needs (runs before the first cycle)."""
+
+    def step(self, cycle: int) -> None:
+        """Routine: one cycle's work."""
+
+    def cleanup(self) -> None:
+        """Cleanup: release what initialize() opened."""
+
+    def post(self, text: str, level: int = logging.INFO) -> None:
+        """Put a message in this process's message box (the manager prints and logs it)."""
+        self.msgbox.post(text, level)
+
+
+class _Runner:
+    """Drives a Worker through its four states."""
+
+    def __init__(self, spec: NodeSpec, index: int, manager_pid: int) -> None:
+        self.spec = spec
+        self.index = index
+        self.manager_pid = manager_pid
+        self.period_ns = max(1, round(1e6 / spec.rate_hz)) * 1000
+        self.overruns = 0
+        self.stage_timeouts = 0
+        self.cycles = 0
+        self.lateness = Samples()
+        self.compute = Samples()
+        self.cpu_start_s = 0.0
+
+    def run(self) -> int:
+        spec, i = self.spec, self.index
+        me = spec.workers[i]
+        # Die with the manager: the kernel queues SIG_ORPHAN, taken below like any signal.
+        signals.set_parent_death_signal(signals.SIG_ORPHAN)
+        if os.getppid() != self.manager_pid:
+            return 3  # the manager died before we could watch it
+        manager_fd = os.pidfd_open(self.manager_pid)
+        ld = LocalData.attach(spec.session_id, spec.node)
+        sems: list[Semaphore] = []
+        worker: Worker | None = None
+        try:
+            row = ld.writer("proc", i, role=me.role, proc_index=i)
+            manager_block = ld.block("manager")
+            rows = [ld.block("proc", j) for j in range(len(spec.workers))]
+            stages = spec.stages()
+            my_stage = next(k for k, s in enumerate(stages) if i in s)
+            preds = stages[my_stage - 1] if my_stage > 0 else []
+            succs = stages[my_stage + 1] if my_stage + 1 < len(stages) else []
+            go = [
+                Semaphore.attach(names.object_name(spec.session_id, spec.node, f"go{j}"))
+                for j in range(len(spec.workers))
+            ]
+            ready = Semaphore.attach(names.object_name(spec.session_id, spec.node, "ready"))
+            sems = [*go, ready]
+
+            granted = sched.apply(
+                me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory
+            )
+            with row.write() as d:
+                d["pid"] = os.getpid()
+                d["state"] = ProcState.INITIALIZATION
+                d["sched_policy"] = sched.POLICY_CODES[granted.policy]
+                d["sched_priority"] = granted.priority
+                d["nice"] = granted.nice
+                d["cpu_mask"] = sched.cpu_mask(granted.cpus)
+            for refusal in granted.refused:
+                ld.msgbox(i).post(f"scheduling: {refusal}", logging.DEBUG)
+
+            from redistro.process.registry import worker_class
+
+            worker = worker_class(me.role)(spec, i, ld)
+            worker.initialize()
+            with row.write() as d:
+                d["state"] = ProcState.ROUTINE
+            ready.release()
+
+            reason = self._routine(worker, row, manager_block, rows, preds, succs, go, manager_fd)
+            if reason:
+                worker.post(reason, logging.WARNING)
+            with row.write() as d:
+                d["state"] = ProcState.CLEANUP
+            worker.cleanup()
+            return 0
+        finally:
+            self._finish(ld, i)
+            for s in sems:
+                s.close()
+            ld.close()
+            os.close(manager_fd)
+
+    def _routine(
+        self,
+        worker: Worker,
+        row: Any,
+        manager_block: Any,
+        rows: list[Any],
+        preds: list[int],
+        succs: list[int],
+        go: list[Semaphore],
+        manager_fd: int,
+    ) -> str:
+        """The cycle loop. Returns why it ended ('' for an orderly end)."""
+        import gc
+
+        gc.collect()
+        gc.freeze()
+        gc.disable()  # no collector pauses inside cycles; Routine allocates little
+        self.cpu_start_s = time.process_time()
+        my_go = go[self.index]
+        watch_s = max(0.05, 4 * self.period_ns / 1e9)
+        while True:
+            info = signals.wait(WAIT_SET, watch_s)
+            if info is None:
+                if not signals.process_alive(manager_fd):
+                    return "manager vanished; stopping"
+                continue
+            sig = info.si_signo
+            if sig == signals.SIG_END:
+                return ""
+            if sig == signals.SIG_ORPHAN:
+                return "manager died; stopping"
+            if sig != signals.SIG_SYNC:
+                return f"stopped by {signal.Signals(sig).name}"
+            extra = signals.drain(signals.SIG_SYNC)
+            wake_ns = time.monotonic_ns()
+            self.overruns += extra
+            m = manager_block.read()
+            cycle = int(m["cycle"])
+            self.lateness.add(wake_ns - int(m["tick_due_ns"]))
+            if preds and not self._wait_stage(
+                cycle, preds, rows, my_go, int(m["tick_due_ns"]) + self.period_ns
+            ):
+                self.stage_timeouts += 1
+            else:
+                t0 = time.monotonic_ns()
+                worker.step(cycle)
+                self.compute.add(time.monotonic_ns() - t0)
+                self.cycles += 1
+            with row.write() as d:
+                d["heartbeat_cycle"] = cycle
+                d["wake_ns"] = wake_ns
+                d["done_ns"] = time.monotonic_ns()
+                d["cycles"] = self.cycles
+                d["overruns"] = self.overruns
+                d["stage_timeouts"] = self.stage_timeouts
+            for j in succs:
+                go[j].release()
+
+    def _wait_stage(
+        self, cycle: int, preds: list[int], rows: list[Any], my_go: Semaphore, deadline_ns: int
+    ) -> bool:
+        """Collecting point: wait until every worker of the previous stage finished ``cycle``."""
+        while my_go.try_acquire():  # stale posts from earlier cycles
+            pass
+        while True:
+            if all(int(rows[p].read()["heartbeat_cycle"]) >= cycle for p in preds):
+                return True
+            remaining = (deadline_ns - time.monotonic_ns()) / 1e9
+            if remaining <= 0:
+                return False
+            my_go.acquire(remaining)
+
+    def _finish(self, ld: LocalData, i: int) -> None:
+        """Publish run statistics and go Idle (best effort: the segment may be gone)."""
+        try:
+            row = ld.writer("proc", i, role=self.spec.workers[i].role, proc_index=i)
+            lat, comp = self.lateness.summary_us(), self.compute.summary_us()
+            torn = ld.torn_reads()
+            with row.write() as d:
+                d["lateness_us"] = [lat["p50"], lat["p99"], lat["max"]]
+                d["compute_us"] = [comp["p50"], comp["p99"], comp["max"]]
+                d["torn_reads"] = torn
+                d["cpu_s"] = time.process_time() - self.cpu_start_s if self.cpu_start_s else 0.0
+                d["cycles"] = self.cycles
+                d["overruns"] = self.overruns
+                d["stage_timeouts"] = self.stage_timeouts
+                d["state"] = ProcState.IDLE
+        except Exception:  # finishing must never mask the real exit path
+            log.debug("could not publish final status", exc_info=True)
+
+
+def run_worker(spec_path: str, index: int, manager_pid: int) -> int:
+    spec = NodeSpec.load(spec_path)
+    return _Runner(spec, index, manager_pid).run()
