@@ -21,22 +21,39 @@ class _Parser(argparse.ArgumentParser):
         raise ConfigError(f"{self.prog}: {message}")
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="redistro", description="A multi-process robot controller.")
-    p.add_argument("--config", help="config file (default: config/redistro.yaml if present)")
+def _common(dest_suffix: str) -> argparse.ArgumentParser:
+    """--config/--set/-v, accepted before or after the subcommand."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument(
+        "--config",
+        dest="config" + dest_suffix,
+        default=None,
+        help="config file (default: config/redistro.yaml if present)",
+    )
     p.add_argument(
         "--set",
+        dest="set" + dest_suffix,
         action="append",
         default=[],
         metavar="KEY=VALUE",
         help="override a config value, e.g. --set bench.rate_hz=500",
     )
-    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.add_argument(
+        "-v", "--verbose", dest="verbose" + dest_suffix, action="store_true", help="debug logs"
+    )
+    return p
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="redistro", description="A multi-process robot controller.", parents=[_common("")]
+    )
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    common = _common("_sub")
 
     bench = sub.add_parser("bench", help="benchmarks")
     bsub = bench.add_subparsers(dest="bench", required=True, parser_class=_Parser)
-    c = bsub.add_parser("cycle", help="a real manager with N busy workers")
+    c = bsub.add_parser("cycle", help="a real manager with N busy workers", parents=[common])
     c.add_argument("--rate", type=float, default=None, help="cycle rate [Hz] (bench.rate_hz)")
     c.add_argument("--workers", type=int, default=5)
     c.add_argument("--seconds", type=float, default=5.0)
@@ -55,12 +72,14 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--no-baseline", action="store_true", help="skip the cyclictest baseline")
     c.add_argument("--message-every", type=int, default=0, help=argparse.SUPPRESS)
     c.add_argument("--json", dest="json_path", default=None, help="write the figures here")
-    i = bsub.add_parser("ipc", help="Local Data snapshot vs multiprocessing Pipe and Queue")
+    i = bsub.add_parser(
+        "ipc", help="Local Data snapshot vs multiprocessing Pipe and Queue", parents=[common]
+    )
     i.add_argument("--samples", type=int, default=5000)
     i.add_argument("--gap-us", type=float, default=200.0, help="pause between records")
     i.add_argument("--json", dest="json_path", default=None)
 
-    sub.add_parser("clean", help="remove IPC objects left by dead sessions")
+    sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
     return p
 
 
@@ -72,16 +91,19 @@ def main(argv: list[str] | None = None) -> int:
         os.environ.setdefault(var, "1")
     try:
         args = _parser().parse_args(argv)
+        config = getattr(args, "config_sub", None) or args.config
+        overrides = [*args.set, *getattr(args, "set_sub", [])]
+        verbose = args.verbose or getattr(args, "verbose_sub", False)
         import logging
 
         logging.basicConfig(
-            level=logging.DEBUG if args.verbose else logging.INFO,
+            level=logging.DEBUG if verbose else logging.INFO,
             format="%(message)s",
             stream=sys.stderr,
         )
         from redistro.config import load_config
 
-        cfg = load_config(args.config, args.set)
+        cfg = load_config(config, overrides)
         return _dispatch(args, cfg)
     except ConfigError as exc:
         print(f"redistro: error: {exc}", file=sys.stderr)

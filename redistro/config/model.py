@@ -45,13 +45,16 @@ class SchedulingConfig:
     policy: ``auto`` tries SCHED_RR and falls back to nice values; ``rr`` and
     ``nice`` ask for that one only (and report a refusal); ``none`` leaves the
     default scheduler alone.
+    lock_memory: mlockall in every process. Off by default: a locked process
+    takes 10-17 ms (instead of about 2 ms) to die on this machine, which delays
+    the manager's detection of a dead worker (docs/PERFORMANCE.md).
     """
 
     policy: Literal["auto", "rr", "nice", "none"] = "auto"
     priorities: dict[str, int] = field(
         default_factory=lambda: dict(PAPER_PRIORITIES), metadata={"ge": 1, "le": 99}
     )
-    lock_memory: bool = True
+    lock_memory: bool = False
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ reordered with stores, loads not with loads), which is what the protocol needs.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -23,7 +24,8 @@ import numpy as np
 from redistro.errors import TornReadTimeout
 from redistro.localdata.layout import MSG_TEXT, MSGBOX_SLOTS
 
-DEFAULT_READ_BUDGET_S = 0.002
+DEFAULT_READ_BUDGET_S = 0.005
+_BACKOFF_S = 20e-6
 
 
 class Block:
@@ -63,9 +65,16 @@ class Block:
             self._seq[0] = s + 2
 
     def read(self, budget_s: float = DEFAULT_READ_BUDGET_S) -> np.void:
-        """A consistent copy of the payload (a numpy record)."""
+        """A consistent copy of the payload (a numpy record).
+
+        A failed attempt means the writer is inside its write. If it was
+        preempted there by this (higher-priority) reader on the same CPU,
+        spinning would keep it from finishing: so retry at once a few times,
+        then yield the CPU, then sleep a little between attempts.
+        """
         deadline = 0
         seq = self._seq
+        attempts = 0
         while True:
             s1 = int(seq[0])
             if not s1 & 1:
@@ -73,11 +82,16 @@ class Block:
                 if int(seq[0]) == s1:
                     return copy.view(self._payload)[0]  # type: ignore[no-any-return]
             self.torn += 1
+            attempts += 1
             now = time.monotonic_ns()
             if deadline == 0:
                 deadline = now + int(budget_s * 1e9)
             elif now > deadline:
                 raise TornReadTimeout(f"block {self.name}: no consistent snapshot in {budget_s} s")
+            if attempts > 8:
+                time.sleep(_BACKOFF_S)
+            elif attempts > 2:
+                os.sched_yield()
 
     def detach(self) -> None:
         """Drop the views onto the mapping (the segment is being unmapped)."""

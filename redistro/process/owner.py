@@ -47,6 +47,7 @@ def run_node(spec: NodeSpec, session: Session, *, on_started: Any = None) -> dic
     interrupted: str | None = None
     kill_at: float | None = None
     status = 0
+    stragglers: list[int] = []
     try:
         while True:
             info = signals.wait(OWNER_WAIT, 0.2)
@@ -67,7 +68,7 @@ def run_node(spec: NodeSpec, session: Session, *, on_started: Any = None) -> dic
     finally:
         proc.returncode = status
         os.close(pidfd)
-        reap_descendants(spec.shutdown_timeout_s)
+        stragglers = reap_descendants(spec.shutdown_timeout_s)
     try:
         result: dict[str, Any] = json.loads(result_path.read_text())
     except (OSError, ValueError):
@@ -76,6 +77,9 @@ def run_node(spec: NodeSpec, session: Session, *, on_started: Any = None) -> dic
             "result": "abnormal",
             "reason": f"manager of {spec.node} died: {describe_status(status)}",
         }
+    result["stragglers_killed"] = stragglers
+    if stragglers:
+        log.warning("killed processes of %s that did not end: %s", spec.node, stragglers)
     if interrupted and result.get("result") == "ok":
         result.update(result="abnormal", reason=f"interrupted by {interrupted}")
     return result

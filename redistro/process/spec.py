@@ -40,7 +40,7 @@ class NodeSpec:
     startup_timeout_s: float = 10.0
     shutdown_timeout_s: float = 3.0
     sched_policy: str = "auto"
-    lock_memory: bool = True
+    lock_memory: bool = False
     manager_priority: int = 15
     cpus: list[int] = field(default_factory=list)
     owner_pid: int = 0

@@ -13,6 +13,7 @@ import signal
 import time
 from typing import Any
 
+from redistro.errors import TornReadTimeout
 from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
 from redistro.localdata import LocalData, MessageBox, ProcState
@@ -193,8 +194,11 @@ class _Runner:
         while my_go.try_acquire():  # stale posts from earlier cycles
             pass
         while True:
-            if all(int(rows[p].read()["heartbeat_cycle"]) >= cycle for p in preds):
-                return True
+            try:
+                if all(int(rows[p].read()["heartbeat_cycle"]) >= cycle for p in preds):
+                    return True
+            except TornReadTimeout:
+                pass  # a predecessor stuck inside its write: keep waiting to the deadline
             remaining = (deadline_ns - time.monotonic_ns()) / 1e9
             if remaining <= 0:
                 return False

@@ -1,0 +1,98 @@
+"""Shared fixtures. The autouse fixture fails any test that leaves IPC objects
+in /dev/shm (shared memory or semaphores) or child processes behind."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from redistro.ipc import signals
+
+SHM = Path("/dev/shm")
+
+
+def redistro_shm_entries() -> set[str]:
+    return {e for e in os.listdir(SHM) if "redistro" in e}
+
+
+def descendants(root: int) -> set[int]:
+    parent: dict[int, int] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_bytes()
+        except OSError:
+            continue
+        parent[int(entry)] = int(stat[stat.rfind(b")") + 2 :].split()[1])
+    out: set[int] = set()
+    frontier = [root]
+    while frontier:
+        p = frontier.pop()
+        for child, par in parent.items():
+            if par == p and child not in out:
+                out.add(child)
+                frontier.append(child)
+    return out
+
+
+def is_zombie(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_bytes()
+    except OSError:
+        return True  # gone
+    return stat[stat.rfind(b")") + 2 :].split()[0] == b"Z"
+
+
+def reap_zombies() -> None:
+    """Reap our zombie children (orphans re-parented to us, the subreaper)."""
+    for pid in signals.children_of(os.getpid()):
+        if is_zombie(pid):
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, os.WNOHANG)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _subreaper() -> None:
+    # Orphans of killed test sessions re-parent to pytest, so the leak check sees them.
+    signals.become_subreaper()
+
+
+@pytest.fixture(autouse=True)
+def no_leaks() -> Iterator[None]:
+    shm_before = redistro_shm_entries()
+    procs_before = descendants(os.getpid())
+    yield
+    deadline = time.monotonic() + 10.0
+    while True:
+        reap_zombies()
+        procs = {p for p in descendants(os.getpid()) - procs_before if not is_zombie(p)}
+        shm = redistro_shm_entries() - shm_before
+        if (not procs and not shm) or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)  # polling the OS for a condition, with a deadline
+    problems = []
+    if procs:
+        cmdlines = []
+        for pid in procs:
+            with contextlib.suppress(OSError):
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")
+                cmdlines.append(f"{pid}: {cmd.decode()[:120]}")
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        problems.append(f"child processes left: {cmdlines}")
+    if shm:
+        from redistro.ipc import names, session
+
+        for entry in shm:
+            session.unlink(*names.entry_to_name(entry))
+        problems.append(f"/dev/shm entries left: {sorted(shm)}")
+    if problems:
+        reap_zombies()
+        pytest.fail("; ".join(problems))

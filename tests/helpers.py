@@ -1,0 +1,92 @@
+"""Helpers for integration tests: run the CLI, find a running session, wait on conditions."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from redistro.localdata import LocalData, ProcState
+
+REDISTRO = [sys.executable, "-m", "redistro.cli"]
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_cli(*args: str, timeout: float = 120, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*REDISTRO, *args], capture_output=True, text=True, timeout=timeout, cwd=cwd, check=False
+    )
+
+
+def start_cli(*args: str, new_session: bool = False, cwd: Path = ROOT) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [*REDISTRO, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=cwd,
+        start_new_session=new_session,
+    )
+
+
+def read_session_id(proc: subprocess.Popen[str]) -> str:
+    assert proc.stdout is not None
+    line = proc.stdout.readline()  # the CLI prints "session <id>" first, then flushes
+    assert line.startswith("session "), f"unexpected first line {line!r}"
+    return line.split()[1]
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.01)  # polling a condition with a deadline
+
+
+def attach_running(session_id: str, node: str, min_cycle: int, timeout: float = 30) -> LocalData:
+    """Attach to a node's Local Data once every worker is in Routine and cycles run."""
+
+    def attempt() -> LocalData | None:
+        try:
+            ld = LocalData.attach(session_id, node)
+        except Exception:
+            return None
+        ok = int(ld.block("manager").read()["cycle"]) >= min_cycle and all(
+            int(ld.block("proc", j).read()["state"]) == ProcState.ROUTINE for j in range(ld.n_procs)
+        )
+        if ok:
+            return ld
+        ld.close()
+        return None
+
+    ld: LocalData = wait_for(attempt, timeout, f"{node} of {session_id} to run")
+    return ld
+
+
+def pid_gone(pid: int) -> bool:
+    with contextlib.suppress(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_bytes()
+    except OSError:
+        return True
+    return stat[stat.rfind(b")") + 2 :].split()[0] == b"Z"
+
+
+def load_json(path: Path) -> dict[str, Any]:
+    data: dict[str, Any] = json.loads(path.read_text())
+    return data
+
+
+def session_entries(session_id: str) -> list[str]:
+    return sorted(e for e in os.listdir("/dev/shm") if session_id in e)

@@ -1,0 +1,216 @@
+"""The Manager/Worker runtime with real processes, real posix_ipc, real signals."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import (
+    attach_running,
+    load_json,
+    pid_gone,
+    read_session_id,
+    run_cli,
+    start_cli,
+    wait_for,
+)
+
+
+def test_five_workers_at_1khz_keep_every_heartbeat(tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    done = run_cli(
+        "bench",
+        "cycle",
+        "--rate",
+        "1000",
+        "--workers",
+        "5",
+        "--seconds",
+        "4",
+        "--no-baseline",
+        "--json",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    r = load_json(out)
+    assert r["result"] == "ok", r["reason"]
+    assert r["cycles"] == 4000
+    node = r["node_result"]
+    assert len(node["workers"]) == 5
+    for w in node["workers"]:
+        # every cycle was either run, or skipped and counted (overrun, stage timeout)
+        assert w["cycles"] + w["stage_timeouts"] + w["overruns"] == 4000, w
+        assert w["exit"] == "exited with code 0"
+    # a heartbeat a whole cycle late is rare on this machine; a hang is never declared
+    assert r["missed_heartbeats"] <= 0.005 * 4000 * 5
+    assert r["lateness_us"]["p50"] > 0 and r["makespan_us"]["p50"] > 0
+    assert r["scheduling"]["manager"]["policy"] in ("SCHED_RR", "nice", "default")
+
+
+@contextlib.contextmanager
+def running_bench(tmp_path: Path, *extra: str, rate: str = "200") -> Iterator[tuple]:
+    """A 3-worker bench session, running; stopped (SIGKILL) at exit if still alive."""
+    out = tmp_path / "bench.json"
+    proc = start_cli(
+        "bench",
+        "cycle",
+        "--rate",
+        rate,
+        "--workers",
+        "3",
+        "--seconds",
+        "60",
+        "--no-baseline",
+        "--json",
+        str(out),
+        *extra,
+    )
+    ld = None
+    try:
+        sid = read_session_id(proc)
+        ld = attach_running(sid, "bench", min_cycle=20)
+        yield proc, ld, out
+    finally:
+        if ld is not None:
+            ld.close()
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(timeout=30)
+        proc.communicate()
+
+
+def test_sigkill_of_a_worker_is_seen_at_once(tmp_path: Path) -> None:
+    with running_bench(tmp_path) as (proc, ld, out):
+        victim = int(ld.block("proc", 1).read()["pid"])
+        cycle_at_kill = int(ld.block("manager").read()["cycle"])
+        os.kill(victim, signal.SIGKILL)
+        proc.wait(timeout=30)
+    assert proc.returncode == 1
+    r = load_json(out)
+    assert r["result"] == "abnormal"
+    m = re.search(r"worker busy1 \(pid (\d+)\) died: killed by SIGKILL at cycle (\d+)", r["reason"])
+    assert m, r["reason"]
+    assert int(m.group(1)) == victim
+    # SIGCHLD wakes the manager at once: detected in the cycle of the kill (or the next)
+    assert int(m.group(2)) - cycle_at_kill <= 1
+    others = [w for w in r["node_result"]["workers"] if w["name"] != "busy1"]
+    assert all(w["exit"] == "exited with code 0" for w in others)
+
+
+def test_sigstop_of_a_worker_is_caught_by_the_heartbeat_check(tmp_path: Path) -> None:
+    limit = 10
+    with running_bench(tmp_path, "--set", f"bench.heartbeat_limit_cycles={limit}") as (
+        proc,
+        ld,
+        out,
+    ):
+        assert int(ld.static["heartbeat_limit_cycles"]) == limit
+        victim = int(ld.block("proc", 2).read()["pid"])
+        cycle_at_stop = int(ld.block("manager").read()["cycle"])
+        os.kill(victim, signal.SIGSTOP)
+        proc.wait(timeout=30)
+    r = load_json(out)
+    assert r["result"] == "abnormal"
+    m = re.search(
+        rf"worker busy2 \(pid {victim}\) missed (\d+) heartbeats \(limit {limit}\) at cycle (\d+)",
+        r["reason"],
+    )
+    assert m, r["reason"]
+    assert int(m.group(1)) == limit
+    assert int(m.group(2)) - cycle_at_stop <= limit + 1
+    stopped = next(w for w in r["node_result"]["workers"] if w["name"] == "busy2")
+    assert stopped["exit"] == "killed by SIGKILL"  # a hung worker is not waited for
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_ends_the_session_in_order(tmp_path: Path, sig: int) -> None:
+    with running_bench(tmp_path) as (proc, ld, out):
+        pids = [int(ld.block("proc", j).read()["pid"]) for j in range(3)]
+        proc.send_signal(sig)
+        proc.wait(timeout=30)
+    r = load_json(out)
+    assert r["result"] == "abnormal"
+    assert "interrupted by" in r["reason"]
+    assert all(w["exit"] == "exited with code 0" for w in r["node_result"]["workers"])
+    assert all(pid_gone(p) for p in pids)
+
+
+def test_killing_the_manager_makes_every_worker_exit(tmp_path: Path) -> None:
+    with running_bench(tmp_path) as (proc, ld, out):
+        manager = int(ld.block("manager").read()["pid"])
+        workers = [int(ld.block("proc", j).read()["pid"]) for j in range(3)]
+        os.kill(manager, signal.SIGKILL)
+        # the workers leave on their own (parent-death signal), before any reaper acts
+        wait_for(lambda: all(pid_gone(p) for p in workers), 2.0, "workers to exit")
+        proc.wait(timeout=30)
+    r = load_json(out)
+    assert r["result"] == "abnormal"
+    assert "died: killed by SIGKILL" in r["reason"]
+    assert r["node_result"]["stragglers_killed"] == []
+
+
+def test_message_boxes_are_printed_and_logged(tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    done = run_cli(
+        "--set",
+        f"session.runs_dir={tmp_path}",
+        "bench",
+        "cycle",
+        "--rate",
+        "200",
+        "--workers",
+        "2",
+        "--seconds",
+        "1",
+        "--no-baseline",
+        "--message-every",
+        "50",
+        "--json",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    assert "[bench/busy0] cycle 50: 0 us of work done" in done.stderr
+    r = load_json(out)
+    log = (Path(r["run_dir"]) / "messages.log").read_text()
+    assert "[bench/busy1] cycle 200: 0 us of work done" in log
+    texts = [m["text"] for m in r["node_result"]["messages"]]
+    assert texts.count("cycle 100: 0 us of work done") == 2
+
+
+@pytest.mark.slow
+def test_parallel_stages_and_comparison(tmp_path: Path) -> None:
+    out = tmp_path / "cmp.json"
+    done = run_cli(
+        "bench",
+        "cycle",
+        "--rate",
+        "500",
+        "--workers",
+        "2",
+        "--work-us",
+        "300",
+        "--seconds",
+        "2",
+        "--compare-stages",
+        "--pin",
+        "--no-baseline",
+        "--json",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    r = load_json(out)
+    serial, parallel = r["serial"], r["parallel"]
+    assert serial["result"] == parallel["result"] == "ok"
+    assert {w["stage"] for w in serial["node_result"]["workers"]} == {0, 1}
+    assert {w["stage"] for w in parallel["node_result"]["workers"]} == {0}
+    # two 300 us jobs: serial makespan holds both, parallel about one
+    assert serial["makespan_us"]["p50"] > 600
+    assert serial["compute_us"]["p50"] >= 300 and parallel["compute_us"]["p50"] >= 300
+    pinned = [w["scheduling"]["cpus"] for w in parallel["node_result"]["workers"]]
+    assert all(len(c) == 1 for c in pinned) and pinned[0] != pinned[1]
