@@ -94,5 +94,5 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
                 raise ConfigError(f"{origin}: {where}: expected a mapping, got {child!r}")
             node = child
         node[parts[-1]] = value
-        origins[dotted] = f"--set {dotted}"
+        origins[dotted] = "--set"
     return build(Config, data, origin=origin, origins=origins)

@@ -64,6 +64,19 @@ class Block:
         finally:
             self._seq[0] = s + 2
 
+    def publish(self, record: np.ndarray[Any, Any]) -> None:
+        """Write a whole prepared record in one copy: the fast path for a writer
+        that builds its record locally, then publishes it.
+
+        record: an array of the payload dtype (one element), or its raw bytes (uint8).
+        """
+        raw = record if record.dtype == np.uint8 else record.reshape(-1).view(np.uint8)
+        s = int(self._seq[0])
+        s += s & 1
+        self._seq[0] = s + 1
+        self._raw[:] = raw
+        self._seq[0] = s + 2
+
     def read(self, budget_s: float = DEFAULT_READ_BUDGET_S) -> np.void:
         """A consistent copy of the payload (a numpy record).
 
@@ -72,15 +85,23 @@ class Block:
         spinning would keep it from finishing: so retry at once a few times,
         then yield the CPU, then sleep a little between attempts.
         """
+        out = np.empty((), self._payload)
+        self.read_into(out, budget_s)
+        return out[()]  # type: ignore[no-any-return]
+
+    def read_into(self, out: np.ndarray[Any, Any], budget_s: float = DEFAULT_READ_BUDGET_S) -> None:
+        """Like :meth:`read`, into a preallocated 0-d array of the payload dtype,
+        or straight into its raw bytes (uint8): no allocation, for polling readers."""
+        dst = out if out.dtype == np.uint8 else out.reshape(1).view(np.uint8)
         deadline = 0
         seq = self._seq
         attempts = 0
         while True:
             s1 = int(seq[0])
             if not s1 & 1:
-                copy = self._raw.copy()
+                dst[:] = self._raw
                 if int(seq[0]) == s1:
-                    return copy.view(self._payload)[0]  # type: ignore[no-any-return]
+                    return
             self.torn += 1
             attempts += 1
             now = time.monotonic_ns()

@@ -1,0 +1,50 @@
+"""The benchmarks run for real and report what they promise."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import load_json, run_cli
+
+
+def test_bench_ipc_reports_three_transports(tmp_path: Path) -> None:
+    out = tmp_path / "ipc.json"
+    done = run_cli("bench", "ipc", "--samples", "500", "--json", str(out))
+    assert done.returncode == 0, done.stderr
+    r = load_json(out)
+    assert r["record_bytes"] > 2 * 7 * 8 * 3
+    for key in ("localdata", "pipe", "queue"):
+        assert r[key]["samples"] == 500
+        assert 0 < r[key]["median_us"] <= r[key]["p99_us"] <= r[key]["max_us"]
+    assert r["localdata"]["inconsistent"] == 0
+    assert r["speedup_median"]["vs_queue"] > 0
+
+
+@pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) missing")
+def test_bench_cycle_measures_the_cyclictest_baseline_in_the_same_run(tmp_path: Path) -> None:
+    out = tmp_path / "cycle.json"
+    done = run_cli(
+        "bench", "cycle", "--rate", "1000", "--workers", "2", "--seconds", "1", "--json", str(out)
+    )
+    assert done.returncode == 0, done.stderr
+    r = load_json(out)
+    base = r["baseline_lateness_us"]
+    assert base["samples"] >= 900
+    assert 0 <= base["p50"] <= base["p99"] <= base["max"]
+    assert "-i 1000" in base["command"]
+    for key in (
+        "rate_hz",
+        "workers",
+        "cycles",
+        "overruns",
+        "missed_heartbeats",
+        "lateness_us",
+        "compute_us",
+        "cpu_percent",
+        "scheduling",
+    ):
+        assert key in r
+    assert r["cycles"] == 1000
