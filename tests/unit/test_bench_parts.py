@@ -1,0 +1,69 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from redistro.bench.baseline import histogram_percentiles
+from redistro.bench.cycle import parse_stages
+from redistro.errors import ConfigError
+from redistro.process.spec import NodeSpec, WorkerSpec
+from redistro.process.stats import Samples
+
+CYCLICTEST = """# /dev/cpu_dma_latency set to 0us
+000000 000000
+000010 000050
+000020 000049
+000900 000001
+# Total: 000000100
+# Min Latencies: 00010
+# Avg Latencies: 00024
+# Max Latencies: 00900
+# Histogram Overflows: 00000
+"""
+
+
+def test_cyclictest_histogram_percentiles() -> None:
+    stats = histogram_percentiles(CYCLICTEST)
+    assert stats == {"p50": 10.0, "p99": 20.0, "max": 900.0, "samples": 100}
+    assert histogram_percentiles("garbage") is None
+
+
+def test_stage_specs() -> None:
+    assert parse_stages(None, 3) == [0, 1, 2]
+    assert parse_stages("parallel", 3) == [0, 0, 0]
+    assert parse_stages("2,1", 3) == [0, 0, 1]
+    with pytest.raises(ConfigError):
+        parse_stages("2,2", 3)
+    with pytest.raises(ConfigError):
+        parse_stages("a", 3)
+
+
+def test_node_spec_groups_stages_and_round_trips(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    spec = NodeSpec(
+        session_id="s",
+        node="n",
+        kind="bench",
+        rate_hz=100.0,
+        heartbeat_limit_cycles=5,
+        workers=[
+            WorkerSpec("a", "busy", 0),
+            WorkerSpec("b", "busy", 1),
+            WorkerSpec("c", "busy", 1),
+        ],
+    )
+    assert spec.stages() == [[0], [1, 2]]
+    path = tmp_path / "spec.json"
+    spec.save(path)
+    assert NodeSpec.load(path) == spec
+
+
+def test_samples_summary() -> None:
+    s = Samples(size=4)
+    for v in (1000, 2000, 3000, 4000, 5000):  # ring keeps the last 4
+        s.add(v)
+    assert s.count == 5
+    assert sorted(s.values_ns()) == [2000, 3000, 4000, 5000]
+    out = s.summary_us()
+    assert out["max"] == 5.0 and out["p50"] == pytest.approx(3.5)
+    assert Samples().summary_us() == {"p50": 0.0, "p99": 0.0, "max": 0.0}
+    assert np.isfinite(out["p99"])

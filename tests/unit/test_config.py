@@ -1,0 +1,93 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from redistro.config import Config, load_config, parse_override
+from redistro.config.model import PAPER_PRIORITIES
+from redistro.errors import ConfigError
+
+
+def test_defaults_without_a_file() -> None:
+    cfg = Config()
+    assert isinstance(cfg, Config)
+    assert cfg.bench.rate_hz > 0
+    assert cfg.scheduling.priorities["acquisition"] == 19
+
+
+def test_shipped_config_matches_the_defaults() -> None:
+    shipped = load_config(Path(__file__).parents[2] / "config" / "redistro.yaml")
+    assert shipped == Config()
+    assert shipped.scheduling.priorities == PAPER_PRIORITIES
+
+
+def test_overrides_parse_yaml_values(tmp_path: Path) -> None:
+    cfg = load_config(None, ["bench.rate_hz=500", "bench.cpus=[0, 1]", "scheduling.policy=nice"])
+    assert cfg.bench.rate_hz == 500.0
+    assert cfg.bench.cpus == [0, 1]
+    assert cfg.scheduling.policy == "nice"
+    cfg = load_config(None, ["scheduling.priorities.pid=30"])
+    assert cfg.scheduling.priorities["pid"] == 30
+
+
+def test_override_beats_file(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("bench:\n  rate_hz: 250\n")
+    assert load_config(path, []).bench.rate_hz == 250
+    assert load_config(path, ["bench.rate_hz=300"]).bench.rate_hz == 300
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            "bench:\n  rate: 1\n",
+            "c.yaml: bench.rate: unknown key (known: cpus, heartbeat_limit_cycles, rate_hz)",
+        ),
+        (
+            "bench:\n  rate_hz: 0\n",
+            "c.yaml: bench.rate_hz: expected a number > 0 and <= 10000, got 0",
+        ),
+        ("bench:\n  rate_hz: true\n", "c.yaml: bench.rate_hz: expected a number"),
+        (
+            "bench:\n  heartbeat_limit_cycles: 2.5\n",
+            "bench.heartbeat_limit_cycles: expected an integer",
+        ),
+        ("bench:\n  cpus: 1\n", "bench.cpus: expected a list of an integer"),
+        ("bench:\n  cpus: [-1]\n", "bench.cpus[0]: expected an integer >= 0"),
+        ("bench: 3\n", "c.yaml: bench: expected a mapping of NodeConfig fields, got 3"),
+        (
+            "scheduling:\n  priorities: {pid: 200}\n",
+            "scheduling.priorities.pid: expected an integer >= 1 and <= 99",
+        ),
+        (
+            "scheduling:\n  lock_memory: yes please\n",
+            "scheduling.lock_memory: expected true or false",
+        ),
+        ("[1, 2]\n", "c.yaml: <top>: expected a mapping of config sections"),
+        ("bench: {rate_hz: .nan}\n", "bench.rate_hz: expected a finite number"),
+    ],
+)
+def test_errors_name_file_field_expected_and_got(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path, [])
+    assert message in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_override_errors_say_set() -> None:
+    with pytest.raises(ConfigError, match=r"^--set: bench.rate_hz: expected a number > 0"):
+        load_config(None, ["bench.rate_hz=-2"])
+    with pytest.raises(ConfigError, match=r"^--set bench.nope: no such config key"):
+        load_config(None, ["bench.nope=1"])
+    with pytest.raises(ConfigError, match=r"expected dotted\.key=value"):
+        parse_override("bench.rate_hz")
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(Path("/no/such/file.yaml"), [])
+
+
+def test_config_error_is_a_value_error() -> None:
+    assert issubclass(ConfigError, ValueError)

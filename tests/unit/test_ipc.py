@@ -1,0 +1,89 @@
+"""IPC helpers: names, semaphores with deadlines, timer arithmetic, scheduling, reaper."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from redistro.ipc import names, sched, session
+from redistro.ipc.sem import Semaphore
+from redistro.ipc.timer import IntervalTimer
+
+
+def test_names_derive_from_session_node_object() -> None:
+    sid = names.new_session_id()
+    assert names.is_session_id(sid)
+    name = names.object_name(sid, "esc.r1", "localdata")
+    assert name == f"/redistro.{sid}.esc.r1.localdata"
+    assert names.session_of_entry(name[1:]) == sid
+    assert names.session_of_entry("sem." + name[1:]) == sid
+    assert names.session_of_entry("sem.mp-abc") is None
+    assert names.entry_to_name("sem.redistro.x") == ("sem", "/redistro.x")
+    with pytest.raises(ValueError):
+        names.object_name("not-a-session", "n", "o")
+    with pytest.raises(ValueError):
+        names.object_name(sid, "a/b", "o")
+
+
+def test_semaphore_wait_has_a_monotonic_deadline() -> None:
+    with session.Session.create() as s:
+        sem = Semaphore.create(names.object_name(s.id, "t", "sem"), s.manifest)
+        try:
+            t0 = time.monotonic()
+            assert sem.acquire(0.05) is False
+            waited = time.monotonic() - t0
+            assert 0.05 <= waited < 1.0
+            sem.release()
+            assert sem.acquire(0.05) is True
+            assert sem.try_acquire() is False
+        finally:
+            sem.close()
+            sem.unlink()
+
+
+def test_session_close_removes_what_its_processes_leaked() -> None:
+    s = session.Session.create()
+    sem = Semaphore.create(names.object_name(s.id, "t", "leak"), s.manifest)
+    sem.close()  # "forgot" to unlink
+    removed = s.close()
+    assert removed == [names.object_name(s.id, "t", "leak")]
+    assert not s.directory.exists()
+
+
+def test_reaper_keeps_live_sessions() -> None:
+    with session.Session.create() as s:
+        sem = Semaphore.create(names.object_name(s.id, "t", "live"), s.manifest)
+        try:
+            assert s.id in session.live_sessions()
+            assert names.object_name(s.id, "t", "live") not in session.reap()
+            assert sem.value == 0  # still there
+        finally:
+            sem.close()
+            sem.unlink()
+
+
+def test_timer_due_counts_missed_ticks() -> None:
+    t = IntervalTimer(1000.0)
+    assert t.period_ns == 1_000_000
+    t.start_ns = 0
+    assert t.due(1_000_050) == (1_000_000, 50, 0)
+    assert t.due(2_000_100) == (2_000_000, 100, 0)
+    due, late, missed = t.due(5_000_000 + 10)  # ticks 3 and 4 coalesced
+    assert (due, late, missed) == (5_000_000, 10, 2)
+    assert IntervalTimer(300.0).period_ns == 3_333_000  # whole microseconds
+
+
+def test_scheduling_reports_what_was_granted() -> None:
+    before = os.sched_getaffinity(0)
+    pid = os.fork()
+    if pid == 0:  # try in a child so the test process keeps its own scheduling
+        g = sched.apply(16, [min(before)], "auto", False)
+        ok = g.cpus == [min(before)] and g.policy in ("SCHED_RR", "nice", "default")
+        ok = ok and (g.policy != "SCHED_RR" or g.priority == 16)
+        os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.WEXITSTATUS(status) == 0
+    assert sched.nice_for(19) == -9
+    assert sched.cpus_of_mask(sched.cpu_mask([0, 3])) == [0, 3]
