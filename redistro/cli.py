@@ -21,9 +21,9 @@ class _Parser(argparse.ArgumentParser):
         raise ConfigError(f"{self.prog}: {message}")
 
 
-def _common(dest_suffix: str) -> argparse.ArgumentParser:
+def _common(dest_suffix: str) -> _Parser:
     """--config/--set/-v, accepted before or after the subcommand."""
-    p = argparse.ArgumentParser(add_help=False)
+    p = _Parser(add_help=False)
     p.add_argument(
         "--config",
         dest="config" + dest_suffix,

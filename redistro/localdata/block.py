@@ -17,7 +17,7 @@ import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -87,7 +87,7 @@ class Block:
         """
         out = np.empty((), self._payload)
         self.read_into(out, budget_s)
-        return out[()]  # type: ignore[no-any-return]
+        return cast(np.void, out[()])
 
     def read_into(self, out: np.ndarray[Any, Any], budget_s: float = DEFAULT_READ_BUDGET_S) -> None:
         """Like :meth:`read`, into a preallocated 0-d array of the payload dtype,
