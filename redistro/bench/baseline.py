@@ -20,8 +20,9 @@ def _rr_permitted(priority: int) -> bool:
     return True
 
 
-def histogram_percentiles(text: str) -> dict[str, Any] | None:
-    """Parse ``cyclictest -h`` output: (p50, p99, max) in µs and the sample count."""
+def histogram_percentiles(text: str, period_us: float = 0.0) -> dict[str, Any] | None:
+    """Parse ``cyclictest -h`` output: (p50, p99, max) in µs, the sample count and,
+    given ``period_us``, the fraction of wake-ups later than one period."""
     buckets: list[tuple[int, int]] = []
     overflows = 0
     max_us = None
@@ -47,7 +48,16 @@ def histogram_percentiles(text: str) -> dict[str, Any] | None:
                 return float(us)
         return float(max_us)  # in the overflow bucket
 
-    return {"p50": pct(0.50), "p99": pct(0.99), "max": float(max_us), "samples": total}
+    out: dict[str, Any] = {
+        "p50": pct(0.50),
+        "p99": pct(0.99),
+        "max": float(max_us),
+        "samples": total,
+    }
+    if period_us:
+        late = sum(c for us, c in buckets if us > period_us) + overflows
+        out["over_period_fraction"] = round(late / total, 6)
+    return out
 
 
 def cyclictest(rate_hz: float, seconds: float, priority: int) -> dict[str, Any] | None:
@@ -82,7 +92,7 @@ def cyclictest(rate_hz: float, seconds: float, priority: int) -> dict[str, Any] 
         )
     except (OSError, subprocess.TimeoutExpired) as exc:
         return {"error": str(exc), "command": " ".join(cmd)}
-    stats = histogram_percentiles(done.stdout)
+    stats = histogram_percentiles(done.stdout, interval_us)
     if stats is None:
         return {"error": (done.stderr or done.stdout).strip()[:200], "command": " ".join(cmd)}
     stats["command"] = " ".join(cmd)

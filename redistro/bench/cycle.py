@@ -136,7 +136,10 @@ def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str,
     """The benchmark's figures from a manager result."""
     cycles = result.get("cycles", 0)
     comp = [w["compute_us"] for w in result.get("workers", [])]
-    overruns = result.get("missed_ticks", 0) + result.get("worker_overruns", 0)
+    # An overrun is an event: the manager took a tick more than one period late,
+    # or a worker woke to more than one queued sync. The cycles lost in them are
+    # missed_ticks (manager) and worker_skipped.
+    overruns = result.get("manager_overruns", 0) + result.get("worker_overruns", 0)
     return {
         "result": result.get("result"),
         "reason": result.get("reason", ""),
@@ -146,8 +149,10 @@ def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str,
         "cycles": cycles,
         "overruns": overruns,
         "overrun_fraction": round(overruns / cycles, 6) if cycles else None,
+        "manager_overruns": result.get("manager_overruns", 0),
         "missed_ticks": result.get("missed_ticks", 0),
         "worker_overruns": result.get("worker_overruns", 0),
+        "worker_skipped": result.get("worker_skipped", 0),
         "late_heartbeats": result.get("late_heartbeats", 0),
         "missed_heartbeats": result.get("missed_heartbeats", 0),
         "deadline_misses": result.get("deadline_misses", 0),
@@ -186,8 +191,11 @@ def print_summary(label: str, s: dict[str, Any], out: Any = sys.stdout) -> None:
     if lat:
         print(f"  timer lateness us p50 {lat['p50']} p99 {lat['p99']} max {lat['max']}", file=out)
     if base and "p99" in base:
+        late = base.get("over_period_fraction", 0.0)
         print(
-            f"  cyclictest     us p50 {base['p50']} p99 {base['p99']} max {base['max']}", file=out
+            f"  cyclictest     us p50 {base['p50']} p99 {base['p99']} max {base['max']}; "
+            f"{100 * late:.3f}% of its wake-ups later than one period",
+            file=out,
         )
     if span:
         print(

@@ -113,7 +113,8 @@ MANAGER = np.dtype(
         ("cycle", "<u8"),  # cycles the manager has run (one per tick taken)
         ("tick_due_ns", "<i8"),  # when the current cycle's tick was due
         ("tick_ns", "<i8"),  # when the manager took it
-        ("missed_ticks", "<u8"),
+        ("overruns", "<u8"),  # ticks taken more than one period late
+        ("missed_ticks", "<u8"),  # ticks that passed unseen (coalesced) in those overruns
         ("pid", "<i4"),
     ]
 )
@@ -132,6 +133,7 @@ PROC_STATUS = np.dtype(
         ("done_ns", "<i8"),
         ("cycles", "<u8"),
         ("overruns", "<u8"),  # wake-ups that found more than one sync queued
+        ("skipped", "<u8"),  # the extra syncs found then: cycles this process did not run
         ("stage_timeouts", "<u8"),  # cycles skipped because a previous stage did not finish
         ("torn_reads", "<u8"),  # snapshot attempts that had to be retried
         ("cpu_s", "<f8"),  # CPU time spent in Routine (written at Cleanup)

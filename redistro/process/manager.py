@@ -20,7 +20,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from redistro.errors import NodeFault
+import numpy as np
+
+from redistro.errors import NodeFault, TornReadTimeout
 from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
 from redistro.ipc.session import LOCK_FD_ENV, Manifest
@@ -81,6 +83,7 @@ class Manager:
         self.makespan = Samples()
         self.tick_work = Samples()
         self.missed_ticks = 0
+        self.overruns = 0
         self.late_heartbeats = 0
         self.missed_heartbeats = 0
         self.deadline_misses = 0
@@ -156,6 +159,7 @@ class Manager:
         )
         self.block = ld.writer("manager", role="manager")
         self.rows = [ld.block("proc", j) for j in range(len(spec.workers))]
+        self._last_hb = [0] * len(spec.workers)
         self.boxes = [ld.msgbox(j) for j in range(len(spec.workers))]
         self.last_stage = spec.stages()[-1]
         with self.block.write() as d:
@@ -241,7 +245,9 @@ class Manager:
                 now = time.monotonic_ns()
                 due, late, missed = self.timer.due(now)
                 self.lateness.add(late)
-                self.missed_ticks += missed
+                if missed:
+                    self.overruns += 1
+                    self.missed_ticks += missed
                 if self.cycle:
                     self._check_heartbeats()
                 self._drain_messages()
@@ -252,6 +258,7 @@ class Manager:
                     d["cycle"] = self.cycle
                     d["tick_due_ns"] = due
                     d["tick_ns"] = now
+                    d["overruns"] = self.overruns
                     d["missed_ticks"] = self.missed_ticks
                 for child in self.children:
                     signals.send(child.pidfd, signals.SIG_SYNC)
@@ -289,9 +296,18 @@ class Manager:
     def _check_heartbeats(self) -> None:
         """Each worker must have signed the cycle that just ended; ``limit`` misses is a hang."""
         limit = self.spec.heartbeat_limit_cycles
-        snaps = [row.read() for row in self.rows]
-        for j, snap in enumerate(snaps):
-            age = self.cycle - int(snap["heartbeat_cycle"])
+        snaps: list[np.void | None] = []
+        for j, row in enumerate(self.rows):
+            try:
+                snap = row.read()
+                self._last_hb[j] = int(snap["heartbeat_cycle"])
+                snaps.append(snap)
+            except TornReadTimeout:
+                # The worker was stopped inside its write (a VM stall, a hang):
+                # no sign-up seen this cycle; its last known one stands.
+                snaps.append(None)
+        for j, last_hb in enumerate(self._last_hb):
+            age = self.cycle - last_hb
             if age == 1:
                 self.late_heartbeats += 1  # signed late; may still come
             elif age > 1:
@@ -304,8 +320,9 @@ class Manager:
                     f"worker {child.name} (pid {child.pid}) missed "
                     f"{age} heartbeats (limit {limit}) at cycle {self.cycle}",
                 )
-        if all(int(snaps[j]["heartbeat_cycle"]) == self.cycle for j in self.last_stage):
-            span = max(int(snaps[j]["done_ns"]) for j in self.last_stage) - self._due_ns
+        last = [snaps[j] for j in self.last_stage]
+        if all(s is not None and int(s["heartbeat_cycle"]) == self.cycle for s in last):
+            span = max(int(s["done_ns"]) for s in last if s is not None) - self._due_ns
             self.makespan.add(span)
             if span > self.timer.period_ns:
                 self.deadline_misses += 1
@@ -372,6 +389,8 @@ class Manager:
             if child.alive:
                 # A hung worker gets no chance to clean up: it would not take it.
                 signals.send(child.pidfd, signal.SIGKILL if j in self.hung else signals.SIG_END)
+        for sem in self.sems[1:]:  # wake workers waiting at a collecting point
+            sem.release()
         deadline = time.monotonic() + self.spec.shutdown_timeout_s
         while any(c.alive for c in self.children):
             self._reap_quietly()
@@ -415,6 +434,7 @@ class Manager:
                     "stage": w.stage,
                     "cycles": int(row["cycles"]),
                     "overruns": int(row["overruns"]),
+                    "skipped": int(row["skipped"]),
                     "stage_timeouts": int(row["stage_timeouts"]),
                     "torn_reads": int(row["torn_reads"]),
                     "lateness_us": _triple(row["lateness_us"]),
@@ -445,8 +465,10 @@ class Manager:
                 "period_us": self.timer.period_ns / 1e3,
                 "cycles": self.cycle,
                 "routine_s": round(routine_s, 3),
+                "manager_overruns": self.overruns,
                 "missed_ticks": self.missed_ticks,
                 "worker_overruns": sum(int(w["overruns"]) for w in workers),
+                "worker_skipped": sum(int(w["skipped"]) for w in workers),
                 "late_heartbeats": self.late_heartbeats,
                 "missed_heartbeats": self.missed_heartbeats,
                 "deadline_misses": self.deadline_misses,

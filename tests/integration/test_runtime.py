@@ -45,7 +45,8 @@ def test_five_workers_at_1khz_keep_every_heartbeat(tmp_path: Path) -> None:
     assert len(node["workers"]) == 5
     for w in node["workers"]:
         # every cycle was either run, or skipped and counted (overrun, stage timeout)
-        assert w["cycles"] + w["stage_timeouts"] + w["overruns"] == 4000, w
+        assert w["cycles"] + w["stage_timeouts"] + w["skipped"] == 4000, w
+        assert w["overruns"] <= w["skipped"]
         assert w["exit"] == "exited with code 0"
     # a heartbeat a whole cycle late is rare on this machine; a hang is never declared
     assert r["missed_heartbeats"] <= 0.005 * 4000 * 5

@@ -25,6 +25,8 @@ CYCLICTEST = """# /dev/cpu_dma_latency set to 0us
 def test_cyclictest_histogram_percentiles() -> None:
     stats = histogram_percentiles(CYCLICTEST)
     assert stats == {"p50": 10.0, "p99": 20.0, "max": 900.0, "samples": 100}
+    stats = histogram_percentiles(CYCLICTEST, period_us=500)
+    assert stats is not None and stats["over_period_fraction"] == 0.01
     assert histogram_percentiles("garbage") is None
 
 
