@@ -16,8 +16,10 @@ def test_bench_ipc_reports_three_transports(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     r = load_json(out)
     assert r["record_bytes"] > 2 * 7 * 8 * 3
+    assert r["pipe"]["samples"] == r["queue"]["samples"] == 500
+    assert r["localdata"]["samples"] + r["localdata"]["missed"] == 500
+    assert r["localdata"]["samples"] >= 450  # a polling reader may miss an overwritten record
     for key in ("localdata", "pipe", "queue"):
-        assert r[key]["samples"] == 500
         assert 0 < r[key]["median_us"] <= r[key]["p99_us"] <= r[key]["max_us"]
     assert r["localdata"]["inconsistent"] == 0
     assert r["speedup_median"]["vs_queue"] > 0

@@ -45,9 +45,9 @@ def test_no_torn_snapshot_is_ever_returned() -> None:
             ld.close()
             ld.unlink()
     writes, readers = outs[0]["writes"], outs[1:]
-    assert writes > 10_000
+    assert writes > 1_000
     for r in readers:
-        assert r["snapshots"] > 10_000
+        assert r["snapshots"] > 1_000
         assert r["torn_returned"] == 0  # the promise
         assert r["went_back"] == 0  # snapshots never go back in time
         # The control: the same copies taken without the protocol do tear, so the
