@@ -346,7 +346,7 @@ class Manager:
     def _fault(self, reason: str, message: str) -> None:
         if self.result["result"] != "ok":
             return  # the first fault is the cause; later ones are consequences
-        self.result.update(result=reason, reason=message)
+        self.result.update(result=reason, reason=message, fault_monotonic_ns=time.monotonic_ns())
         self._message("manager", logging.ERROR, f"{reason}: {message}")
         if self.ld is not None:
             with self.block.write() as d:

@@ -6,6 +6,7 @@ import contextlib
 import os
 import re
 import signal
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -91,6 +92,7 @@ def test_sigkill_of_a_worker_is_seen_at_once(tmp_path: Path) -> None:
     with running_bench(tmp_path) as (proc, ld, out):
         victim = int(ld.block("proc", 1).read()["pid"])
         cycle_at_kill = int(ld.block("manager").read()["cycle"])
+        killed_ns = time.monotonic_ns()
         os.kill(victim, signal.SIGKILL)
         proc.wait(timeout=30)
     assert proc.returncode == 1
@@ -99,8 +101,12 @@ def test_sigkill_of_a_worker_is_seen_at_once(tmp_path: Path) -> None:
     m = re.search(r"worker busy1 \(pid (\d+)\) died: killed by SIGKILL at cycle (\d+)", r["reason"])
     assert m, r["reason"]
     assert int(m.group(1)) == victim
-    # SIGCHLD wakes the manager at once: detected in the cycle of the kill (or the next)
-    assert int(m.group(2)) - cycle_at_kill <= 1
+    # Seen through SIGCHLD/wait4 ("died"), not by the heartbeat check (limit 25
+    # cycles): as soon as the kernel has torn the process down, typically
+    # within the cycle of the kill; the bound leaves room for a loaded machine.
+    assert int(m.group(2)) - cycle_at_kill <= 5
+    detection_ms = (r["node_result"]["fault_monotonic_ns"] - killed_ns) / 1e6
+    assert 0 < detection_ms < 25 * 5
     others = [w for w in r["node_result"]["workers"] if w["name"] != "busy1"]
     assert all(w["exit"] == "exited with code 0" for w in others)
 
