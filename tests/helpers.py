@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,8 +15,10 @@ from typing import Any
 
 from redistro.localdata import LocalData, ProcState
 
-REDISTRO = [sys.executable, "-m", "redistro.cli"]
 ROOT = Path(__file__).resolve().parent.parent
+# Run folders of test sessions go to a temporary place, not the repo's runs/.
+RUNS = tempfile.mkdtemp(prefix="redistro-test-runs-")
+REDISTRO = [sys.executable, "-m", "redistro.cli", "--set", f"session.runs_dir={RUNS}"]
 
 
 def run_cli(*args: str, timeout: float = 120, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
