@@ -21,6 +21,23 @@ RUNS = tempfile.mkdtemp(prefix="redistro-test-runs-")
 REDISTRO = [sys.executable, "-m", "redistro.cli", "--set", f"session.runs_dir={RUNS}"]
 
 
+def bench_cycle(rate: str, workers: str, seconds: str, out: Path | str) -> list[str]:
+    """Arguments for a cycle benchmark run without the cyclictest baseline."""
+    return [
+        "bench",
+        "cycle",
+        "--rate",
+        rate,
+        "--workers",
+        workers,
+        "--seconds",
+        seconds,
+        "--no-baseline",
+        "--json",
+        str(out),
+    ]
+
+
 def run_cli(*args: str, timeout: float = 120, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [*REDISTRO, *args], capture_output=True, text=True, timeout=timeout, cwd=cwd, check=False

@@ -11,7 +11,7 @@ import time
 
 import posix_ipc
 
-from redistro.errors import CycleTimeout, IPCError
+from redistro.errors import IPCError
 from redistro.ipc.session import Manifest
 
 
@@ -60,10 +60,6 @@ class Semaphore:
                 continue  # the wall-clock timeout fired; the loop re-checks monotonic time
             except posix_ipc.SignalError:
                 continue
-
-    def acquire_or_raise(self, timeout_s: float, what: str) -> None:
-        if not self.acquire(timeout_s):
-            raise CycleTimeout(f"{what}: no post on {self.name} within {timeout_s:.3f} s")
 
     def release(self) -> None:
         self._sem.release()

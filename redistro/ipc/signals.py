@@ -10,7 +10,6 @@ import ctypes
 import ctypes.util
 import os
 import signal
-import time
 
 SIG_SYNC = signal.SIGRTMIN + 1
 """Manager -> worker: a new cycle has started. Queued, so a backlog is countable."""
@@ -31,10 +30,6 @@ _PR_SET_CHILD_SUBREAPER = 36
 def block_runtime_signals() -> None:
     """Block the runtime signals in the calling thread (and threads it starts)."""
     signal.pthread_sigmask(signal.SIG_BLOCK, RUNTIME_SIGNALS)
-
-
-def unblock_runtime_signals() -> None:
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, RUNTIME_SIGNALS)
 
 
 def wait(signals: frozenset[int] | set[int], timeout_s: float) -> signal.struct_siginfo | None:
@@ -104,7 +99,3 @@ def process_alive(pidfd: int) -> bool:
     poller = select.poll()
     poller.register(pidfd, select.POLLIN)
     return not poller.poll(0)
-
-
-def monotonic_ns() -> int:
-    return time.monotonic_ns()

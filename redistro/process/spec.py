@@ -63,8 +63,3 @@ class NodeSpec:
         data = json.loads(Path(path).read_text())
         data["workers"] = [WorkerSpec(**w) for w in data["workers"]]
         return cls(**data)
-
-
-def serial_stages(n: int) -> list[int]:
-    """Default ordering: every worker its own stage, in declaration order."""
-    return list(range(n))

@@ -14,6 +14,7 @@ import pytest
 
 from tests.helpers import (
     attach_running,
+    bench_cycle,
     load_json,
     pid_gone,
     read_session_id,
@@ -26,17 +27,7 @@ from tests.helpers import (
 def test_five_workers_at_1khz_keep_every_heartbeat(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     done = run_cli(
-        "bench",
-        "cycle",
-        "--rate",
-        "1000",
-        "--workers",
-        "5",
-        "--seconds",
-        "4",
-        "--no-baseline",
-        "--json",
-        str(out),
+        *bench_cycle("1000", "5", "4", str(out)),
     )
     assert done.returncode == 0, done.stderr
     r = load_json(out)
@@ -61,17 +52,7 @@ def running_bench(tmp_path: Path, *extra: str, rate: str = "200") -> Iterator[tu
     """A 3-worker bench session, running; stopped (SIGKILL) at exit if still alive."""
     out = tmp_path / "bench.json"
     proc = start_cli(
-        "bench",
-        "cycle",
-        "--rate",
-        rate,
-        "--workers",
-        "3",
-        "--seconds",
-        "60",
-        "--no-baseline",
-        "--json",
-        str(out),
+        *bench_cycle(rate, "3", "60", str(out)),
         *extra,
     )
     ld = None

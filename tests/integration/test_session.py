@@ -11,6 +11,7 @@ import pytest
 from redistro.ipc import names
 from tests.helpers import (
     attach_running,
+    bench_cycle,
     load_json,
     pid_gone,
     read_session_id,
@@ -24,17 +25,7 @@ from tests.helpers import (
 def _kill_whole_session(tmp_path: Path) -> str:
     """Start a session in its own process group and SIGKILL all of it."""
     proc = start_cli(
-        "bench",
-        "cycle",
-        "--rate",
-        "200",
-        "--workers",
-        "2",
-        "--seconds",
-        "60",
-        "--no-baseline",
-        "--json",
-        str(tmp_path / "x.json"),
+        *bench_cycle("200", "2", "60", str(tmp_path / "x.json")),
         new_session=True,
     )
     sid = read_session_id(proc)
@@ -66,17 +57,7 @@ def test_the_next_start_reaps_a_killed_session(tmp_path: Path) -> None:
     sid = _kill_whole_session(tmp_path)
     out = tmp_path / "next.json"
     done = run_cli(
-        "bench",
-        "cycle",
-        "--rate",
-        "200",
-        "--workers",
-        "1",
-        "--seconds",
-        "0.2",
-        "--no-baseline",
-        "--json",
-        str(out),
+        *bench_cycle("200", "1", "0.2", str(out)),
     )
     assert done.returncode == 0, done.stderr
     assert f"reaped /redistro.{sid}.bench.localdata" in done.stderr
@@ -86,17 +67,7 @@ def test_the_next_start_reaps_a_killed_session(tmp_path: Path) -> None:
 
 def test_clean_keeps_live_sessions(tmp_path: Path) -> None:
     proc = start_cli(
-        "bench",
-        "cycle",
-        "--rate",
-        "200",
-        "--workers",
-        "1",
-        "--seconds",
-        "60",
-        "--no-baseline",
-        "--json",
-        str(tmp_path / "x.json"),
+        *bench_cycle("200", "1", "60", str(tmp_path / "x.json")),
     )
     try:
         sid = read_session_id(proc)
