@@ -100,6 +100,7 @@ class Manager:
         self._cpu_start = 0.0
         self._cpu_end = 0.0
         self.granted: sched.Granted | None = None
+        self.block: Block | None = None
         self._due_ns = 0
 
     # -- hooks --
@@ -220,8 +221,10 @@ class Manager:
 
     def _routine(self) -> None:
         spec = self.spec
+        block = self.block
+        assert block is not None  # created in Initialization
         tick_timeout = max(0.5, 100 * self.timer.period_s)
-        with self.block.write() as d:
+        with block.write() as d:
             d["state"] = ProcState.ROUTINE
         import gc
 
@@ -254,7 +257,7 @@ class Manager:
                 if spec.cycles and self.cycle >= spec.cycles:
                     return
                 self.cycle += 1
-                with self.block.write() as d:
+                with block.write() as d:
                     d["cycle"] = self.cycle
                     d["tick_due_ns"] = due
                     d["tick_ns"] = now
@@ -348,7 +351,7 @@ class Manager:
             return  # the first fault is the cause; later ones are consequences
         self.result.update(result=reason, reason=message, fault_monotonic_ns=time.monotonic_ns())
         self._message("manager", logging.ERROR, f"{reason}: {message}")
-        if self.ld is not None:
+        if self.block is not None:
             with self.block.write() as d:
                 d["estop"] = 1
         try:
@@ -361,7 +364,7 @@ class Manager:
     def _cleanup(self, started: float) -> None:
         try:
             self.timer.stop()
-            if self.ld is not None:
+            if self.block is not None:
                 with self.block.write() as d:
                     d["state"] = ProcState.CLEANUP
             self._end_workers()
