@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -13,8 +13,6 @@ from redistro.ipc import session as ipc_session
 from redistro.localdata import MAX_PROCS
 from redistro.process.owner import run_node
 from redistro.process.spec import NodeSpec, WorkerSpec
-
-log = logging.getLogger(__name__)
 
 
 def parse_stages(text: str | None, workers: int) -> list[int]:
@@ -50,8 +48,6 @@ def build_spec(
     node = cfg.bench
     prio = cfg.scheduling.priorities
     cpus = node.cpus
-    import os
-
     online = sorted(os.sched_getaffinity(0))
     specs = []
     for i in range(workers):

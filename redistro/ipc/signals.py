@@ -9,6 +9,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import select
 import signal
 
 SIG_SYNC = signal.SIGRTMIN + 1
@@ -94,8 +95,6 @@ def children_of(pid: int) -> list[int]:
 
 def process_alive(pidfd: int) -> bool:
     """Whether the process behind a pidfd is still running (not exited)."""
-    import select
-
     poller = select.poll()
     poller.register(pidfd, select.POLLIN)
     return not poller.poll(0)

@@ -5,7 +5,7 @@ semaphores, runs :meth:`Manager.initialize` (the ESC freezes its robot there,
 before any worker exists), spawns the workers and waits until each is ready.
 Routine takes one timer tick per cycle: checks heartbeats, prints message
 boxes, publishes the cycle and sends the sync signal to every worker. Worker
-exits are seen at once (SIGCHLD, reaped through wait4 and watched through
+exits are seen at once (SIGCHLD, reaped through waitpid and watched through
 pidfds). Cleanup ends the workers, reaps them, writes the result and removes
 every IPC object the node created.
 """
@@ -62,11 +62,18 @@ class _Child:
         self.pid = pid
         self.pidfd = pidfd
         self.status: int | None = None
-        self.cpu_total_s = 0.0
 
     @property
     def alive(self) -> bool:
         return self.status is None
+
+    def reap(self, wait: bool = False) -> bool:
+        """Collect the exit status if the process has exited (or wait for it)."""
+        if self.alive:
+            pid, status = os.waitpid(self.pid, 0 if wait else os.WNOHANG)
+            if pid:
+                self.status = status
+        return not self.alive
 
 
 class Manager:
@@ -193,7 +200,7 @@ class Manager:
                 pass_fds=pass_fds,
             )
             self.children.append(_Child(w.name, proc.pid, os.pidfd_open(proc.pid)))
-            proc.returncode = 0  # reaped by wait4 below, not by Popen
+            proc.returncode = 0  # reaped by _Child.reap, not by Popen
         self._wait_ready()
 
     def _wait_ready(self) -> None:
@@ -283,18 +290,12 @@ class Manager:
     def _check_children(self) -> None:
         """Reap any worker that exited; a worker exit during the session is a fault."""
         for child in self.children:
-            if not child.alive:
-                continue
-            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-            if pid == 0:
-                continue
-            child.status = status
-            child.cpu_total_s = usage.ru_utime + usage.ru_stime
-            raise NodeFault(
-                "abnormal",
-                f"worker {child.name} (pid {child.pid}) died: "
-                f"{describe_status(status)} at cycle {self.cycle}",
-            )
+            if child.alive and child.reap():
+                raise NodeFault(
+                    "abnormal",
+                    f"worker {child.name} (pid {child.pid}) died: "
+                    f"{describe_status(child.status or 0)} at cycle {self.cycle}",
+                )
 
     def _check_heartbeats(self) -> None:
         """Each worker must have signed the cycle that just ended; ``limit`` misses is a hang."""
@@ -396,7 +397,8 @@ class Manager:
             sem.release()
         deadline = time.monotonic() + self.spec.shutdown_timeout_s
         while any(c.alive for c in self.children):
-            self._reap_quietly()
+            for child in self.children:
+                child.reap()
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
@@ -407,17 +409,7 @@ class Manager:
                     "manager", logging.WARNING, f"worker {child.name} did not end in time; killed"
                 )
                 signals.send(child.pidfd, signal.SIGKILL)
-                _, status, usage = os.wait4(child.pid, 0)
-                child.status = status
-                child.cpu_total_s = usage.ru_utime + usage.ru_stime
-
-    def _reap_quietly(self) -> None:
-        for child in self.children:
-            if child.alive:
-                pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-                if pid:
-                    child.status = status
-                    child.cpu_total_s = usage.ru_utime + usage.ru_stime
+                child.reap(wait=True)
 
     def _collect(self, started: float) -> None:
         self._drain_messages()

@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 OWNER_WAIT = frozenset({signal.SIGCHLD}) | signals.STOP_SIGNALS
 
 
-def run_node(spec: NodeSpec, session: Session, *, on_started: Any = None) -> dict[str, Any]:
+def run_node(spec: NodeSpec, session: Session) -> dict[str, Any]:
     """Run one node to its end; return the manager's result (always a dict)."""
     signals.become_subreaper()
     spec.owner_pid = os.getpid()
@@ -40,8 +40,6 @@ def run_node(spec: NodeSpec, session: Session, *, on_started: Any = None) -> dic
         ["manager", "--spec", str(spec_path)], pass_fds=(session.lock_fd,), env=session.child_env()
     )
     pidfd = os.pidfd_open(proc.pid)
-    if on_started is not None:
-        on_started(proc.pid)
     budget = spec.startup_timeout_s + spec.shutdown_timeout_s + 5.0
     deadline = time.monotonic() + budget + spec.cycles / spec.rate_hz if spec.cycles else None
     interrupted: str | None = None

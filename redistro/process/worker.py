@@ -35,7 +35,6 @@ class Worker:
         self.params: dict[str, Any] = self.me.params
         self.ld = ld
         self.msgbox: MessageBox = ld.msgbox(index)
-        self.cycle = 0
 
     # -- hooks for subclasses --
 
@@ -60,7 +59,7 @@ class _Runner:
         self.spec = spec
         self.index = index
         self.manager_pid = manager_pid
-        self.period_ns = max(1, round(1e6 / spec.rate_hz)) * 1000
+        self.period_ns = 0  # the manager's timer period, read from Local Data
         self.overruns = 0
         self.skipped = 0
         self.stage_timeouts = 0
@@ -78,6 +77,7 @@ class _Runner:
             return 3  # the manager died before we could watch it
         manager_fd = os.pidfd_open(self.manager_pid)
         ld = LocalData.attach(spec.session_id, spec.node)
+        self.period_ns = int(ld.static["period_ns"])
         sems: list[Semaphore] = []
         worker: Worker | None = None
         try:

@@ -82,7 +82,7 @@ def test_sigkill_of_a_worker_is_seen_at_once(tmp_path: Path) -> None:
     m = re.search(r"worker busy1 \(pid (\d+)\) died: killed by SIGKILL at cycle (\d+)", r["reason"])
     assert m, r["reason"]
     assert int(m.group(1)) == victim
-    # Seen through SIGCHLD/wait4 ("died"), not by the heartbeat check (limit 25
+    # Seen through SIGCHLD/waitpid ("died"), not by the heartbeat check (limit 25
     # cycles): as soon as the kernel has torn the process down, typically
     # within the cycle of the kill; the bound leaves room for a loaded machine.
     assert int(m.group(2)) - cycle_at_kill <= 5

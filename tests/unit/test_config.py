@@ -9,9 +9,10 @@ from redistro.config.model import PAPER_PRIORITIES
 from redistro.errors import ConfigError
 
 
-def test_defaults_without_a_file() -> None:
-    cfg = Config()
-    assert isinstance(cfg, Config)
+def test_defaults_without_a_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)  # no config/redistro.yaml here
+    cfg = load_config(None, [])
+    assert cfg == Config()
     assert cfg.bench.rate_hz > 0
     assert cfg.scheduling.priorities["acquisition"] == 19
 
