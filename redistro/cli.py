@@ -77,6 +77,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     i.add_argument("--samples", type=int, default=5000)
     i.add_argument("--gap-us", type=float, default=200.0, help="pause between records")
+    i.add_argument(
+        "--robots", type=int, default=2, help="robots in the record (one block each): 1 or 2"
+    )
     i.add_argument("--json", dest="json_path", default=None)
 
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
@@ -203,7 +206,10 @@ def _bench_ipc(args: argparse.Namespace) -> int:
         raise ConfigError(f"--samples: expected >= 10, got {args.samples}")
     if not args.gap_us >= 0:
         raise ConfigError(f"--gap-us: expected >= 0, got {args.gap_us}")
-    out = ipc.run(args.samples, args.gap_us)
+    if args.robots not in (1, 2):
+        raise ConfigError(f"--robots: expected 1 or 2, got {args.robots}")
+    out = ipc.run(args.samples, args.gap_us, args.robots)
+    print(f"record: {out['record']}, {out['record_bytes']} bytes, {out['blocks']} block(s)")
     for key in ("localdata", "pipe", "queue"):
         r = out[key]
         print(f"{key:10s} median {r['median_us']:8.2f} us  p99 {r['p99_us']:8.2f} us")

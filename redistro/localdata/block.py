@@ -28,6 +28,13 @@ DEFAULT_READ_BUDGET_S = 0.005
 _BACKOFF_S = 20e-6
 
 
+def _bytes_of(array: np.ndarray[Any, Any]) -> memoryview:
+    """A byte memoryview of an array's memory (uint8 arrays as they are)."""
+    if array.dtype != np.uint8:
+        array = array.reshape(-1).view(np.uint8)
+    return memoryview(array)  # type: ignore[arg-type]
+
+
 class Block:
     """A view onto one seqlocked block of a mapped segment.
 
@@ -42,20 +49,38 @@ class Block:
         seq_off = fields["seq"][1]
         payload, data_off = fields["data"][0], fields["data"][1]
         raw = view.reshape(1).view(np.uint8)
-        self._seq = raw[seq_off : seq_off + 8].view("<u8")  # shape (1,)
-        self._raw = raw[data_off : data_off + payload.itemsize]
+        # The hot path works on memoryviews: a load, a store or a slice copy
+        # through a memoryview costs a third of the same numpy call.
+        self._mem = memoryview(raw)  # type: ignore[arg-type]
+        self._seq = self._mem[seq_off : seq_off + 8].cast("Q")  # one aligned 8-byte word
+        self._raw = self._mem[data_off : data_off + payload.itemsize]
         self._payload = payload
         self.data = view["data"]  # 0-d structured view; write only inside write()
         self.torn = 0  # retries this handle needed (read side)
 
     @property
     def seq(self) -> int:
-        return int(self._seq[0])
+        return self._seq[0]
+
+    def spin_until_changed(self, last: int, deadline_ns: int) -> int:
+        """Busy-wait until the sequence counter differs from ``last`` and is
+        even (a finished write); return it, or ``last`` when the monotonic
+        deadline passes. For a reader that owns a CPU and wants the lowest
+        latency; a cyclic process reads once per cycle instead."""
+        seq = self._seq
+        n = 0
+        while True:
+            s = seq[0]
+            if s != last and not s & 1:
+                return s
+            n += 1
+            if not n & 255 and time.monotonic_ns() > deadline_ns:
+                return last
 
     @contextmanager
     def write(self) -> Iterator[np.ndarray[Any, Any]]:
         """``with block.write() as d: d["q_rad"] = q`` -- the one writer only."""
-        s = int(self._seq[0])
+        s = self._seq[0]
         if s & 1:  # a writer died mid-write earlier: resume from an even count
             s += 1
         self._seq[0] = s + 1
@@ -64,18 +89,21 @@ class Block:
         finally:
             self._seq[0] = s + 2
 
-    def publish(self, record: np.ndarray[Any, Any]) -> None:
+    def publish(self, record: np.ndarray[Any, Any] | memoryview) -> None:
         """Write a whole prepared record in one copy: the fast path for a writer
         that builds its record locally, then publishes it.
 
-        record: an array of the payload dtype (one element), or its raw bytes (uint8).
+        record: an array of the payload dtype (one element), its raw bytes
+        (uint8), or a byte memoryview of those (the fastest).
         """
-        raw = record if record.dtype == np.uint8 else record.reshape(-1).view(np.uint8)
-        s = int(self._seq[0])
+        if type(record) is not memoryview:
+            record = _bytes_of(record)
+        seq = self._seq
+        s = seq[0]
         s += s & 1
-        self._seq[0] = s + 1
-        self._raw[:] = raw
-        self._seq[0] = s + 2
+        seq[0] = s + 1
+        self._raw[:] = record
+        seq[0] = s + 2
 
     def read(self, budget_s: float = DEFAULT_READ_BUDGET_S) -> np.void:
         """A consistent copy of the payload (a numpy record).
@@ -89,18 +117,22 @@ class Block:
         self.read_into(out, budget_s)
         return cast(np.void, out[()])
 
-    def read_into(self, out: np.ndarray[Any, Any], budget_s: float = DEFAULT_READ_BUDGET_S) -> None:
+    def read_into(
+        self, out: np.ndarray[Any, Any] | memoryview, budget_s: float = DEFAULT_READ_BUDGET_S
+    ) -> None:
         """Like :meth:`read`, into a preallocated 0-d array of the payload dtype,
-        or straight into its raw bytes (uint8): no allocation, for polling readers."""
-        dst = out if out.dtype == np.uint8 else out.reshape(1).view(np.uint8)
+        its raw bytes (uint8), or a byte memoryview of it (the fastest): no
+        allocation, for polling readers."""
+        dst = out if type(out) is memoryview else _bytes_of(out)
         deadline = 0
         seq = self._seq
+        raw = self._raw
         attempts = 0
         while True:
-            s1 = int(seq[0])
+            s1 = seq[0]
             if not s1 & 1:
-                dst[:] = self._raw
-                if int(seq[0]) == s1:
+                dst[:] = raw
+                if seq[0] == s1:
                     return
             self.torn += 1
             attempts += 1
@@ -116,14 +148,17 @@ class Block:
 
     def detach(self) -> None:
         """Drop the views onto the mapping (the segment is being unmapped)."""
-        empty = np.zeros(max(8, self._payload.itemsize), np.uint8)
-        self._seq = empty[:8].view("<u8")
+        for mv in (self._seq, self._raw, self._mem):
+            mv.release()
+        empty = memoryview(bytearray(max(8, self._payload.itemsize)))
+        self._mem = empty
+        self._seq = empty[:8].cast("Q")
         self._raw = empty[: self._payload.itemsize]
         self.data = np.zeros((), self._payload)
 
     def raw_read(self) -> np.void:
         """A copy taken without the protocol (tests use it as a negative control)."""
-        return self._raw.copy().view(self._payload)[0]  # type: ignore[no-any-return]
+        return np.frombuffer(bytes(self._raw), self._payload)[0]  # type: ignore[no-any-return]
 
 
 class MessageBox:

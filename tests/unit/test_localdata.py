@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -99,6 +100,28 @@ def test_publish_and_read_into(ld: LocalData) -> None:
     out = np.zeros((), w.data.dtype)
     ld.block("feedback", 0).read_into(out)
     assert np.all(out["tau_nm"] == 3.0)
+    # byte memoryviews both ways (the polling fast path)
+    rec["tau_nm"] = 4.0
+    src = memoryview(rec.reshape(1).view(np.uint8))  # type: ignore[arg-type]
+    w.publish(src)
+    into = memoryview(out.reshape(1).view(np.uint8))  # type: ignore[arg-type]
+    ld.block("feedback", 0).read_into(into)
+    assert np.all(out["tau_nm"] == 4.0)
+    assert w.seq == 4
+    src.release()
+    into.release()
+
+
+def test_spin_until_changed(ld: LocalData) -> None:
+    w = ld.writer("feedback", 0, role="acquisition")
+    r = ld.block("feedback", 0)
+    w.publish(np.zeros((), w.data.dtype))
+    soon = time.monotonic_ns() + 2_000_000
+    assert r.spin_until_changed(0, soon) == 2  # already changed: returns at once
+    assert r.spin_until_changed(2, soon) == 2  # nothing new: gives up at the deadline
+    assert time.monotonic_ns() >= soon
+    w._seq[0] = 3  # mid-write: an odd count is not a change
+    assert r.spin_until_changed(2, time.monotonic_ns() + 1_000_000) == 2
 
 
 def test_a_block_left_mid_write_is_never_returned(ld: LocalData) -> None:
