@@ -28,6 +28,49 @@ DEFAULT_READ_BUDGET_S = 0.005
 _BACKOFF_S = 20e-6
 
 
+_WORD_FORMATS = {"u8": "Q", "i8": "q", "f8": "d", "u4": "I", "i4": "i", "u2": "H", "i2": "h"}
+_WORD_FORMATS.update({"u1": "B", "i1": "b", "f4": "f"})
+
+
+class Record:
+    """A process-local record of a block's payload dtype, with fast scalar access.
+
+    The hot paths of a cycle work on a Record: a reader takes a snapshot into
+    it (``block.read_into(rec.bytes)``) and reads scalars (``rec["cycle"]``);
+    a writer keeps its block's record locally, sets scalars and publishes it
+    whole (``block.publish(rec.bytes)``). Scalar access goes through cached
+    memoryview words, ten times cheaper than indexing a numpy record; arrays
+    and nested fields are reached through ``rec.array``.
+    """
+
+    def __init__(self, dtype: np.dtype[Any]) -> None:
+        self.array: np.ndarray[Any, Any] = np.zeros((), dtype)
+        self.bytes = _bytes_of(self.array)
+        fields = dtype.fields
+        assert fields is not None
+        self._words: dict[str, Any] = {}  # name -> one-element memoryview
+        for name, spec in fields.items():
+            ftype, off = spec[0], spec[1]
+            code = f"{ftype.kind}{ftype.itemsize}"
+            if ftype.shape or ftype.fields is not None or code not in _WORD_FORMATS:
+                continue
+            word: Any = self.bytes[off : off + ftype.itemsize]
+            self._words[name] = word.cast(_WORD_FORMATS[code])
+
+    def __getitem__(self, name: str) -> Any:
+        return self._words[name][0]
+
+    def __setitem__(self, name: str, value: int | float) -> None:
+        self._words[name][0] = value
+
+    def release(self) -> None:
+        """Drop the memoryviews (before the record is discarded with a mapping)."""
+        for word in self._words.values():
+            word.release()
+        self._words.clear()
+        self.bytes.release()
+
+
 def _bytes_of(array: np.ndarray[Any, Any]) -> memoryview:
     """A byte memoryview of an array's memory (uint8 arrays as they are)."""
     if array.dtype != np.uint8:

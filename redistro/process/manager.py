@@ -20,14 +20,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from redistro.errors import NodeFault, TornReadTimeout
 from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
 from redistro.ipc.session import LOCK_FD_ENV, Manifest
 from redistro.ipc.timer import IntervalTimer
 from redistro.localdata import Block, LocalData, MessageBox, ProcState
+from redistro.localdata.block import Record
+from redistro.localdata.layout import MANAGER, PROC_STATUS
 from redistro.process.spawn import spawn
 from redistro.process.spec import NodeSpec
 from redistro.process.stats import Samples
@@ -168,6 +168,7 @@ class Manager:
         self.block = ld.writer("manager", role="manager")
         self.rows = [ld.block("proc", j) for j in range(len(spec.workers))]
         self._last_hb = [0] * len(spec.workers)
+        self._row_recs: list[Record] = []
         self.boxes = [ld.msgbox(j) for j in range(len(spec.workers))]
         self.last_stage = spec.stages()[-1]
         with self.block.write() as d:
@@ -233,6 +234,11 @@ class Manager:
         tick_timeout = max(0.5, 100 * self.timer.period_s)
         with block.write() as d:
             d["state"] = ProcState.ROUTINE
+        # Hot path on local records: the manager's own block is kept locally
+        # and published whole each tick; worker rows are snapshot into records.
+        mine = Record(MANAGER)
+        block.read_into(mine.bytes)
+        self._row_recs = [Record(PROC_STATUS) for _ in self.rows]
         import gc
 
         gc.collect()
@@ -264,12 +270,12 @@ class Manager:
                 if spec.cycles and self.cycle >= spec.cycles:
                     return
                 self.cycle += 1
-                with block.write() as d:
-                    d["cycle"] = self.cycle
-                    d["tick_due_ns"] = due
-                    d["tick_ns"] = now
-                    d["overruns"] = self.overruns
-                    d["missed_ticks"] = self.missed_ticks
+                mine["cycle"] = self.cycle
+                mine["tick_due_ns"] = due
+                mine["tick_ns"] = now
+                mine["overruns"] = self.overruns
+                mine["missed_ticks"] = self.missed_ticks
+                block.publish(mine.bytes)
                 for child in self.children:
                     signals.send(child.pidfd, signals.SIG_SYNC)
                 self._due_ns = due
@@ -300,12 +306,12 @@ class Manager:
     def _check_heartbeats(self) -> None:
         """Each worker must have signed the cycle that just ended; ``limit`` misses is a hang."""
         limit = self.spec.heartbeat_limit_cycles
-        snaps: list[np.void | None] = []
-        for j, row in enumerate(self.rows):
+        snaps: list[Record | None] = []
+        for j, (row, rec) in enumerate(zip(self.rows, self._row_recs, strict=True)):
             try:
-                snap = row.read()
-                self._last_hb[j] = int(snap["heartbeat_cycle"])
-                snaps.append(snap)
+                row.read_into(rec.bytes)
+                self._last_hb[j] = rec["heartbeat_cycle"]
+                snaps.append(rec)
             except TornReadTimeout:
                 # The worker was stopped inside its write (a VM stall, a hang):
                 # no sign-up seen this cycle; its last known one stands.
@@ -325,8 +331,8 @@ class Manager:
                     f"{age} heartbeats (limit {limit}) at cycle {self.cycle}",
                 )
         last = [snaps[j] for j in self.last_stage]
-        if all(s is not None and int(s["heartbeat_cycle"]) == self.cycle for s in last):
-            span = max(int(s["done_ns"]) for s in last if s is not None) - self._due_ns
+        if all(s is not None and s["heartbeat_cycle"] == self.cycle for s in last):
+            span = max(s["done_ns"] for s in last if s is not None) - self._due_ns
             self.makespan.add(span)
             if span > self.timer.period_ns:
                 self.deadline_misses += 1

@@ -17,6 +17,8 @@ from redistro.errors import TornReadTimeout
 from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
 from redistro.localdata import LocalData, MessageBox, ProcState
+from redistro.localdata.block import Record
+from redistro.localdata.layout import MANAGER, PROC_STATUS
 from redistro.process.spec import NodeSpec, WorkerSpec
 from redistro.process.stats import Samples
 
@@ -150,6 +152,11 @@ class _Runner:
         self.cpu_start_s = time.process_time()
         my_go = go[self.index]
         watch_s = max(0.05, 4 * self.period_ns / 1e9)
+        # Hot path on local records: snapshot into them, publish from them.
+        mine = Record(PROC_STATUS)
+        row.read_into(mine.bytes)  # this process is the row's one writer
+        tick = Record(MANAGER)
+        pred_recs = [(rows[p], Record(PROC_STATUS)) for p in preds]
         while True:
             # Every worker wakes at the tick; a later stage then waits at its
             # collecting point. (Waiting at the collecting point first and taking
@@ -172,31 +179,30 @@ class _Runner:
             if extra:
                 self.overruns += 1
                 self.skipped += extra
-            m = manager_block.read()
-            cycle = int(m["cycle"])
-            self.lateness.add(wake_ns - int(m["tick_due_ns"]))
-            if preds and not self._wait_stage(
-                cycle, preds, rows, my_go, int(m["tick_due_ns"]) + self.period_ns
-            ):
+            manager_block.read_into(tick.bytes)
+            cycle = tick["cycle"]
+            due_ns = tick["tick_due_ns"]
+            self.lateness.add(wake_ns - due_ns)
+            if pred_recs and not self._wait_stage(cycle, pred_recs, my_go, due_ns + self.period_ns):
                 self.stage_timeouts += 1
             else:
                 t0 = time.monotonic_ns()
                 worker.step(cycle)
                 self.compute.add(time.monotonic_ns() - t0)
                 self.cycles += 1
-            with row.write() as d:
-                d["heartbeat_cycle"] = cycle
-                d["wake_ns"] = wake_ns
-                d["done_ns"] = time.monotonic_ns()
-                d["cycles"] = self.cycles
-                d["overruns"] = self.overruns
-                d["skipped"] = self.skipped
-                d["stage_timeouts"] = self.stage_timeouts
+            mine["heartbeat_cycle"] = cycle
+            mine["wake_ns"] = wake_ns
+            mine["done_ns"] = time.monotonic_ns()
+            mine["cycles"] = self.cycles
+            mine["overruns"] = self.overruns
+            mine["skipped"] = self.skipped
+            mine["stage_timeouts"] = self.stage_timeouts
+            row.publish(mine.bytes)
             for j in succs:
                 go[j].release()
 
     def _wait_stage(
-        self, cycle: int, preds: list[int], rows: list[Any], my_go: Semaphore, deadline_ns: int
+        self, cycle: int, preds: list[tuple[Any, Record]], my_go: Semaphore, deadline_ns: int
     ) -> bool:
         """Collecting point: wait until every worker of the previous stage finished ``cycle``.
 
@@ -207,7 +213,9 @@ class _Runner:
             pass
         while True:
             try:
-                if all(int(rows[p].read()["heartbeat_cycle"]) >= cycle for p in preds):
+                for block, rec in preds:
+                    block.read_into(rec.bytes)
+                if all(rec["heartbeat_cycle"] >= cycle for _, rec in preds):
                     return True
             except TornReadTimeout:
                 pass  # a predecessor stuck inside its write: keep waiting to the deadline
