@@ -141,10 +141,11 @@ def _clean() -> int:
 
 
 def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
+    import time
     from pathlib import Path
 
     from redistro.bench import cycle
-    from redistro.bench.baseline import cyclictest
+    from redistro.bench.baseline import cpu_steal_ticks, cyclictest, steal_report
     from redistro.ipc import session
     from redistro.process.owner import write_json
 
@@ -161,6 +162,7 @@ def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
         baseline = cyclictest(rate, args.seconds, cfg.scheduling.priorities.get("manager", 20))
 
     def once(stage_list: list[int], label: str) -> dict[str, Any]:
+        steal0, t0 = cpu_steal_ticks(), time.monotonic()
         result = cycle.run_once(
             cfg,
             rate_hz=rate,
@@ -172,6 +174,7 @@ def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
             message_every=args.message_every,
         )
         s = cycle.summarize(result, args.workers, args.work_us)
+        s["host_steal"] = steal_report(steal0, cpu_steal_ticks(), time.monotonic() - t0)
         if baseline is not None:
             s["baseline_lateness_us"] = baseline
         cycle.print_summary(label, s)

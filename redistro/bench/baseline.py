@@ -97,3 +97,34 @@ def cyclictest(rate_hz: float, seconds: float, priority: int) -> dict[str, Any] 
         return {"error": (done.stderr or done.stdout).strip()[:200], "command": " ".join(cmd)}
     stats["command"] = " ".join(cmd)
     return stats
+
+
+def cpu_steal_ticks(stat_path: str = "/proc/stat") -> dict[str, int]:
+    """Per-CPU 'steal' time (USER_HZ ticks): time the hypervisor ran something
+    else while this vCPU wanted to run. Empty where the kernel does not say."""
+    out: dict[str, int] = {}
+    try:
+        with open(stat_path) as f:
+            for line in f:
+                parts = line.split()
+                if parts and parts[0].startswith("cpu") and parts[0] != "cpu" and len(parts) > 8:
+                    out[parts[0]] = int(parts[8])
+    except OSError:
+        return {}
+    return out
+
+
+def steal_report(before: dict[str, int], after: dict[str, int], seconds: float) -> dict[str, Any]:
+    """Steal per CPU over a run, in ms and as a share of the run's wall time."""
+    hz = os.sysconf("SC_CLK_TCK")
+    per_cpu = {
+        cpu: round((after[cpu] - before[cpu]) * 1000 / hz, 1) for cpu in after if cpu in before
+    }
+    return {
+        "ms": per_cpu,
+        "percent_of_run": {
+            cpu: round(ms / (10 * seconds), 3) if seconds > 0 else 0.0
+            for cpu, ms in per_cpu.items()
+        },
+        "seconds": round(seconds, 3),
+    }

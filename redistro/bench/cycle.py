@@ -132,9 +132,18 @@ def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str,
     """The benchmark's figures from a manager result."""
     cycles = result.get("cycles", 0)
     comp = [w["compute_us"] for w in result.get("workers", [])]
-    # An overrun is an event: the manager took a tick more than one period late,
-    # or a worker woke to more than one queued sync. The cycles lost in them are
-    # missed_ticks (manager) and worker_skipped.
+    # An overrun cycle is a timer period in which the node did not complete a
+    # cycle: its last stage finished after the period ended (deadline miss),
+    # had not finished at the next tick (incomplete), or the tick was never
+    # taken at all (missed tick: the manager itself was held off). Overrun
+    # *events* count the processes instead: the manager taking a tick more
+    # than one period late, or a worker waking to more than one queued sync;
+    # one host stall is one event in every process it holds.
+    missed_ticks = result.get("missed_ticks", 0)
+    overrun_cycles = (
+        result.get("deadline_misses", 0) + result.get("incomplete_cycles", 0) + missed_ticks
+    )
+    periods = cycles + missed_ticks
     overruns = result.get("manager_overruns", 0) + result.get("worker_overruns", 0)
     return {
         "result": result.get("result"),
@@ -143,8 +152,10 @@ def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str,
         "workers": workers,
         "work_us": work_us,
         "cycles": cycles,
-        "overruns": overruns,
-        "overrun_fraction": round(overruns / cycles, 6) if cycles else None,
+        "overrun_cycles": overrun_cycles,
+        "overrun_fraction": round(overrun_cycles / periods, 6) if periods else None,
+        "overrun_events": overruns,
+        "incomplete_cycles": result.get("incomplete_cycles", 0),
         "manager_overruns": result.get("manager_overruns", 0),
         "missed_ticks": result.get("missed_ticks", 0),
         "worker_overruns": result.get("worker_overruns", 0),
@@ -180,8 +191,9 @@ def print_summary(label: str, s: dict[str, Any], out: Any = sys.stdout) -> None:
     print(f"{label}: {s['result']} {s['reason']}".rstrip(), file=out)
     print(
         f"  {s['cycles']} cycles at {s['rate_hz']} Hz, {s['workers']} workers x "
-        f"{s['work_us']} us; overruns {s['overruns']} ({100 * (s['overrun_fraction'] or 0):.3f}%)"
-        f", missed heartbeats {s['missed_heartbeats']}",
+        f"{s['work_us']} us; overrun cycles {s['overrun_cycles']} "
+        f"({100 * (s['overrun_fraction'] or 0):.3f}% of periods), overrun events "
+        f"{s['overrun_events']}, missed heartbeats {s['missed_heartbeats']}",
         file=out,
     )
     if lat:
@@ -199,4 +211,8 @@ def print_summary(label: str, s: dict[str, Any], out: Any = sys.stdout) -> None:
             f"{comp['p50']} p99 {comp['p99']}; cpu {s['cpu_percent']}% of one CPU",
             file=out,
         )
+    steal = s.get("host_steal", {}).get("ms")
+    if steal:
+        cpus = ", ".join(f"{cpu} {ms} ms" for cpu, ms in steal.items())
+        print(f"  host steal during the run: {cpus}", file=out)
     print(f"  scheduling: manager {s['scheduling']['manager'].get('policy')}", file=out)

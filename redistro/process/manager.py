@@ -93,7 +93,8 @@ class Manager:
         self.overruns = 0
         self.late_heartbeats = 0
         self.missed_heartbeats = 0
-        self.deadline_misses = 0
+        self.deadline_misses = 0  # cycles completed, but after their period ended
+        self.incomplete_cycles = 0  # cycles whose last stage had not signed at the next tick
         self.hung: set[int] = set()
         self.messages: list[dict[str, Any]] = []
         self.messages_lost = 0
@@ -336,6 +337,8 @@ class Manager:
             self.makespan.add(span)
             if span > self.timer.period_ns:
                 self.deadline_misses += 1
+        else:
+            self.incomplete_cycles += 1
 
     def _drain_messages(self) -> None:
         for child, box in zip(self.children, self.boxes, strict=True):
@@ -473,6 +476,7 @@ class Manager:
                 "late_heartbeats": self.late_heartbeats,
                 "missed_heartbeats": self.missed_heartbeats,
                 "deadline_misses": self.deadline_misses,
+                "incomplete_cycles": self.incomplete_cycles,
                 "lateness_us": self.lateness.summary_us(),
                 "makespan_us": self.makespan.summary_us(),
                 "manager_work_us": self.tick_work.summary_us(),

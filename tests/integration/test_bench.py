@@ -41,7 +41,8 @@ def test_bench_cycle_measures_the_cyclictest_baseline_in_the_same_run(tmp_path: 
         "rate_hz",
         "workers",
         "cycles",
-        "overruns",
+        "overrun_cycles",
+        "overrun_events",
         "missed_heartbeats",
         "lateness_us",
         "compute_us",
@@ -50,3 +51,7 @@ def test_bench_cycle_measures_the_cyclictest_baseline_in_the_same_run(tmp_path: 
     ):
         assert key in r
     assert r["cycles"] == 1000
+    # every overrun cycle is a deadline miss, an unfinished cycle or a lost tick
+    parts = r["deadline_misses"] + r["incomplete_cycles"] + r["missed_ticks"]
+    assert r["overrun_cycles"] == parts
+    assert 0 <= r["overrun_fraction"] <= 1

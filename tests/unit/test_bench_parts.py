@@ -1,9 +1,12 @@
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from redistro.bench.baseline import histogram_percentiles
+from redistro.bench.baseline import cpu_steal_ticks, histogram_percentiles, steal_report
 from redistro.bench.cycle import parse_stages
 from redistro.errors import ConfigError
 from redistro.process.spec import NodeSpec, WorkerSpec
@@ -69,3 +72,22 @@ def test_samples_summary() -> None:
     assert out["max"] == 5.0 and out["p50"] == pytest.approx(3.5)
     assert Samples().summary_us() == {"p50": 0.0, "p99": 0.0, "max": 0.0}
     assert np.isfinite(out["p99"])
+
+
+def test_host_steal_from_proc_stat(tmp_path: Path) -> None:
+    stat = tmp_path / "stat"
+    stat.write_text(
+        "cpu  10 0 5 100 0 0 0 30 0 0\n"
+        "cpu0 5 0 2 50 0 0 0 10 0 0\n"
+        "cpu1 5 0 3 50 0 0 0 20 0 0\n"
+        "intr 1 2 3\n"
+    )
+    before = cpu_steal_ticks(str(stat))
+    assert before == {"cpu0": 10, "cpu1": 20}  # the total line is left out
+    hz = os.sysconf("SC_CLK_TCK")
+    after = {"cpu0": 10 + hz, "cpu1": 20}  # one second stolen from cpu0
+    r = steal_report(before, after, seconds=10.0)
+    assert r["ms"] == {"cpu0": 1000.0, "cpu1": 0.0}
+    assert r["percent_of_run"]["cpu0"] == 10.0
+    assert cpu_steal_ticks(str(tmp_path / "missing")) == {}
+    assert cpu_steal_ticks()  # this machine's kernel reports it
