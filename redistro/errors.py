@@ -37,3 +37,8 @@ class NodeFault(RedistroError, RuntimeError):
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
         self.reason = reason
+
+
+class IOFault(RedistroError, OSError):
+    """A board did not answer or update within its timeout, a frame was bad,
+    or the plant behind the backplane is gone: the robot must be frozen."""

@@ -30,7 +30,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return key.split("."), value
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+def read_yaml(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -56,7 +56,7 @@ def _known_path(cls: type, parts: list[str]) -> bool:
         if not (dataclasses.is_dataclass(tp) and isinstance(tp, type)):
             # Inside a dict field: any key is addressable; validation judges it.
             return i == len(parts) - 1
-        names = {f.name: f for f in dataclasses.fields(tp)}
+        names = {f.name: f for f in dataclasses.fields(tp) if not f.metadata.get("internal")}
         if part not in names:
             return False
         tp = get_type_hints(tp)[part]
@@ -75,7 +75,7 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
         path = DEFAULT_CONFIG_PATH
     if path is not None:
         path = Path(path)
-        data = _read_yaml(path)
+        data = read_yaml(path)
         origin = str(path)
     data = copy.deepcopy(data)
     origins: dict[str, str] = {}
@@ -95,4 +95,6 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
             node = child
         node[parts[-1]] = value
         origins[dotted] = "--set"
-    return build(Config, data, origin=origin, origins=origins)
+    cfg = build(Config, data, origin=origin, origins=origins)
+    source = str(path) if path is not None else str(DEFAULT_CONFIG_PATH)
+    return dataclasses.replace(cfg, source=source)

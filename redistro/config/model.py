@@ -1,7 +1,7 @@
 """The config model: frozen dataclasses with constraints in field metadata.
 
 Constraints understood by the validator (redistro.config.validate):
-``gt``, ``ge``, ``lt``, ``le`` for numbers, ``min_len`` for lists, and
+``gt``, ``ge``, ``lt``, ``le`` for numbers, ``min_len`` and ``len`` for lists, and
 ``keys`` (allowed keys) for dicts. Units are in the field names.
 """
 
@@ -73,6 +73,106 @@ class NodeConfig:
 
 
 @dataclass(frozen=True)
+class RobotConfig:
+    """One robot of the group: its hardware files and where it stands.
+
+    io: I/O interface config (boards, channel map), a YAML file; relative paths
+        are taken from the main config file's folder (``config/`` by default).
+    sensors: sensor/actuator config (gears, motor constants, scalings), a YAML file.
+    base_xyz_m: the base position in the world frame [m]; the base is not rotated.
+    initial_q_rad: joint angles at power-on [rad], shape (7,).
+    peg: whether the peg is fixed to this robot's flange.
+    """
+
+    io: str = ""
+    sensors: str = ""
+    base_xyz_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0], metadata={"len": 3})
+    initial_q_rad: list[float] = field(
+        default_factory=lambda: [0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0], metadata={"len": 7}
+    )
+    peg: bool = False
+
+
+def _default_robots() -> dict[str, RobotConfig]:
+    return {
+        "r1": RobotConfig(
+            io="robots/r1.io.yaml", sensors="robots/r1.sensors.yaml", base_xyz_m=[0.0, 0.45, 0.0]
+        ),
+        "r2": RobotConfig(
+            io="robots/r2.io.yaml",
+            sensors="robots/r2.sensors.yaml",
+            base_xyz_m=[0.0, -0.45, 0.0],
+            peg=True,
+        ),
+    }
+
+
+@dataclass(frozen=True)
+class HoleConfig:
+    """The hole fixture on the table.
+
+    xyz_m: centre of the hole's mouth (top face of the fixture), world frame [m].
+    side_m: side of the square hole [m]; the peg's side plus the clearance.
+    """
+
+    xyz_m: list[float] = field(default_factory=lambda: [0.55, -0.35, 0.15], metadata={"len": 3})
+    clearance_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.001})
+    depth_m: float = field(default=0.04, metadata={"ge": 0.03, "le": 0.2})
+    wall_m: float = field(default=0.03, metadata={"gt": 0, "le": 0.2})
+
+
+@dataclass(frozen=True)
+class PegConfig:
+    """The square peg fixed to a flange: side [m], length [m], mass [kg]."""
+
+    side_m: float = field(default=0.02, metadata={"gt": 0.002, "le": 0.1})
+    length_m: float = field(default=0.1, metadata={"gt": 0.01, "le": 0.5})
+    mass_kg: float = field(default=0.1, metadata={"gt": 0, "le": 5})
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """The CAN backplane. interface: python-can interface; channel: its channel
+    ('' picks the interface's default: a multicast group for udp_multicast,
+    can0 for socketcan, a session-derived name for virtual)."""
+
+    interface: Literal["virtual", "udp_multicast", "socketcan"] = "udp_multicast"
+    channel: str = ""
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The simulated plant and its I/O chassis.
+
+    backplane: how drivers reach the boards: ``shm`` (shared-memory register
+        bank) or ``can`` (the same registers in CAN FD frames).
+    physics_hz: physics steps per second, paced to the wall clock.
+    io_timeout_ms: bound on every backplane send and receive; a board that has
+        not answered (CAN) or not updated (shm) within it is an I/O fault.
+    encoder_disturbance_rad: per robot, the error of the encoder counters at
+        power-on (the arm was moved while powered off) [rad], shape (7,).
+    ft_noise_n, ft_noise_nm: standard deviation of the wrist sensor noise.
+    ft_bias: per robot, the wrist sensor's bias [N, N, N, N m, N m, N m].
+    seed: seed of the plant's noise.
+    """
+
+    backplane: Literal["shm", "can"] = "shm"
+    can: CanConfig = field(default_factory=CanConfig)
+    physics_hz: float = field(default=1000.0, metadata={"ge": 100, "le": 10000})
+    gui: bool = False
+    io_timeout_ms: float = field(default=20.0, metadata={"gt": 0, "le": 10000})
+    hole: HoleConfig = field(default_factory=HoleConfig)
+    peg: PegConfig = field(default_factory=PegConfig)
+    encoder_disturbance_rad: dict[str, list[float]] = field(
+        default_factory=dict, metadata={"len": 7}
+    )
+    ft_noise_n: float = field(default=0.05, metadata={"ge": 0})
+    ft_noise_nm: float = field(default=0.005, metadata={"ge": 0})
+    ft_bias: dict[str, list[float]] = field(default_factory=dict, metadata={"len": 6})
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole config. Sections are added as capabilities land."""
 
@@ -82,3 +182,8 @@ class Config:
     bench: NodeConfig = field(
         default_factory=lambda: NodeConfig(rate_hz=1000.0, heartbeat_limit_cycles=100)
     )
+    robots: dict[str, RobotConfig] = field(default_factory=_default_robots)
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    # The file this config was read from (relative hardware paths start from
+    # its folder); set by the loader, never read from YAML.
+    source: str = field(default="config/redistro.yaml", metadata={"internal": True})

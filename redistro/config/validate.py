@@ -61,7 +61,7 @@ def _build_dataclass(cls: type, data: Any, path: str, ctx: _Ctx) -> Any:
     if not isinstance(data, Mapping):
         raise ctx.fail(path, f"a mapping of {cls.__name__} fields", data)
     hints = get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
     for key in data:
         if key not in fields:
             sub = f"{path}.{key}" if path else str(key)
@@ -138,6 +138,9 @@ def _convert(tp: Any, value: Any, path: str, ctx: _Ctx, meta: dict[str, Any]) ->
             raise ctx.fail(path, _describe(tp), value)
         if len(value) < meta.get("min_len", 0):
             raise ctx.fail(path, f"a list of at least {meta['min_len']} items", value)
+        if "len" in meta and len(value) != meta["len"]:
+            raise ctx.fail(path, f"a list of exactly {meta['len']} items", value)
+        meta = {k: v for k, v in meta.items() if k not in ("len", "min_len")}
         (item_tp,) = get_args(tp)
         return [_convert(item_tp, v, f"{path}[{i}]", ctx, meta) for i, v in enumerate(value)]
     if origin is dict:

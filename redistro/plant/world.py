@@ -1,0 +1,290 @@
+"""The PyBullet world: floor, table, hole fixture, two arms with their tools.
+
+Only this module talks to PyBullet. PyBullet's tuples are wrapped in
+NamedTuples; joints are found by name, never by a hard-coded index.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from redistro.config.model import Config
+from redistro.robotmodel import JOINT_NAMES, SENSOR_JOINT, TOOL_LINK, Peg, write_arm_urdf
+
+GRAVITY = 9.81
+FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
+
+
+class JointInfo(NamedTuple):
+    index: int
+    name: str
+    type: int
+    lower: float
+    upper: float
+    max_force: float
+    max_velocity: float
+    link_name: str
+
+
+class JointState(NamedTuple):
+    position: float
+    velocity: float
+    reaction: tuple[float, float, float, float, float, float]
+    applied_torque: float
+
+
+class ContactPoint(NamedTuple):
+    flag: int
+    body_a: int
+    body_b: int
+    link_a: int
+    link_b: int
+    position_on_a: tuple[float, float, float]
+    position_on_b: tuple[float, float, float]
+    normal_on_b: tuple[float, float, float]
+    distance: float
+    normal_force: float
+    friction1: float
+    friction_dir1: tuple[float, float, float]
+    friction2: float
+    friction_dir2: tuple[float, float, float]
+
+
+@dataclass
+class Arm:
+    name: str
+    body: int
+    joints: list[int]  # PyBullet joint indices of the 7 revolute joints
+    sensor_joint: int  # the fixed wrist_ft joint
+    tool_link: int
+    tool_mass_kg: float
+    tool_com_m: np.ndarray  # tool centre of mass in the sensor frame
+    braked: np.ndarray  # bool (7,): brake engaged (the joint motor is a brake)
+    brake_torque_nm: np.ndarray
+
+
+def _quat_matrix(pb: Any, quat: Any) -> np.ndarray:
+    return np.asarray(pb.getMatrixFromQuaternion(quat), dtype=np.float64).reshape(3, 3)
+
+
+class World:
+    """The simulated scene. ``step()`` advances physics by one time step."""
+
+    def __init__(self, cfg: Config, *, gui: bool = False, urdf_dir: Path | None = None) -> None:
+        import pybullet
+        import pybullet_data
+
+        self.pb = pybullet
+        self.cfg = cfg
+        self.dt = 1.0 / cfg.plant.physics_hz
+        mode = pybullet.GUI if gui else pybullet.DIRECT
+        self.client = pybullet.connect(mode)
+        if self.client < 0:
+            raise RuntimeError("PyBullet could not connect (no display for --gui?)")
+        pb = self.pb
+        cid = self.client
+        pb.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
+        pb.setGravity(0, 0, -GRAVITY, physicsClientId=cid)
+        pb.setTimeStep(self.dt, physicsClientId=cid)
+        self.floor = pb.loadURDF("plane.urdf", physicsClientId=cid)
+        self._tmp = None
+        if urdf_dir is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="redistro-urdf-")
+            urdf_dir = Path(self._tmp.name)
+        self.fixture = self._build_table_and_fixture()
+        self.arms: dict[str, Arm] = {}
+        peg_cfg = cfg.plant.peg
+        for name, rc in cfg.robots.items():
+            peg = Peg(peg_cfg.side_m, peg_cfg.length_m, peg_cfg.mass_kg) if rc.peg else None
+            path = write_arm_urdf(urdf_dir, name, peg)
+            body = pb.loadURDF(
+                str(path),
+                basePosition=rc.base_xyz_m,
+                useFixedBase=True,
+                flags=pb.URDF_USE_INERTIA_FROM_FILE,
+                physicsClientId=cid,
+            )
+            infos = [self.joint_info(body, j) for j in range(pb.getNumJoints(body, cid))]
+            by_name = {i.name: i for i in infos}
+            joints = [by_name[n].index for n in JOINT_NAMES]
+            sensor = by_name[SENSOR_JOINT].index
+            tool_link = next(i.index for i in infos if i.link_name == TOOL_LINK)
+            dyn = pb.getDynamicsInfo(body, tool_link, physicsClientId=cid)
+            # disable the default velocity motors: joints are torque driven
+            pb.setJointMotorControlArray(
+                body, joints, pb.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid
+            )
+            for j, q in zip(joints, rc.initial_q_rad, strict=True):
+                pb.resetJointState(body, j, q, 0.0, physicsClientId=cid)
+            pb.enableJointForceTorqueSensor(body, sensor, True, physicsClientId=cid)
+            self.arms[name] = Arm(
+                name=name,
+                body=body,
+                joints=joints,
+                sensor_joint=sensor,
+                tool_link=tool_link,
+                tool_mass_kg=float(dyn[0]),
+                tool_com_m=np.asarray(dyn[3], dtype=np.float64),
+                braked=np.zeros(7, dtype=bool),
+                brake_torque_nm=np.zeros(7),
+            )
+
+    # -- scene --
+
+    def _box(self, half: list[float], pos: list[float], rgba: list[float]) -> int:
+        pb, cid = self.pb, self.client
+        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid)
+        return int(
+            pb.createMultiBody(
+                baseMass=0,
+                baseCollisionShapeIndex=col,
+                baseVisualShapeIndex=vis,
+                basePosition=pos,
+                physicsClientId=cid,
+            )
+        )
+
+    def _build_table_and_fixture(self) -> list[int]:
+        hole = self.cfg.plant.hole
+        peg = self.cfg.plant.peg
+        x, y, top = hole.xyz_m
+        side = peg.side_m + hole.clearance_m
+        depth, wall = hole.depth_m, hole.wall_m
+        table_top = top - depth - FIXTURE_FLOOR_M
+        if table_top <= 0.01:
+            from redistro.errors import ConfigError
+
+            raise ConfigError(
+                f"{self.cfg.source}: plant.hole.xyz_m: the hole's mouth at z={top} m leaves "
+                f"no room for the table under a {depth} m deep fixture"
+            )
+        grey, steel = [0.6, 0.45, 0.3, 1], [0.5, 0.55, 0.6, 1]
+        bodies = [self._box([0.3, 0.6, table_top / 2], [x, y * 0.0, table_top / 2], grey)]
+        self.table_top_m = table_top
+        # the fixture: a floor plate and four walls around a square hole
+        outer = side / 2 + wall
+        zc = table_top + FIXTURE_FLOOR_M + depth / 2
+        bodies.append(
+            self._box([outer, outer, FIXTURE_FLOOR_M / 2], [x, y, table_top + FIXTURE_FLOOR_M / 2], steel)
+        )
+        for sx in (-1, 1):  # walls along y, full length
+            bodies.append(
+                self._box([wall / 2, outer, depth / 2], [x + sx * (side / 2 + wall / 2), y, zc], steel)
+            )
+        for sy in (-1, 1):  # walls along x, between the others
+            bodies.append(
+                self._box([side / 2, wall / 2, depth / 2], [x, y + sy * (side / 2 + wall / 2), zc], steel)
+            )
+        return bodies
+
+    # -- queries --
+
+    def joint_info(self, body: int, j: int) -> JointInfo:
+        i = self.pb.getJointInfo(body, j, physicsClientId=self.client)
+        return JointInfo(
+            i[0], i[1].decode(), i[2], i[8], i[9], i[10], i[11], i[12].decode()
+        )
+
+    def joint_states(self, arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q [rad], qd [rad/s], applied joint torque [N m] (motor or brake)."""
+        states = [
+            JointState(*s)
+            for s in self.pb.getJointStates(arm.body, arm.joints, physicsClientId=self.client)
+        ]
+        q = np.array([s.position for s in states])
+        qd = np.array([s.velocity for s in states])
+        tau = np.array([s.applied_torque for s in states])
+        return q, qd, tau
+
+    def sensor_frame(self, arm: Arm) -> tuple[np.ndarray, np.ndarray]:
+        """Position [m] and rotation matrix (world from sensor) of the wrist sensor frame."""
+        ls = self.pb.getLinkState(
+            arm.body, arm.tool_link, computeForwardKinematics=True, physicsClientId=self.client
+        )
+        # link frame (not the inertial frame): world position/orientation of the URDF link frame
+        return np.asarray(ls[4]), _quat_matrix(self.pb, ls[5])
+
+    def wrist_wrench(self, arm: Arm) -> np.ndarray:
+        """The external wrench on the tool, in the sensor frame, about its origin
+        [Fx, Fy, Fz, Mx, My, Mz] (N, N m), with the tool's own weight taken out
+        (the sensor is tared with the tool on).
+
+        PyBullet reports the fixed joint's reaction as minus the sum of the
+        forces on the tool (external and weight), with the moment taken about
+        the tool's centre of mass; both were checked against known forces
+        (tests/integration/test_plant.py).
+        """
+        s = JointState(
+            *self.pb.getJointState(arm.body, arm.sensor_joint, physicsClientId=self.client)
+        )
+        reaction = np.asarray(s.reaction, dtype=np.float64)
+        _, rot = self.sensor_frame(arm)
+        weight = rot.T @ np.array([0.0, 0.0, -GRAVITY * arm.tool_mass_kg])
+        force = -reaction[:3] - weight
+        moment = -reaction[3:] + np.cross(arm.tool_com_m, force)
+        return np.concatenate([force, moment])
+
+    def contact_wrench_world(self, arm: Arm) -> np.ndarray:
+        """Sum of PyBullet's contact forces on the tool (world frame, N), and
+        their moment about the sensor origin (N m)."""
+        origin, _ = self.sensor_frame(arm)
+        f_total = np.zeros(3)
+        m_total = np.zeros(3)
+        for c in self.pb.getContactPoints(
+            bodyA=arm.body, linkIndexA=arm.tool_link, physicsClientId=self.client
+        ):
+            cp = ContactPoint(*c)
+            # the normal force acts on A along the normal on B; the friction
+            # directions are reported for B (measured: see the wrist test)
+            f = cp.normal_force * np.asarray(cp.normal_on_b)
+            f -= cp.friction1 * np.asarray(cp.friction_dir1)
+            f -= cp.friction2 * np.asarray(cp.friction_dir2)
+            f_total += f
+            m_total += np.cross(np.asarray(cp.position_on_a) - origin, f)
+        return np.concatenate([f_total, m_total])
+
+    # -- actuation --
+
+    def set_brakes(self, arm: Arm, engaged: np.ndarray, torque_nm: np.ndarray) -> None:
+        """Engage or release brakes. An engaged brake is a friction clamp: it
+        holds its joint still up to ``torque_nm``."""
+        changed = engaged != arm.braked
+        if not changed.any():
+            return
+        idx = [arm.joints[j] for j in np.flatnonzero(changed)]
+        forces = [float(torque_nm[j]) if engaged[j] else 0.0 for j in np.flatnonzero(changed)]
+        self.pb.setJointMotorControlArray(
+            arm.body,
+            idx,
+            self.pb.VELOCITY_CONTROL,
+            targetVelocities=[0.0] * len(idx),
+            forces=forces,
+            physicsClientId=self.client,
+        )
+        arm.braked = engaged.copy()
+        arm.brake_torque_nm = np.asarray(torque_nm, dtype=np.float64).copy()
+
+    def set_torques(self, arm: Arm, tau_nm: np.ndarray) -> None:
+        """Motor torques for the next step [N m]; a braked joint's motor is inhibited."""
+        tau = np.where(arm.braked, 0.0, tau_nm)
+        self.pb.setJointMotorControlArray(
+            arm.body, arm.joints, self.pb.TORQUE_CONTROL, forces=tau.tolist(), physicsClientId=self.client
+        )
+
+    def step(self) -> None:
+        self.pb.stepSimulation(physicsClientId=self.client)
+
+    def close(self) -> None:
+        import contextlib
+
+        with contextlib.suppress(Exception):
+            self.pb.disconnect(physicsClientId=self.client)
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
