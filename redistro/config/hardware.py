@@ -130,11 +130,18 @@ def _resolve(base: Path, rel: str) -> Path:
 
 
 def _channel(
-    io: IOConfig, text: str, kind: str, where: str, origin: str, used: dict[tuple[int, str, int], str]
+    io: IOConfig,
+    text: str,
+    kind: str,
+    where: str,
+    origin: str,
+    used: dict[tuple[int, str, int], str],
 ) -> Channel:
     board, sep, idx = text.partition(".")
     if not sep or not idx.isdigit():
-        raise ConfigError(f"{origin}: {where}: expected board.channel (e.g. {kind}.0), got {text!r}")
+        raise ConfigError(
+            f"{origin}: {where}: expected board.channel (e.g. {kind}.0), got {text!r}"
+        )
     if board not in io.boards:
         raise ConfigError(
             f"{origin}: {where}: no board named {board!r} (boards: {', '.join(sorted(io.boards))})"
@@ -203,7 +210,8 @@ def load_robot(name: str, robot: RobotConfig, base: Path, origin: str) -> RobotH
     for i, row in enumerate(sensors.ft_calibration):
         if len(row) != 6:
             raise ConfigError(
-                f"{sensors_path}: ft_calibration[{i}]: expected a list of exactly 6 items, got {row!r}"
+                f"{sensors_path}: ft_calibration[{i}]: expected a list of exactly 6 items, "
+                f"got {row!r}"
             )
     joints, wrist = check_io(io, str(io_path))
     return RobotHardware(name, io, sensors, joints, wrist, str(io_path), str(sensors_path))

@@ -138,6 +138,7 @@ class CanConfig:
 
     interface: Literal["virtual", "udp_multicast", "socketcan"] = "udp_multicast"
     channel: str = ""
+    port: int = field(default=0, metadata={"ge": 0, "le": 65535})  # udp_multicast; 0: per session
 
 
 @dataclass(frozen=True)

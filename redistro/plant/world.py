@@ -21,7 +21,7 @@ FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
 
 
 class JointInfo(NamedTuple):
-    index: int
+    joint: int
     name: str
     type: int
     lower: float
@@ -68,6 +68,13 @@ class Arm:
     brake_torque_nm: np.ndarray
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """3-vector cross product (np.cross costs ten times more for one pair)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
 def _quat_matrix(pb: Any, quat: Any) -> np.ndarray:
     return np.asarray(pb.getMatrixFromQuaternion(quat), dtype=np.float64).reshape(3, 3)
 
@@ -111,9 +118,9 @@ class World:
             )
             infos = [self.joint_info(body, j) for j in range(pb.getNumJoints(body, cid))]
             by_name = {i.name: i for i in infos}
-            joints = [by_name[n].index for n in JOINT_NAMES]
-            sensor = by_name[SENSOR_JOINT].index
-            tool_link = next(i.index for i in infos if i.link_name == TOOL_LINK)
+            joints = [by_name[n].joint for n in JOINT_NAMES]
+            sensor = by_name[SENSOR_JOINT].joint
+            tool_link = next(i.joint for i in infos if i.link_name == TOOL_LINK)
             dyn = pb.getDynamicsInfo(body, tool_link, physicsClientId=cid)
             # disable the default velocity motors: joints are torque driven
             pb.setJointMotorControlArray(
@@ -139,7 +146,9 @@ class World:
     def _box(self, half: list[float], pos: list[float], rgba: list[float]) -> int:
         pb, cid = self.pb, self.client
         col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
-        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid)
+        vis = pb.createVisualShape(
+            pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid
+        )
         return int(
             pb.createMultiBody(
                 baseMass=0,
@@ -171,15 +180,21 @@ class World:
         outer = side / 2 + wall
         zc = table_top + FIXTURE_FLOOR_M + depth / 2
         bodies.append(
-            self._box([outer, outer, FIXTURE_FLOOR_M / 2], [x, y, table_top + FIXTURE_FLOOR_M / 2], steel)
+            self._box(
+                [outer, outer, FIXTURE_FLOOR_M / 2], [x, y, table_top + FIXTURE_FLOOR_M / 2], steel
+            )
         )
         for sx in (-1, 1):  # walls along y, full length
             bodies.append(
-                self._box([wall / 2, outer, depth / 2], [x + sx * (side / 2 + wall / 2), y, zc], steel)
+                self._box(
+                    [wall / 2, outer, depth / 2], [x + sx * (side / 2 + wall / 2), y, zc], steel
+                )
             )
         for sy in (-1, 1):  # walls along x, between the others
             bodies.append(
-                self._box([side / 2, wall / 2, depth / 2], [x, y + sy * (side / 2 + wall / 2), zc], steel)
+                self._box(
+                    [side / 2, wall / 2, depth / 2], [x, y + sy * (side / 2 + wall / 2), zc], steel
+                )
             )
         return bodies
 
@@ -187,9 +202,7 @@ class World:
 
     def joint_info(self, body: int, j: int) -> JointInfo:
         i = self.pb.getJointInfo(body, j, physicsClientId=self.client)
-        return JointInfo(
-            i[0], i[1].decode(), i[2], i[8], i[9], i[10], i[11], i[12].decode()
-        )
+        return JointInfo(i[0], i[1].decode(), i[2], i[8], i[9], i[10], i[11], i[12].decode())
 
     def joint_states(self, arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q [rad], qd [rad/s], applied joint torque [N m] (motor or brake)."""
@@ -210,7 +223,7 @@ class World:
         # link frame (not the inertial frame): world position/orientation of the URDF link frame
         return np.asarray(ls[4]), _quat_matrix(self.pb, ls[5])
 
-    def wrist_wrench(self, arm: Arm) -> np.ndarray:
+    def wrist_wrench(self, arm: Arm, rot: np.ndarray | None = None) -> np.ndarray:
         """The external wrench on the tool, in the sensor frame, about its origin
         [Fx, Fy, Fz, Mx, My, Mz] (N, N m), with the tool's own weight taken out
         (the sensor is tared with the tool on).
@@ -224,16 +237,18 @@ class World:
             *self.pb.getJointState(arm.body, arm.sensor_joint, physicsClientId=self.client)
         )
         reaction = np.asarray(s.reaction, dtype=np.float64)
-        _, rot = self.sensor_frame(arm)
+        if rot is None:
+            _, rot = self.sensor_frame(arm)
         weight = rot.T @ np.array([0.0, 0.0, -GRAVITY * arm.tool_mass_kg])
         force = -reaction[:3] - weight
-        moment = -reaction[3:] + np.cross(arm.tool_com_m, force)
+        moment = -reaction[3:] + _cross(arm.tool_com_m, force)
         return np.concatenate([force, moment])
 
-    def contact_wrench_world(self, arm: Arm) -> np.ndarray:
+    def contact_wrench_world(self, arm: Arm, origin: np.ndarray | None = None) -> np.ndarray:
         """Sum of PyBullet's contact forces on the tool (world frame, N), and
         their moment about the sensor origin (N m)."""
-        origin, _ = self.sensor_frame(arm)
+        if origin is None:
+            origin, _ = self.sensor_frame(arm)
         f_total = np.zeros(3)
         m_total = np.zeros(3)
         for c in self.pb.getContactPoints(
@@ -246,7 +261,7 @@ class World:
             f -= cp.friction1 * np.asarray(cp.friction_dir1)
             f -= cp.friction2 * np.asarray(cp.friction_dir2)
             f_total += f
-            m_total += np.cross(np.asarray(cp.position_on_a) - origin, f)
+            m_total += _cross(np.asarray(cp.position_on_a) - origin, f)
         return np.concatenate([f_total, m_total])
 
     # -- actuation --
@@ -274,7 +289,11 @@ class World:
         """Motor torques for the next step [N m]; a braked joint's motor is inhibited."""
         tau = np.where(arm.braked, 0.0, tau_nm)
         self.pb.setJointMotorControlArray(
-            arm.body, arm.joints, self.pb.TORQUE_CONTROL, forces=tau.tolist(), physicsClientId=self.client
+            arm.body,
+            arm.joints,
+            self.pb.TORQUE_CONTROL,
+            forces=tau.tolist(),
+            physicsClientId=self.client,
         )
 
     def step(self) -> None:

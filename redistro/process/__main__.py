@@ -1,4 +1,4 @@
-"""Process entry point: ``python -m redistro.process {manager|worker} ...``.
+"""Process entry point: ``python -m redistro.process {manager|worker|plant} ...``.
 
 The runtime signals are blocked and the math libraries limited to one thread
 *before* anything that may start a thread (numpy/OpenBLAS, pybullet,
@@ -28,12 +28,30 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--spec", required=True)
     w.add_argument("--index", type=int, required=True)
     w.add_argument("--manager-pid", type=int, required=True)
+    p = sub.add_parser("plant")
+    p.add_argument("--session", required=True)
+    p.add_argument("--config")
+    p.add_argument("--set", action="append", default=[])
+    p.add_argument("--result")
+    p.add_argument("--gui", action="store_true")
+    p.add_argument("--seconds", type=float, default=0.0)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=os.environ.get("REDISTRO_LOG_LEVEL", "INFO"),
         format="%(message)s",
         stream=sys.stderr,
     )
+    if args.what == "plant":
+        from redistro.plant.process import run_plant
+
+        return run_plant(
+            args.session,
+            args.config,
+            args.set,
+            result_path=args.result,
+            gui=args.gui,
+            seconds=args.seconds,
+        )
     if args.what == "manager":
         from redistro.process.manager import run_manager
 

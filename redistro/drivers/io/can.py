@@ -1,0 +1,288 @@
+"""The CAN backplane: the same register banks carried in CAN FD frames (python-can).
+
+Frames (11-bit identifiers, 64-byte CAN FD payloads):
+
+- ``0x100 | address``  controller -> board: a board's ``out`` bank (write);
+- ``0x200 | address``  controller -> board: read request;
+- ``0x300 | address``  board -> controller: the board's ``in`` bank (reply).
+
+A bank longer than one frame is split into segments. Every frame starts with a
+6-byte header: sequence number (u16), segment index (u8), segment count (u8),
+CRC-16 of the segment's payload (u16). A frame with a bad length, CRC, segment
+index or an unknown sequence is counted and dropped, never trusted. Every send
+and receive has a timeout; a bus error or a board that does not answer in time
+is an :class:`~redistro.errors.IOFault`.
+"""
+
+from __future__ import annotations
+
+import binascii
+import struct
+import time
+import zlib
+from typing import Any
+
+import numpy as np
+
+from redistro.drivers.io.backplane import Backplane, BoardPort
+from redistro.drivers.io.registers import BANKS, BoardType
+from redistro.errors import IOFault
+
+FRAME = 64
+HEAD = struct.Struct("<HBBH")
+PAYLOAD = FRAME - HEAD.size
+WRITE, READ, REPLY = 0x100, 0x200, 0x300
+INVENTORY = 0x7F0  # controller -> chassis: who is there?
+INVENTORY_REPLY = 0x7F1  # chassis -> controller: (address u8, type u8) pairs
+
+
+def frames_for(seq: int, payload: bytes) -> list[bytes]:
+    """Split a bank into frames (each exactly FRAME bytes)."""
+    chunks = [payload[i : i + PAYLOAD] for i in range(0, max(len(payload), 1), PAYLOAD)]
+    out = []
+    for i, chunk in enumerate(chunks):
+        head = HEAD.pack(seq & 0xFFFF, i, len(chunks), binascii.crc_hqx(chunk, 0xFFFF))
+        out.append((head + chunk).ljust(FRAME, b"\0"))
+    return out
+
+
+class Reassembly:
+    """Collects the segments of one bank; validates each frame."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.count = -(-size // PAYLOAD) if size else 1
+        self.seq = -1
+        self.parts: dict[int, bytes] = {}
+        self.bad = 0
+
+    def add(self, data: bytes | bytearray, want_seq: int | None = None) -> bytes | None:
+        """Add a frame; the whole bank once every segment of one sequence arrived."""
+        if len(data) < HEAD.size:
+            self.bad += 1
+            return None
+        seq, index, count, crc = HEAD.unpack_from(data)
+        if count != self.count or index >= count:
+            self.bad += 1
+            return None
+        lo = index * PAYLOAD
+        n = min(PAYLOAD, self.size - lo)
+        chunk = bytes(data[HEAD.size : HEAD.size + n])
+        if len(chunk) != n or binascii.crc_hqx(chunk, 0xFFFF) != crc:
+            self.bad += 1
+            return None
+        if want_seq is not None and seq != want_seq & 0xFFFF:
+            return None  # a late reply to an earlier request: not an error, not ours
+        if seq != self.seq:
+            self.seq, self.parts = seq, {}
+        self.parts[index] = chunk
+        if len(self.parts) == self.count:
+            whole = b"".join(self.parts[i] for i in range(self.count))
+            self.parts = {}
+            self.seq = -1
+            return whole
+        return None
+
+
+def open_bus(interface: str, channel: str, port: int, session_id: str) -> Any:
+    import can
+
+    kwargs: dict[str, Any] = {"interface": interface, "fd": True}
+    if interface == "udp_multicast":
+        from can.interfaces.udp_multicast import UdpMulticastBus
+
+        kwargs["channel"] = channel or UdpMulticastBus.DEFAULT_GROUP_IPv4
+        kwargs["port"] = port or session_port(session_id)
+    elif interface == "virtual":
+        kwargs["channel"] = channel or f"redistro-{session_id}"
+        kwargs["receive_own_messages"] = False
+    else:
+        kwargs["channel"] = channel or "can0"
+    try:
+        return can.Bus(**kwargs)
+    except (can.CanError, OSError) as exc:
+        raise IOFault(f"CAN {interface} {kwargs['channel']}: cannot open ({exc})") from None
+
+
+def session_port(session_id: str) -> int:
+    """A UDP port per session, so that concurrent sessions never share a bus."""
+    return 20000 + zlib.crc32(session_id.encode()) % 20000
+
+
+def _message(arbitration_id: int, data: bytes) -> Any:
+    import can
+
+    return can.Message(arbitration_id=arbitration_id, data=data, is_fd=True, is_extended_id=False)
+
+
+class CanBackplane(Backplane):
+    """The controller's end: requests banks, writes banks, waits with deadlines."""
+
+    def __init__(
+        self,
+        session_id: str,
+        timeout_s: float,
+        *,
+        interface: str = "udp_multicast",
+        channel: str = "",
+        port: int = 0,
+        bus: Any = None,
+    ) -> None:
+        self.timeout_s = timeout_s
+        self.bus = bus if bus is not None else open_bus(interface, channel, port, session_id)
+        self._own_bus = bus is None
+        self._types: dict[int, BoardType] | None = None
+        self._rx: dict[int, Reassembly] = {}
+        self._recs: dict[int, np.ndarray[Any, Any]] = {}
+        self._seq = 0
+        self.bad_frames = 0
+
+    def _send(self, arbitration_id: int, data: bytes) -> None:
+        import can
+
+        try:
+            self.bus.send(_message(arbitration_id, data), timeout=self.timeout_s)
+        except can.CanError as exc:
+            raise IOFault(f"CAN send 0x{arbitration_id:03x} failed: {exc}") from None
+
+    def _recv(self, deadline: float) -> Any:
+        import can
+
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return None
+        try:
+            return self.bus.recv(timeout=remaining)
+        except can.CanError as exc:
+            raise IOFault(f"CAN receive failed: {exc}") from None
+
+    def inventory(self) -> dict[int, BoardType]:
+        if self._types is None:
+            self._send(INVENTORY, bytes(FRAME))
+            deadline = time.monotonic() + self.timeout_s * 5
+            while True:
+                msg = self._recv(deadline)
+                if msg is None:
+                    raise IOFault(f"CAN: no chassis answered within {self.timeout_s * 5e3:.0f} ms")
+                if msg.arbitration_id == INVENTORY_REPLY:
+                    data = bytes(msg.data)
+                    n = data[0]
+                    pairs = [(data[1 + 2 * i], data[2 + 2 * i]) for i in range(n)]
+                    self._types = {a: BoardType(t) for a, t in pairs}
+                    break
+        return dict(self._types)
+
+    def read(self, addresses: list[int]) -> dict[int, np.ndarray[Any, Any]]:
+        types = self.inventory()
+        self._seq = (self._seq + 1) & 0xFFFF
+        seq = self._seq
+        for a in addresses:
+            if a not in types:
+                raise IOFault(f"no board at address {a} in the chassis")
+            if a not in self._rx:
+                din = BANKS[types[a]][0]
+                self._rx[a] = Reassembly(din.itemsize)
+                self._recs[a] = np.zeros((), din)
+            self._send(READ | a, HEAD.pack(seq, 0, 1, 0).ljust(FRAME, b"\0"))
+        pending = set(addresses)
+        out: dict[int, np.ndarray[Any, Any]] = {}
+        deadline = time.monotonic() + self.timeout_s
+        while pending:
+            msg = self._recv(deadline)
+            if msg is None:
+                missing = ", ".join(str(a) for a in sorted(pending))
+                raise IOFault(
+                    f"CAN: board(s) {missing} did not answer within {self.timeout_s * 1e3:.0f} ms"
+                )
+            fn, a = msg.arbitration_id & 0x700, msg.arbitration_id & 0xFF
+            if fn != REPLY or a not in pending:
+                continue  # requests, writes, other robots' replies share the bus
+            rx = self._rx[a]
+            before = rx.bad
+            whole = rx.add(msg.data, want_seq=seq)
+            self.bad_frames += rx.bad - before
+            if whole is not None:
+                rec = self._recs[a]
+                rec.reshape(1).view(np.uint8)[:] = np.frombuffer(whole, np.uint8)
+                out[a] = rec
+                pending.discard(a)
+        return out
+
+    def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
+        self._seq = (self._seq + 1) & 0xFFFF
+        for frame in frames_for(self._seq, record.tobytes()):
+            self._send(WRITE | address, frame)
+
+    def close(self) -> None:
+        if self._own_bus:
+            self.bus.shutdown()
+
+
+class CanPort(BoardPort):
+    """The chassis' end: answers read requests and takes writes between steps."""
+
+    def __init__(self, boards: dict[int, BoardType], bus: Any) -> None:
+        self.bus = bus
+        self.types = dict(boards)
+        self._in = {a: np.zeros((), BANKS[t][0]) for a, t in boards.items()}
+        self._out = {a: np.zeros((), BANKS[t][1]) for a, t in boards.items()}
+        self._rx = {a: Reassembly(BANKS[t][1].itemsize) for a, t in boards.items()}
+        self.bad_frames = 0
+        self.requests = 0
+
+    def outputs(self, address: int) -> np.ndarray[Any, Any]:
+        return self._out[address]
+
+    def publish(self, address: int, record: np.ndarray[Any, Any]) -> None:
+        self._in[address][...] = record
+
+    def _reply(self, address: int, seq: int) -> None:
+        import can
+
+        for frame in frames_for(seq, self._in[address].tobytes()):
+            try:
+                self.bus.send(_message(REPLY | address, frame), timeout=0.005)
+            except can.CanError:
+                return  # the controller will time out and see an I/O fault
+
+    def handle(self, msg: Any) -> None:
+        ident = msg.arbitration_id
+        if ident == INVENTORY:
+            pairs = sorted(self.types.items())
+            data = bytes([len(pairs)]) + b"".join(bytes([a, int(t)]) for a, t in pairs)
+            self.bus.send(_message(INVENTORY_REPLY, data.ljust(FRAME, b"\0")), timeout=0.005)
+            return
+        fn, a = ident & 0x700, ident & 0xFF
+        if a not in self.types or fn not in (READ, WRITE):
+            return
+        data = bytes(msg.data)
+        if fn == READ:
+            if len(data) < HEAD.size:
+                self.bad_frames += 1
+                return
+            self.requests += 1
+            self._reply(a, HEAD.unpack_from(data)[0])
+            return
+        rx = self._rx[a]
+        before = rx.bad
+        whole = rx.add(data)
+        self.bad_frames += rx.bad - before
+        if whole is not None:
+            self._out[a].reshape(1).view(np.uint8)[:] = np.frombuffer(whole, np.uint8)
+
+    def service(self, until_ns: int) -> None:
+        import can
+
+        while True:
+            remaining = (until_ns - time.monotonic_ns()) / 1e9
+            try:
+                msg = self.bus.recv(timeout=max(0.0, remaining))
+            except can.CanError:
+                msg = None
+            if msg is not None:
+                self.handle(msg)
+            if time.monotonic_ns() >= until_ns:
+                return
+
+    def close(self) -> None:
+        self.bus.shutdown()

@@ -1,0 +1,101 @@
+"""Start and stop the plant process from a session owner (or a test)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+from redistro.drivers.io.bank import PlantState, RegisterBank
+from redistro.errors import IPCError, LayoutError, RedistroError
+from redistro.ipc.session import Session
+from redistro.process.spawn import spawn
+
+
+class PlantProcess:
+    """A running plant: ``start()`` returns once its bank says RUNNING."""
+
+    def __init__(self, proc: subprocess.Popen[bytes], session_id: str, result_path: Path) -> None:
+        self.proc = proc
+        self.session_id = session_id
+        self.result_path = result_path
+        self.bank: RegisterBank | None = None
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    @classmethod
+    def start(
+        cls,
+        session: Session,
+        run_dir: Path,
+        *,
+        config: str | None = None,
+        overrides: list[str] | None = None,
+        gui: bool = False,
+        timeout_s: float = 30.0,
+    ) -> PlantProcess:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        result = run_dir / "plant.json"
+        args = ["plant", "--session", session.id, "--result", str(result)]
+        if config:
+            args += ["--config", config]
+        for o in overrides or []:
+            args += ["--set", o]
+        if gui:
+            args.append("--gui")
+        proc = spawn(args, pass_fds=[session.lock_fd], env=session.child_env())
+        plant = cls(proc, session.id, result)
+        try:
+            plant._wait_running(timeout_s)
+        except BaseException:
+            plant.stop()
+            raise
+        return plant
+
+    def _wait_running(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                why = self.result().get("error", f"exit code {self.proc.returncode}")
+                raise RedistroError(f"plant failed to start: {why}")
+            if self.bank is None:
+                try:
+                    self.bank = RegisterBank.attach(self.session_id)
+                except (IPCError, LayoutError):
+                    time.sleep(0.01)  # not created yet (polling a condition, with a deadline)
+                    continue
+            if int(self.bank.status.read()["state"]) == PlantState.RUNNING:
+                return
+            time.sleep(0.005)
+        raise RedistroError(f"plant not running after {timeout_s} s")
+
+    def status(self) -> dict[str, Any]:
+        assert self.bank is not None
+        s = self.bank.status.read()
+        return {name: s[name].item() for name in s.dtype.names or ()}
+
+    def stop(self, timeout_s: float = 10.0) -> int:
+        """SIGTERM, wait; SIGKILL if it does not end in time. Returns the exit code."""
+        if self.bank is not None:
+            self.bank.close()
+            self.bank = None
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return int(self.proc.returncode)
+
+    def result(self) -> dict[str, Any]:
+        try:
+            return dict(json.loads(self.result_path.read_text()))
+        except (OSError, ValueError):
+            return {}
