@@ -39,7 +39,11 @@ class BoardConfig:
 
 @dataclass(frozen=True)
 class JointChannels:
-    """Where one joint is wired. Empty strings mean 'not fitted'."""
+    """Where one joint is wired. Empty strings mean 'not fitted'.
+
+    brake: the DIO output that *releases* the joint's brake. Brakes are
+    fail-safe: engaged whenever that output is off (power-on, a dead driver).
+    """
 
     encoder: str
     dac: str

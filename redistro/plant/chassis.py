@@ -141,10 +141,11 @@ class Chassis:
                 code = outputs[g.address]["code"]
                 volts[g.joints] = R.dac_volts(code[g.idx])
                 self.inp[g.address]["readback"] = code
-            brake = np.zeros(7, dtype=bool)
+            # fail-safe brakes: engaged unless their release output is on
+            brake = np.ones(7, dtype=bool)
             for g in rig.brake:
                 word = int(outputs[g.address]["outputs"])
-                brake[g.joints] = (word >> g.idx) & 1 == 1
+                brake[g.joints] = (word >> g.idx) & 1 == 0
                 self.inp[g.address]["outputs_readback"] = word & R.DIO_MASK
             for g in rig.enc:
                 out, inp = outputs[g.address], self.inp[g.address]

@@ -156,10 +156,9 @@ class RegisterBank:
             h["robot_names"][i] = r.encode()
         for i, (a, t) in enumerate(zip(addresses, types, strict=True)):
             view["table"][i] = (a, int(t))
-            bank_in = view[f"in{i}"]["data"]
-            bank_in["board_type"] = int(t)
+            view[f"in{i}"]["data"]["board_type"] = int(t)
         h["layout_hash"] = _hash(dt)  # last: an attacher that sees it sees the rest
-        del view, h, bank_in
+        del view, h
         return cls(shm, dt, owner=True)
 
     @classmethod

@@ -1,0 +1,28 @@
+"""Driver of the 16-channel 12-bit bipolar +-10 V DAC board."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from redistro.drivers.io.module import ModuleDriver
+from redistro.drivers.io.registers import BoardType, dac_code, dac_volts
+
+
+class DacDriver(ModuleDriver):
+    TYPE = BoardType.DAC
+
+    def set_volts(self, channels: np.ndarray[Any, Any], volts: np.ndarray[Any, Any]) -> None:
+        """Stage output voltages (rounded and saturated by the converter); ``flush`` sends."""
+        self.out["code"][channels] = dac_code(volts)
+
+    def zero(self) -> None:
+        self.out["code"][:] = 0
+
+    def staged_volts(self, channels: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        return dac_volts(self.out["code"][channels])
+
+    @staticmethod
+    def readback_volts(rec: np.ndarray[Any, Any], channels: np.ndarray[Any, Any]) -> Any:
+        return dac_volts(rec["readback"][channels])

@@ -1,0 +1,262 @@
+"""The robot-level driver: robot units in and out, whatever the boards.
+
+Built from a robot's hardware configs (I/O interface and sensor/actuator) over
+a backplane. ``read_feedback`` gives q [rad], qd [rad/s] (tachometer where
+fitted, else differentiated over the boards' sample times), joint torque
+[N m] (torque sensor where fitted, else the motor model applied to the DAC
+output), wrist wrench [N, N m] in the sensor frame, home switch levels.
+``send_torques`` converts joint torques to DAC volts through the motor model;
+``freeze`` engages every brake and zeroes every DAC channel.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from redistro.config.hardware import Channel, RobotHardware
+from redistro.drivers.io.adc import AdcDriver
+from redistro.drivers.io.backplane import Backplane
+from redistro.drivers.io.dac import DacDriver
+from redistro.drivers.io.dio import DioDriver
+from redistro.drivers.io.encoder import EncoderDriver
+from redistro.drivers.io.force import ForceDriver
+from redistro.drivers.io.module import ModuleDriver
+from redistro.drivers.io.registers import BOARD_NAMES, ENC_MODULO, LATCH_HOME_EDGES, wrap_delta
+from redistro.errors import ConfigError, IOFault
+
+DOF = 7
+DRIVERS: dict[str, type[ModuleDriver]] = {
+    "encoder": EncoderDriver,
+    "dac": DacDriver,
+    "adc": AdcDriver,
+    "dio": DioDriver,
+    "force": ForceDriver,
+}
+
+
+@dataclass
+class Feedback:
+    q_rad: np.ndarray
+    qd_rad_s: np.ndarray
+    tau_nm: np.ndarray
+    wrench: np.ndarray  # sensor frame [Fx, Fy, Fz, Mx, My, Mz]
+    home: np.ndarray  # bool (7,)
+    brakes: np.ndarray  # bool (7,): brakes engaged, as the board drives its outputs
+    step: int  # the plant step of the encoder sample
+    stamp_ns: int  # CLOCK_MONOTONIC when read
+
+
+def _by_board(channels: list[Channel | None]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    out: dict[int, tuple[list[int], list[int]]] = {}
+    for j, ch in enumerate(channels):
+        if ch is not None:
+            js, ks = out.setdefault(ch.address, ([], []))
+            js.append(j)
+            ks.append(ch.index)
+    return {a: (np.array(js), np.array(ks)) for a, (js, ks) in out.items()}
+
+
+class RobotDriver:
+    def __init__(self, hw: RobotHardware, backplane: Backplane, physics_hz: float) -> None:
+        self.hw = hw
+        self.name = hw.name
+        self.bp = backplane
+        self.physics_hz = physics_hz
+        s = hw.sensors
+        self.counts_per_rad = (
+            np.asarray(s.counts_per_rev, dtype=np.float64) * np.asarray(s.gear_ratio) / (2 * np.pi)
+        )
+        self.nm_per_volt = (
+            np.asarray(s.amps_per_volt)
+            * np.asarray(s.torque_constant_nm_a)
+            * np.asarray(s.gear_ratio, dtype=np.float64)
+        )
+        self.max_tau_nm = self.nm_per_volt * 10.0
+        self.max_tau_nm = np.minimum(
+            self.max_tau_nm,
+            np.asarray(s.max_current_a)
+            * np.asarray(s.torque_constant_nm_a)
+            * np.asarray(s.gear_ratio),
+        )
+        self.tach_v = np.asarray(s.tach_volts_per_rad_s, dtype=np.float64)
+        self.torque_v = np.asarray(s.torque_volts_per_nm, dtype=np.float64)
+        self.modules: dict[int, ModuleDriver] = {
+            b.address: DRIVERS[b.type](backplane, b.address) for b in hw.io.boards.values()
+        }
+        self.addresses = sorted(self.modules)
+        js = hw.joints
+        self.enc = _by_board([w.encoder for w in js])
+        self.dac = _by_board([w.dac for w in js])
+        self.home = _by_board([w.home for w in js])
+        self.brake = _by_board([w.brake for w in js])
+        self.torque = _by_board([w.torque for w in js])
+        self.tach = _by_board([w.tach for w in js])
+        self.has_tach = all(w.tach is not None for w in js)
+        self.has_torque = all(w.torque is not None for w in js)
+        # encoder unwrapping: q = q_ref + (accumulated counts since the reference) / scale
+        self._raw = np.zeros(DOF, dtype=np.int64)
+        self._acc = np.zeros(DOF, dtype=np.int64)
+        self._q_ref = np.zeros(DOF)
+        self._have_ref = False
+        self._prev: tuple[int, np.ndarray] | None = None
+        self._qd = np.zeros(DOF)
+        self._tau_cmd = np.zeros(DOF)
+
+    # -- set-up --
+
+    def open(self) -> None:
+        """Check the chassis against the I/O config, freeze, set latch sources."""
+        chassis = self.bp.inventory()
+        for name, b in self.hw.io.boards.items():
+            if b.address not in chassis:
+                found = ", ".join(f"{a}:{t.name.lower()}" for a, t in sorted(chassis.items()))
+                raise ConfigError(
+                    f"{self.hw.io_path}: boards.{name}.address: no board at address "
+                    f"{b.address} in the chassis (it has {found or 'none'})"
+                )
+            if chassis[b.address] != BOARD_NAMES[b.type]:
+                raise ConfigError(
+                    f"{self.hw.io_path}: boards.{name}.type: the chassis has a "
+                    f"{chassis[b.address].name.lower()} board at address {b.address}, not {b.type}"
+                )
+        for a, (_js, axes) in self.enc.items():
+            enc = self.modules[a]
+            assert isinstance(enc, EncoderDriver)
+            for k in axes.tolist():
+                enc.set_latch_mode(k, LATCH_HOME_EDGES)
+            enc.flush()
+        self.freeze()
+        self.read_feedback()
+
+    def close(self) -> None:
+        self.bp.close()
+
+    # -- feedback --
+
+    def read_raw(self) -> dict[int, np.ndarray[Any, Any]]:
+        return self.bp.read(self.addresses)
+
+    def read_feedback(self) -> Feedback:
+        recs = self.read_raw()
+        now = time.monotonic_ns()
+        raw = np.zeros(DOF, dtype=np.int64)
+        step = 0
+        for a, (js, axes) in self.enc.items():
+            raw[js] = recs[a]["counter"][axes]
+            step = int(recs[a]["step"])
+        if not self._have_ref:
+            signed = np.where(raw >= ENC_MODULO // 2, raw - ENC_MODULO, raw)
+            self._q_ref = signed / self.counts_per_rad
+            self._acc[:] = 0
+            self._have_ref = True
+        else:
+            for j in range(DOF):
+                self._acc[j] += wrap_delta(int(raw[j]), int(self._raw[j]))
+        self._raw = raw
+        q = self._q_ref + self._acc / self.counts_per_rad
+        if self.has_tach:
+            qd = np.zeros(DOF)
+            for a, (js, ch) in self.tach.items():
+                qd[js] = AdcDriver.volts(recs[a], ch) / self.tach_v[js]
+        else:
+            qd = self._qd
+            if self._prev is not None and step > self._prev[0]:
+                dt = (step - self._prev[0]) / self.physics_hz
+                qd = (q - self._prev[1]) / dt
+            self._qd = qd
+        self._prev = (step, q)
+        if self.has_torque:
+            tau = np.zeros(DOF)
+            for a, (js, ch) in self.torque.items():
+                tau[js] = AdcDriver.volts(recs[a], ch) / self.torque_v[js]
+        else:
+            tau = np.zeros(DOF)
+            for a, (js, ch) in self.dac.items():
+                tau[js] = DacDriver.readback_volts(recs[a], ch) * self.nm_per_volt[js]
+        home = np.zeros(DOF, dtype=bool)
+        for a, (js, bits) in self.home.items():
+            home[js] = DioDriver.bits(recs[a], bits)
+        brakes = np.ones(DOF, dtype=bool)
+        for a, (js, bits) in self.brake.items():
+            brakes[js] = ~DioDriver.output_bits(recs[a], bits)
+        wrench = np.zeros(6)
+        if self.hw.wrist is not None:
+            wrench = ForceDriver.wrench(recs[self.hw.wrist.address])
+        return Feedback(q, qd, tau, wrench, home, brakes, step, now)
+
+    # -- commands --
+
+    def send_torques(self, tau_nm: np.ndarray[Any, Any]) -> None:
+        """Joint torques [N m], through the motor model to DAC volts (saturated)."""
+        tau = np.asarray(tau_nm, dtype=np.float64)
+        if tau.shape != (DOF,) or not np.all(np.isfinite(tau)):
+            raise ValueError(f"{self.name}: joint torques must be 7 finite numbers, got {tau}")
+        volts = tau / self.nm_per_volt
+        for a, (js, ch) in self.dac.items():
+            dac = self.modules[a]
+            assert isinstance(dac, DacDriver)
+            dac.set_volts(ch, volts[js])
+            dac.flush()
+        self._tau_cmd = tau
+
+    def freeze(self) -> None:
+        """Brakes on, then every DAC channel to zero."""
+        self._set_brakes(True)
+        for a in self.dac:
+            dac = self.modules[a]
+            assert isinstance(dac, DacDriver)
+            dac.zero()
+            dac.flush()
+        self._tau_cmd = np.zeros(DOF)
+
+    def release_brakes(self) -> None:
+        self._set_brakes(False)
+
+    def _set_brakes(self, on: bool) -> None:
+        # fail-safe brakes: the output bit *releases* its brake; off (the
+        # board's power-on state) means engaged
+        for a, (_js, bits) in self.brake.items():
+            dio = self.modules[a]
+            assert isinstance(dio, DioDriver)
+            dio.set_bits(bits, not on)
+            dio.flush()
+
+    def preset_encoders(
+        self, q_rad: np.ndarray[Any, Any], counts: np.ndarray[Any, Any] | None = None
+    ) -> None:
+        """Load the counters so that they read ``q_rad`` from now on.
+
+        counts: the raw counter value to load per joint (default: q x scale,
+        modulo 2**24); the driver maps that count to ``q_rad``.
+        """
+        q = np.asarray(q_rad, dtype=np.float64)
+        values = (
+            np.mod(np.rint(q * self.counts_per_rad).astype(np.int64), ENC_MODULO)
+            if counts is None
+            else np.asarray(counts, dtype=np.int64) % ENC_MODULO
+        )
+        reqs: dict[int, list[tuple[int, int]]] = {}
+        for a, (js, axes) in self.enc.items():
+            enc = self.modules[a]
+            assert isinstance(enc, EncoderDriver)
+            for j, k in zip(js.tolist(), axes.tolist(), strict=True):
+                reqs.setdefault(a, []).append((k, enc.preset(k, int(values[j]))))
+            enc.flush()
+        deadline = time.monotonic() + max(0.2, 10 * self.bp.timeout_s)
+        while True:
+            recs = self.bp.read(list(reqs))
+            if all(
+                EncoderDriver.preset_done(recs[a], k, r) for a, lst in reqs.items() for k, r in lst
+            ):
+                break
+            if time.monotonic() > deadline:
+                raise IOFault(f"{self.name}: encoder preset not acknowledged in time")
+        self._raw = values.copy()
+        self._acc[:] = 0
+        self._q_ref = q.copy()
+        self._have_ref = True
+        self._prev = None
