@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import Any, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -52,14 +52,16 @@ def read_yaml(path: Path) -> dict[str, Any]:
 def _known_path(cls: type, parts: list[str]) -> bool:
     """Whether a dotted path names a field (or a key inside a dict field)."""
     tp: Any = cls
-    for i, part in enumerate(parts):
-        if not (dataclasses.is_dataclass(tp) and isinstance(tp, type)):
-            # Inside a dict field: any key is addressable; validation judges it.
-            return i == len(parts) - 1
-        names = {f.name: f for f in dataclasses.fields(tp) if not f.metadata.get("internal")}
-        if part not in names:
+    for part in parts:
+        if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+            names = {f.name: f for f in dataclasses.fields(tp) if not f.metadata.get("internal")}
+            if part not in names:
+                return False
+            tp = get_type_hints(tp)[part]
+        elif get_origin(tp) is dict:
+            tp = get_args(tp)[1]  # any key is addressable; validation judges it
+        else:
             return False
-        tp = get_type_hints(tp)[part]
     return True
 
 
@@ -78,6 +80,7 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
         data = read_yaml(path)
         origin = str(path)
     data = copy.deepcopy(data)
+    defaults = dataclasses.asdict(Config())
     origins: dict[str, str] = {}
     for text in overrides or []:
         parts, value = parse_override(text)
@@ -85,10 +88,13 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
         if not _known_path(Config, parts):
             raise ConfigError(f"--set {dotted}: no such config key")
         node = data
+        default: Any = defaults
         for i, part in enumerate(parts[:-1]):
+            default = default.get(part) if isinstance(default, dict) else None
             child = node.get(part)
             if child is None:
-                child = node[part] = {}
+                # not in the file: start from the default (a dict of robots keeps the others)
+                child = node[part] = copy.deepcopy(default) if isinstance(default, dict) else {}
             if not isinstance(child, dict):
                 where = ".".join(parts[: i + 1])
                 raise ConfigError(f"{origin}: {where}: expected a mapping, got {child!r}")

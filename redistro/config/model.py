@@ -187,4 +187,4 @@ class Config:
     plant: PlantConfig = field(default_factory=PlantConfig)
     # The file this config was read from (relative hardware paths start from
     # its folder); set by the loader, never read from YAML.
-    source: str = field(default="config/redistro.yaml", metadata={"internal": True})
+    source: str = field(default="config/redistro.yaml", compare=False, metadata={"internal": True})

@@ -46,8 +46,9 @@ class Feedback:
     wrench: np.ndarray  # sensor frame [Fx, Fy, Fz, Mx, My, Mz]
     home: np.ndarray  # bool (7,)
     brakes: np.ndarray  # bool (7,): brakes engaged, as the board drives its outputs
-    step: int  # the plant step of the encoder sample
+    step: int  # the plant step of the encoder sample (the oldest, if boards differ)
     stamp_ns: int  # CLOCK_MONOTONIC when read
+    coherent: bool = True  # every encoder board sampled in the same plant step
 
 
 def _by_board(channels: list[Channel | None]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -141,13 +142,18 @@ class RobotDriver:
         return self.bp.read(self.addresses)
 
     def read_feedback(self) -> Feedback:
-        recs = self.read_raw()
+        # Boards are sampled one after another; a snapshot that straddles a
+        # plant step is taken again once (the figures are then coherent).
+        for _attempt in range(2):
+            recs = self.read_raw()
+            steps = [int(recs[a]["step"]) for a in self.enc]
+            if min(steps) == max(steps):
+                break
         now = time.monotonic_ns()
         raw = np.zeros(DOF, dtype=np.int64)
-        step = 0
+        step = min(steps)
         for a, (js, axes) in self.enc.items():
             raw[js] = recs[a]["counter"][axes]
-            step = int(recs[a]["step"])
         if not self._have_ref:
             signed = np.where(raw >= ENC_MODULO // 2, raw - ENC_MODULO, raw)
             self._q_ref = signed / self.counts_per_rad
@@ -186,7 +192,7 @@ class RobotDriver:
         wrench = np.zeros(6)
         if self.hw.wrist is not None:
             wrench = ForceDriver.wrench(recs[self.hw.wrist.address])
-        return Feedback(q, qd, tau, wrench, home, brakes, step, now)
+        return Feedback(q, qd, tau, wrench, home, brakes, step, now, min(steps) == max(steps))
 
     # -- commands --
 
@@ -213,16 +219,23 @@ class RobotDriver:
             dac.flush()
         self._tau_cmd = np.zeros(DOF)
 
-    def release_brakes(self) -> None:
-        self._set_brakes(False)
+    def release_brakes(self, joints: list[int] | None = None) -> None:
+        """Release the brakes of ``joints`` (default: all); the others keep theirs."""
+        self._set_brakes(False, joints)
 
-    def _set_brakes(self, on: bool) -> None:
+    def engage_brakes(self, joints: list[int] | None = None) -> None:
+        self._set_brakes(True, joints)
+
+    def _set_brakes(self, on: bool, joints: list[int] | None = None) -> None:
         # fail-safe brakes: the output bit *releases* its brake; off (the
         # board's power-on state) means engaged
-        for a, (_js, bits) in self.brake.items():
+        for a, (js, bits) in self.brake.items():
+            pick = np.ones(len(js), dtype=bool) if joints is None else np.isin(js, joints)
+            if not pick.any():
+                continue
             dio = self.modules[a]
             assert isinstance(dio, DioDriver)
-            dio.set_bits(bits, not on)
+            dio.set_bits(bits[pick], not on)
             dio.flush()
 
     def preset_encoders(

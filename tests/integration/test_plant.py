@@ -1,0 +1,222 @@
+"""The plant process and the two-layer driver, over both backplanes.
+
+Real plant process, real PyBullet, real shared memory or real python-can
+(udp_multicast) frames between processes.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from redistro.drivers.io.registers import ENC_MODULO
+from redistro.errors import ConfigError, IOFault
+from tests.integration.plant_rig import Model, plant_rig
+
+BACKPLANES = ["shm", "can"]
+VERTICAL = "[-0.1, -0.1, -0.1, -0.1, -0.1, -0.1, -0.1]"
+
+
+def one_count(d) -> np.ndarray:  # type: ignore[no-untyped-def]
+    return 1.0 / d.counts_per_rad
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_torque_moves_arm_and_encoders_agree(backplane: str, tmp_path: Path) -> None:
+    with plant_rig(backplane, tmp_path) as rig:
+        d = rig.drivers["r1"]
+        q0 = rig.truth("r1")["q_rad"].copy()
+        d.release_brakes([0])  # the vertical axis: no gravity on it
+        errors = []
+
+        def push() -> None:
+            d.send_torques(np.array([8.0, 0, 0, 0, 0, 0, 0]))
+            fb, tr = rig.synced("r1")
+            errors.append(np.abs(fb.q_rad - tr["q_rad"]) / one_count(d))
+
+        rig.run_for(0.5, push)
+        d.freeze()
+        moved = rig.truth("r1")["q_rad"][0] - q0[0]
+        assert moved > 0.05, f"joint 1 moved only {moved} rad"
+        err = np.max(errors, axis=0)
+        assert len(errors) >= 20
+        assert np.all(err <= 1.0), f"encoder error in counts: {err}"
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_counter_wrap(backplane: str, tmp_path: Path) -> None:
+    with plant_rig(backplane, tmp_path) as rig:
+        d = rig.drivers["r1"]
+        tr = rig.truth("r1")
+        counts = np.zeros(7, dtype=np.int64)
+        counts[0] = ENC_MODULO - 300  # 300 counts below the wrap
+        d.preset_encoders(tr["q_rad"], counts=counts)
+        d.release_brakes([0])
+        raws = []
+
+        def push() -> None:
+            d.send_torques(np.array([8.0, 0, 0, 0, 0, 0, 0]))
+            raws.append(int(d.read_raw()[d.hw.joints[0].encoder.address]["counter"][0]))
+
+        rig.run_for(0.4, push)
+        d.freeze()
+        fb, tr = rig.synced("r1")
+        assert max(raws) > ENC_MODULO - 300 and raws[-1] < ENC_MODULO // 2, "counter did not wrap"
+        assert abs(fb.q_rad[0] - tr["q_rad"][0]) <= one_count(d)[0]
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_brakes_hold_against_gravity(backplane: str, tmp_path: Path) -> None:
+    with plant_rig(backplane, tmp_path) as rig:
+        start = {r: rig.truth(r)["q_rad"].copy() for r in rig.drivers}
+        taus = {r: np.abs(rig.truth(r)["tau_nm"]).max() for r in rig.drivers}
+        rig.run_for(5.0)
+        for r, q0 in start.items():
+            drift = np.degrees(np.abs(rig.truth(r)["q_rad"] - q0)).max()
+            assert drift < 0.1, f"{r} drifted {drift} deg under its brakes"
+            assert taus[r] > 5.0, "the brakes were not carrying any gravity load"
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_home_switches_toggle_at_their_angles(backplane: str, tmp_path: Path) -> None:
+    sets = [f"robots.r1.initial_q_rad={VERTICAL}"]
+    with plant_rig(backplane, tmp_path, sets) as rig:
+        model = Model(rig.cfg)
+        d = rig.drivers["r1"]
+        s = d.hw.sensors
+        kp = np.array([400, 400, 200, 200, 80, 50, 30.0])
+        kd = np.array([30, 30, 15, 15, 4, 2, 1.0])
+        t0 = rig.sim_time_s()
+        seen: list[tuple[np.ndarray, np.ndarray]] = []
+        d.release_brakes()
+
+        def sweep() -> None:
+            t = rig.sim_time_s() - t0
+            target = -0.1 + 0.2 * min(1.0, t / 1.5)
+            fb, tr = rig.synced("r1")
+            tau = model.gravity("r1", fb.q_rad) + kp * (target - fb.q_rad) - kd * fb.qd_rad_s
+            d.send_torques(tau)
+            seen.append((tr["q_rad"].copy(), fb.home.copy()))
+
+        rig.run_for(1.8, sweep)
+        d.freeze()
+        model.close()
+        q = np.array([a for a, _ in seen])
+        home = np.array([b for _, b in seen])
+        for j in range(7):
+            half, hyst = s.home_window_rad[j] / 2, s.home_hysteresis_rad[j] / 2
+            centre = s.home_angle_rad[j]
+            on = np.flatnonzero(~home[:-1, j] & home[1:, j]) + 1
+            off = np.flatnonzero(home[:-1, j] & ~home[1:, j]) + 1
+            assert len(on) >= 1 and len(off) >= 1, f"joint {j + 1}: no edges as it swept through"
+            tol = max(2e-3, 2 * np.abs(np.diff(q[:, j])).max())
+            # on a little inside the window's edge, off a little outside (hysteresis)
+            d_on = np.abs(q[on, j] - centre) - (half - hyst)
+            d_off = np.abs(q[off, j] - centre) - (half + hyst)
+            assert np.all(np.abs(d_on) <= tol), f"joint {j + 1} switched on at {q[on, j]}"
+            assert np.all(np.abs(d_off) <= tol), f"joint {j + 1} switched off at {q[off, j]}"
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_wrist_sensor_reads_the_contact_force(backplane: str, tmp_path: Path) -> None:
+    from redistro.config.loader import load_config
+
+    cfg = load_config(None, [])
+    hx, hy, top = cfg.plant.hole.xyz_m
+    peg = cfg.plant.peg
+    model = Model(cfg)
+    # the peg's tip 3 mm above the fixture's top face, beside the hole, pointing down
+    above = [hx, hy + 0.025, top + peg.length_m + 0.003]
+    q_start = model.ik("r2", above, [np.pi, 0.0, 0.0])
+    sets = [f"robots.r2.initial_q_rad=[{', '.join(f'{v:.6f}' for v in q_start)}]"]
+    press = np.array([0.0, 0.0, -20.0])  # N, world frame, on the environment
+    with plant_rig(backplane, tmp_path, sets) as rig:
+        d = rig.drivers["r2"]
+        d.release_brakes()
+        kp, kd = 30.0, np.array([8, 8, 4, 4, 1, 0.5, 0.2])
+        samples: list[tuple[np.ndarray, np.ndarray]] = []
+
+        def push() -> None:
+            fb, tr = rig.synced("r2")
+            jac = model.jacobian("r2", fb.q_rad, [0.0, 0.0, peg.length_m])
+            tau = model.gravity("r2", fb.q_rad) + jac.T @ press
+            tau += kp * (q_start - fb.q_rad) - kd * fb.qd_rad_s
+            d.send_torques(tau)
+            rot = tr["tool_rot"]
+            samples.append((rot @ fb.wrench[:3], tr["contact_world"][:3].copy()))
+
+        rig.run_for(1.5, push)
+        d.freeze()
+    model.close()
+    late = samples[len(samples) * 2 // 3 :]
+    sensed = np.mean([a for a, _ in late], axis=0)
+    contact = np.mean([b for _, b in late], axis=0)
+    assert contact[2] > 10.0, f"the peg did not press on the fixture: {contact}"
+    assert sensed[2] > 0, "the sensed force must push the peg up (external force on the tool)"
+    err = np.linalg.norm(sensed - contact) / np.linalg.norm(contact)
+    assert err < 0.10, f"sensed {sensed} vs contact {contact}: {err:.1%}"
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
+    with plant_rig(backplane, tmp_path) as rig:
+        d = rig.drivers["r1"]
+        d.release_brakes([0])
+        rig.run_for(0.3, lambda: d.send_torques(np.array([15.0, 0, 0, 0, 0, 0, 0])))
+        speed = rig.truth("r1")["qd_rad_s"][0]
+        assert speed > 0.3, f"joint 1 only reached {speed} rad/s"
+        t0 = time.monotonic()
+        d.freeze()
+        braked_at = stopped_at = None
+        deadline = time.monotonic() + 5
+        while stopped_at is None and time.monotonic() < deadline:
+            tr = rig.truth("r1")
+            if braked_at is None and tr["braked"][0]:
+                braked_at = int(tr["step"])
+            if braked_at is not None and abs(tr["qd_rad_s"][0]) < 1e-3:
+                stopped_at = int(tr["step"])
+        wall_ms = (time.monotonic() - t0) * 1e3
+        assert braked_at is not None and stopped_at is not None
+        stop_ms = (stopped_at - braked_at) * 1e3 / rig.cfg.plant.physics_hz
+        assert stop_ms <= 20.0, f"stopped {stop_ms} ms after the brake engaged"
+        assert wall_ms < 500, f"freeze took {wall_ms} ms of wall time"
+
+
+@pytest.mark.parametrize("backplane", BACKPLANES)
+def test_a_killed_plant_is_an_io_fault(backplane: str, tmp_path: Path) -> None:
+    with plant_rig(backplane, tmp_path) as rig:
+        d = rig.drivers["r1"]
+        d.read_feedback()
+        os.kill(rig.plant.pid, signal.SIGKILL)
+        t0 = time.monotonic()
+        with pytest.raises(IOFault):
+            deadline = time.monotonic() + 2
+            while time.monotonic() < deadline:
+                d.read_feedback()
+        detected_ms = (time.monotonic() - t0) * 1e3
+        assert detected_ms < 50 + 30, f"I/O fault seen {detected_ms:.0f} ms after the kill"
+        rig.plant.proc.wait(5)
+
+
+def test_driver_config_must_match_the_chassis(tmp_path: Path) -> None:
+    from redistro.config.hardware import load_hardware
+    from redistro.config.loader import load_config
+    from redistro.drivers.io.backplane import open_backplane
+    from redistro.drivers.robot import RobotDriver
+
+    with plant_rig("shm", tmp_path) as rig:
+        other = tmp_path / "r1.io.yaml"
+        text = (Path("config/robots/r1.io.yaml")).read_text().replace("address: 32", "address: 99")
+        other.write_text(text)
+        cfg = load_config(None, [f"robots.r1.io={other}"])
+        hw = load_hardware(cfg)["r1"]
+        bp = open_backplane("shm", rig.session.id, 0.02)
+        drv = RobotDriver(hw, bp, 1000.0)
+        with pytest.raises(ConfigError, match=r"r1.io.yaml: boards.dac.address: no board at address 99"):
+            drv.open()
+        drv.close()
