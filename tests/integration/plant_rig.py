@@ -117,7 +117,13 @@ class Model:
         arm = self.world.arms[robot]
         z = [0.0] * 7
         jl, _ja = self.pb.calculateJacobian(
-            arm.body, arm.tool_link, tip, list(map(float, q)), z, z, physicsClientId=self.world.client
+            arm.body,
+            arm.tool_link,
+            tip,
+            list(map(float, q)),
+            z,
+            z,
+            physicsClientId=self.world.client,
         )
         return np.asarray(jl)
 

@@ -217,6 +217,24 @@ def test_driver_config_must_match_the_chassis(tmp_path: Path) -> None:
         hw = load_hardware(cfg)["r1"]
         bp = open_backplane("shm", rig.session.id, 0.02)
         drv = RobotDriver(hw, bp, 1000.0)
-        with pytest.raises(ConfigError, match=r"r1.io.yaml: boards.dac.address: no board at address 99"):
+        with pytest.raises(
+            ConfigError, match=r"r1.io.yaml: boards.dac.address: no board at address 99"
+        ):
             drv.open()
         drv.close()
+
+
+def test_positions_file_presets_the_next_start(tmp_path: Path) -> None:
+    from redistro.drivers import positions
+
+    path = tmp_path / "positions.json"
+    with plant_rig("shm", tmp_path / "a") as rig:
+        finals = {r: rig.synced(r)[0].q_rad for r in rig.drivers}
+        positions.write(path, rig.session.id, finals, clean=True)
+    with plant_rig("shm", tmp_path / "b") as rig:
+        pos = positions.read(path, list(rig.drivers))
+        for r, d in rig.drivers.items():
+            d.preset_encoders(np.asarray(pos.q_rad[r]))
+            fb, tr = rig.synced(r)
+            err = np.abs(fb.q_rad - tr["q_rad"]) * d.counts_per_rad
+            assert np.all(err <= 2.0), f"{r}: {err} counts after a preset from the file"

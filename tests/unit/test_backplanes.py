@@ -1,0 +1,146 @@
+"""One contract, every backplane: the shared-memory register bank and CAN
+frames (python-can's in-process ``virtual`` bus here; the integration tests
+run ``udp_multicast`` between processes)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from redistro.drivers.io.backplane import Backplane, BoardPort
+from redistro.drivers.io.registers import BANKS, BoardType
+from redistro.errors import IOFault
+
+BOARDS = {16: BoardType.ENCODER, 32: BoardType.DAC, 64: BoardType.FORCE}
+TIMEOUT_S = 0.05
+
+
+@dataclass
+class Pair:
+    backplane: Backplane
+    port: BoardPort
+    step: Any  # () -> None: the boards take one sample (and serve requests)
+    stop: Any  # () -> None: the boards fall silent
+
+
+@pytest.fixture(params=["shm", "can-virtual"])
+def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
+    if request.param == "shm":
+        from redistro.drivers.io.backplane import ShmBackplane, ShmPort
+        from redistro.drivers.io.bank import RegisterBank
+        from redistro.ipc.session import Session
+
+        with Session.create() as session:
+            bank = RegisterBank.create(session.id, BOARDS, ["r1"], 1000.0, session.manifest)
+            port = ShmPort(bank)
+            bp = ShmBackplane(session.id, TIMEOUT_S)
+            silent = threading.Event()
+            steps = [0]
+
+            def step() -> None:
+                if not silent.is_set():
+                    steps[0] += 1
+                    for a, t in BOARDS.items():
+                        rec = np.zeros((), BANKS[t][0])
+                        rec["step"] = steps[0]
+                        rec["board_type"] = int(t)
+                        port.publish(a, rec)
+
+            step()
+            try:
+                yield Pair(bp, port, step, silent.set)
+            finally:
+                bp.close()
+                bank.close()
+                bank.unlink()
+    else:
+        import can
+
+        from redistro.drivers.io.can import CanBackplane, CanPort
+
+        channel = f"contract-{time.monotonic_ns()}"
+        port = CanPort(BOARDS, can.Bus(interface="virtual", channel=channel))
+        bp = CanBackplane("s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel))
+        silent = threading.Event()
+        done = threading.Event()
+
+        def serve() -> None:
+            while not done.is_set():
+                if silent.is_set():
+                    time.sleep(0.001)
+                    continue
+                port.service(time.monotonic_ns() + 1_000_000)
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        try:
+            yield Pair(bp, port, lambda: None, silent.set)
+        finally:
+            done.set()
+            thread.join()
+            port.close()
+            bp.bus.shutdown()
+
+
+def test_inventory(pair: Pair) -> None:
+    assert pair.backplane.inventory() == BOARDS
+
+
+def test_published_inputs_are_read_back(pair: Pair) -> None:
+    rec = np.zeros((), BANKS[BoardType.ENCODER][0])
+    rec["counter"] = [1, 2, 3, 0xFFFFFF]
+    rec["step"] = 99
+    pair.port.publish(16, rec)
+    got = pair.backplane.read([16, 32])
+    assert list(got[16]["counter"]) == [1, 2, 3, 0xFFFFFF]
+    assert got[32].dtype == BANKS[BoardType.DAC][0]
+
+
+def test_written_outputs_reach_the_board(pair: Pair) -> None:
+    out = np.zeros((), BANKS[BoardType.DAC][1])
+    out["code"][:3] = [100, -200, 2047]
+    pair.backplane.write(32, out)
+    deadline = time.monotonic() + 2
+    while list(pair.port.outputs(32)["code"][:3]) != [100, -200, 2047]:
+        assert time.monotonic() < deadline, "the board never saw the write"
+        time.sleep(0.001)
+
+
+def test_unknown_board_is_an_io_fault(pair: Pair) -> None:
+    with pytest.raises(IOFault, match="no board at address 5"):
+        pair.backplane.read([5])
+
+
+def test_silent_boards_are_an_io_fault_within_the_timeout(pair: Pair) -> None:
+    pair.backplane.read([16])
+    pair.stop()
+    t0 = time.monotonic()
+    with pytest.raises(IOFault):
+        while time.monotonic() - t0 < 2:
+            pair.backplane.read([16])
+    assert time.monotonic() - t0 < TIMEOUT_S * 4 + 0.5
+
+
+def test_corrupt_frames_are_counted_and_dropped() -> None:
+    from redistro.drivers.io.can import FRAME, HEAD, Reassembly, frames_for
+
+    payload = bytes(range(150))
+    frames = frames_for(7, payload)
+    assert all(len(f) == FRAME for f in frames) and len(frames) == 3
+    rx = Reassembly(len(payload))
+    bad = bytearray(frames[1])
+    bad[HEAD.size + 3] ^= 0xFF  # one flipped byte
+    assert rx.add(frames[0]) is None
+    assert rx.add(bytes(bad)) is None
+    assert rx.bad == 1
+    assert rx.add(b"\x01\x02") is None and rx.bad == 2  # too short
+    assert rx.add(frames[1]) is None
+    assert rx.add(frames[2]) == payload
+    # a stale reply (another sequence) is not taken as the answer
+    assert rx.add(frames_for(6, payload)[0], want_seq=8) is None
