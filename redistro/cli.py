@@ -7,6 +7,7 @@ signals before numpy (and its threads) exist.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from typing import Any, NoReturn
@@ -82,6 +83,18 @@ def _parser() -> argparse.ArgumentParser:
     )
     i.add_argument("--json", dest="json_path", default=None)
 
+    pb = bsub.add_parser(
+        "plant", help="plant real-time factor and driver cycle cost", parents=[common]
+    )
+    pb.add_argument("--backplane", choices=["shm", "can"], default=None, help="plant.backplane")
+    pb.add_argument("--seconds", type=float, default=5.0)
+    pb.add_argument("--rate", type=float, default=200.0, help="driver cycle rate [Hz]")
+    pb.add_argument("--json", dest="json_path", default=None)
+
+    pl = sub.add_parser("plant", help="run the simulated plant alone", parents=[common])
+    pl.add_argument("--gui", action="store_true", help="open the PyBullet window")
+    pl.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
+
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
     return p
 
@@ -123,6 +136,10 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         return _bench_cycle(args, cfg)
     if args.command == "bench" and args.bench == "ipc":
         return _bench_ipc(args)
+    if args.command == "bench" and args.bench == "plant":
+        return _bench_plant(args, cfg)
+    if args.command == "plant":
+        return _plant(args, cfg)
     raise ConfigError(f"unknown command {args.command}")
 
 
@@ -223,6 +240,80 @@ def _bench_ipc(args: argparse.Namespace) -> int:
     if args.json_path:
         write_json(Path(args.json_path), out)
         print(f"wrote {args.json_path}")
+    return 0
+
+
+def _config_args(args: argparse.Namespace) -> tuple[str | None, list[str]]:
+    config = getattr(args, "config_sub", None) or args.config
+    return config, [*args.set, *getattr(args, "set_sub", [])]
+
+
+def _bench_plant(args: argparse.Namespace, cfg: Any) -> int:
+    import dataclasses
+    from pathlib import Path
+
+    from redistro.bench import plant
+    from redistro.config.hardware import load_hardware
+    from redistro.ipc import session
+    from redistro.process.owner import write_json
+
+    if not args.seconds > 0:
+        raise ConfigError(f"--seconds: expected > 0, got {args.seconds}")
+    if not 0 < args.rate <= 10000:
+        raise ConfigError(f"--rate: expected a number in (0, 10000] Hz, got {args.rate}")
+    config, overrides = _config_args(args)
+    if args.backplane:
+        overrides = [*overrides, f"plant.backplane={args.backplane}"]
+        cfg = dataclasses.replace(
+            cfg, plant=dataclasses.replace(cfg.plant, backplane=args.backplane)
+        )
+    load_hardware(cfg)  # bad hardware files fail here, before any process starts
+    for name in session.reap():
+        print(f"reaped {name} (left by a dead session)", file=sys.stderr)
+    out = plant.run(cfg, overrides, config, args.seconds, args.rate)
+    plant.print_summary(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0
+
+
+def _plant(args: argparse.Namespace, cfg: Any) -> int:
+    import signal
+    import time
+    from pathlib import Path
+
+    from redistro.config.hardware import load_hardware
+    from redistro.ipc import session
+    from redistro.plant.launch import PlantProcess
+
+    if args.seconds < 0:
+        raise ConfigError(f"--seconds: expected >= 0, got {args.seconds}")
+    load_hardware(cfg)
+    config, overrides = _config_args(args)
+    for name in session.reap():
+        print(f"reaped {name} (left by a dead session)", file=sys.stderr)
+    with session.Session.create() as s:
+        print(f"session {s.id}", flush=True)
+        run_dir = Path(cfg.session.runs_dir) / s.id
+        plant = PlantProcess.start(s, run_dir, config=config, overrides=overrides, gui=args.gui)
+        try:
+            end = time.monotonic() + args.seconds if args.seconds else None
+            while plant.proc.poll() is None and (end is None or time.monotonic() < end):
+                info = signal.sigtimedwait(
+                    {signal.SIGINT, signal.SIGTERM},
+                    1.0 if end is None else max(0.0, min(1.0, end - time.monotonic())),
+                )
+                st = plant.status()
+                print(
+                    f"t={st['sim_time_ns'] / 1e9:8.2f} s  rtf {st['rtf']:.3f}  "
+                    f"late {st['late_steps']}"
+                )
+                if info is not None:
+                    break
+        finally:
+            plant.stop()
+        print(json.dumps(plant.result()))
     return 0
 
 
