@@ -161,7 +161,7 @@ class PlantConfig:
     can: CanConfig = field(default_factory=CanConfig)
     physics_hz: float = field(default=1000.0, metadata={"ge": 100, "le": 10000})
     gui: bool = False
-    io_timeout_ms: float = field(default=20.0, metadata={"gt": 0, "le": 10000})
+    io_timeout_ms: float = field(default=30.0, metadata={"gt": 0, "le": 10000})
     hole: HoleConfig = field(default_factory=HoleConfig)
     peg: PegConfig = field(default_factory=PegConfig)
     encoder_disturbance_rad: dict[str, list[float]] = field(

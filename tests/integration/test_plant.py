@@ -199,7 +199,8 @@ def test_a_killed_plant_is_an_io_fault(backplane: str, tmp_path: Path) -> None:
             while time.monotonic() < deadline:
                 d.read_feedback()
         detected_ms = (time.monotonic() - t0) * 1e3
-        assert detected_ms < 50 + 30, f"I/O fault seen {detected_ms:.0f} ms after the kill"
+        # target 50 ms (io_timeout 30 ms + one read); the bound leaves room for host stalls
+        assert detected_ms < 80, f"I/O fault seen {detected_ms:.0f} ms after the kill"
         rig.plant.proc.wait(5)
 
 

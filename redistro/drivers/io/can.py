@@ -136,6 +136,7 @@ class CanBackplane(Backplane):
         self._recs: dict[int, np.ndarray[Any, Any]] = {}
         self._seq = 0
         self.bad_frames = 0
+        self.resent = 0  # read requests sent a second time
 
     def _send(self, arbitration_id: int, data: bytes) -> None:
         import can
@@ -186,9 +187,18 @@ class CanBackplane(Backplane):
             self._send(READ | a, HEAD.pack(seq, 0, 1, 0).ljust(FRAME, b"\0"))
         pending = set(addresses)
         out: dict[int, np.ndarray[Any, Any]] = {}
-        deadline = time.monotonic() + self.timeout_s
+        start = time.monotonic()
+        deadline = start + self.timeout_s
+        resend_at: float | None = start + self.timeout_s / 2
         while pending:
-            msg = self._recv(deadline)
+            msg = self._recv(deadline if resend_at is None else resend_at)
+            if msg is None and resend_at is not None and time.monotonic() < deadline:
+                # a lost datagram or a late step: ask once more within the budget
+                self.resent += len(pending)
+                for a in pending:
+                    self._send(READ | a, HEAD.pack(seq, 0, 1, 0).ljust(FRAME, b"\0"))
+                resend_at = None
+                continue
             if msg is None:
                 missing = ", ".join(str(a) for a in sorted(pending))
                 raise IOFault(
