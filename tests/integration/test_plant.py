@@ -183,6 +183,9 @@ def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
         wall_ms = (time.monotonic() - t0) * 1e3
         assert braked_at is not None and stopped_at is not None
         stop_ms = (stopped_at - braked_at) * 1e3 / rig.cfg.plant.physics_hz
+        print(
+            f"freeze[{backplane}]: {speed:.2f} rad/s stopped in {stop_ms} ms, {wall_ms:.1f} ms wall"
+        )
         assert stop_ms <= 20.0, f"stopped {stop_ms} ms after the brake engaged"
         assert wall_ms < 500, f"freeze took {wall_ms} ms of wall time"
 
@@ -199,6 +202,7 @@ def test_a_killed_plant_is_an_io_fault(backplane: str, tmp_path: Path) -> None:
             while time.monotonic() < deadline:
                 d.read_feedback()
         detected_ms = (time.monotonic() - t0) * 1e3
+        print(f"plant killed[{backplane}]: I/O fault after {detected_ms:.1f} ms")
         # target 50 ms (io_timeout 30 ms + one read); the bound leaves room for host stalls
         assert detected_ms < 80, f"I/O fault seen {detected_ms:.0f} ms after the kill"
         rig.plant.proc.wait(5)
