@@ -134,3 +134,35 @@ def test_bad_input_is_one_line_exit_2_nothing_created(
     assert {e for e in os.listdir("/dev/shm") if "redistro" in e} == shm_before
     assert (set(os.listdir(runtime)) if runtime.exists() else set()) == before
     assert not runs.exists()
+
+
+PLANT_BAD_INPUTS = [
+    (["--set", "plant.backplane=usb"], "plant.backplane: expected one of 'shm', 'can'"),
+    (["--set", "plant.hole.clearance_m=0.005"], "plant.hole.clearance_m: expected a number > 0"),
+    (["--set", "robots.r1.io=nowhere/r1.io.yaml"], "nowhere/r1.io.yaml: cannot read config"),
+    (
+        ["--set", "robots.r2.initial_q_rad=[0, 1]"],
+        "robots.r2.initial_q_rad: expected a list of exactly 7",
+    ),
+    (["--set", "plant.ft_bias.r9=[0, 0, 0, 0, 0, 0]"], "plant.ft_bias.r9: no robot named 'r9'"),
+    (["--backplane", "usb"], "argument --backplane: invalid choice"),
+]
+
+
+@pytest.mark.parametrize(("extra", "expect"), PLANT_BAD_INPUTS)
+def test_bad_plant_input_is_one_line_exit_2_nothing_started(
+    tmp_path: Path, extra: list[str], expect: str
+) -> None:
+    runtime = names.runtime_dir()
+    before = set(os.listdir(runtime)) if runtime.exists() else set()
+    shm_before = {e for e in os.listdir("/dev/shm") if "redistro" in e}
+    done = run_cli(
+        "--set", f"session.runs_dir={tmp_path / 'runs'}", "bench", "plant", "--seconds", "1", *extra
+    )
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("redistro: error: "), done.stderr
+    assert expect in lines[0], lines[0]
+    assert {e for e in os.listdir("/dev/shm") if "redistro" in e} == shm_before
+    assert (set(os.listdir(runtime)) if runtime.exists() else set()) == before
+    assert not (tmp_path / "runs").exists()
