@@ -48,11 +48,12 @@ def run_plant(
     signals.set_parent_death_signal(signal.SIGTERM)
     cfg = load_config(config, overrides)
     hardware = load_hardware(cfg)
-    world = World(cfg, gui=gui or cfg.plant.gui)
+    world: World | None = None
     bank: RegisterBank | None = None
     port: BoardPort | None = None
     result: dict[str, Any] = {"session": session_id, "backplane": cfg.plant.backplane}
     try:
+        world = World(cfg, gui=gui or cfg.plant.gui)
         chassis = Chassis(cfg, world, hardware)
         shm = cfg.plant.backplane == "shm"
         bank = RegisterBank.create(
@@ -87,7 +88,8 @@ def run_plant(
                 port.close()
             bank.close()
             bank.unlink()
-        world.close()
+        if world is not None:
+            world.close()
         if result_path:
             Path(result_path).write_text(json.dumps(result, indent=2) + "\n")
 
