@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from redistro.config.model import Config, RobotConfig
 from redistro.config.validate import build
 from redistro.drivers.io.registers import BOARD_NAMES, CHANNELS, DIO_BITS
@@ -126,6 +128,18 @@ class RobotHardware:
     def boards(self) -> dict[int, str]:
         """address -> board type name."""
         return {b.address: b.type for b in self.io.boards.values()}
+
+
+def by_board(channels: list[Channel | None]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Joints grouped by the board they are wired to: address -> (joint
+    indices, channel indices), for vectorized access to a board's registers."""
+    out: dict[int, tuple[list[int], list[int]]] = {}
+    for j, ch in enumerate(channels):
+        if ch is not None:
+            js, ks = out.setdefault(ch.address, ([], []))
+            js.append(j)
+            ks.append(ch.index)
+    return {a: (np.array(js), np.array(ks)) for a, (js, ks) in out.items()}
 
 
 def _resolve(base: Path, rel: str) -> Path:

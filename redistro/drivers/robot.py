@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config.hardware import Channel, RobotHardware
+from redistro.config.hardware import RobotHardware, by_board
 from redistro.drivers.io.adc import AdcDriver
 from redistro.drivers.io.backplane import Backplane
 from redistro.drivers.io.dac import DacDriver
@@ -51,16 +51,6 @@ class Feedback:
     coherent: bool = True  # every encoder board sampled in the same plant step
 
 
-def _by_board(channels: list[Channel | None]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    out: dict[int, tuple[list[int], list[int]]] = {}
-    for j, ch in enumerate(channels):
-        if ch is not None:
-            js, ks = out.setdefault(ch.address, ([], []))
-            js.append(j)
-            ks.append(ch.index)
-    return {a: (np.array(js), np.array(ks)) for a, (js, ks) in out.items()}
-
-
 class RobotDriver:
     def __init__(self, hw: RobotHardware, backplane: Backplane, physics_hz: float) -> None:
         self.hw = hw
@@ -90,12 +80,12 @@ class RobotDriver:
         }
         self.addresses = sorted(self.modules)
         js = hw.joints
-        self.enc = _by_board([w.encoder for w in js])
-        self.dac = _by_board([w.dac for w in js])
-        self.home = _by_board([w.home for w in js])
-        self.brake = _by_board([w.brake for w in js])
-        self.torque = _by_board([w.torque for w in js])
-        self.tach = _by_board([w.tach for w in js])
+        self.enc = by_board([w.encoder for w in js])
+        self.dac = by_board([w.dac for w in js])
+        self.home = by_board([w.home for w in js])
+        self.brake = by_board([w.brake for w in js])
+        self.torque = by_board([w.torque for w in js])
+        self.tach = by_board([w.tach for w in js])
         self.has_tach = all(w.tach is not None for w in js)
         self.has_torque = all(w.torque is not None for w in js)
         # encoder unwrapping: q = q_ref + (accumulated counts since the reference) / scale

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config.hardware import RobotHardware
+from redistro.config.hardware import RobotHardware, by_board
 from redistro.config.model import Config
 from redistro.drivers.io import registers as R
 from redistro.drivers.io.registers import BANKS, BOARD_NAMES, BoardType
@@ -32,13 +32,7 @@ class Group:
 
 
 def _groups(channels: list[Any]) -> list[Group]:
-    by: dict[int, tuple[list[int], list[int]]] = {}
-    for j, ch in enumerate(channels):
-        if ch is not None:
-            js, ks = by.setdefault(ch.address, ([], []))
-            js.append(j)
-            ks.append(ch.index)
-    return [Group(a, np.array(js), np.array(ks)) for a, (js, ks) in by.items()]
+    return [Group(a, js, ks) for a, (js, ks) in by_board(channels).items()]
 
 
 @dataclass

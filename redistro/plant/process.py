@@ -113,11 +113,13 @@ def _loop(
         outputs = {a: port.outputs(a) for a in boards}
         chassis.apply_outputs(outputs)
         chassis.step()
-        for a in boards:
-            port.publish(a, chassis.inp[a])
+        # the truth of a step is out before its boards: a reader that sees a
+        # board sample can find the truth of the same step
         for block, rig in zip(truths, chassis.rigs, strict=True):
             _fill_truth(truth, rig, chassis)
             block.publish(truth.bytes)
+        for a in boards:
+            port.publish(a, chassis.inp[a])
         now = time.monotonic_ns()
         steps = chassis.step_count
         status["step"] = steps

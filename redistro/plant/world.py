@@ -175,7 +175,6 @@ class World:
             )
         grey, steel = [0.6, 0.45, 0.3, 1], [0.5, 0.55, 0.6, 1]
         bodies = [self._box([0.3, 0.6, table_top / 2], [x, y * 0.0, table_top / 2], grey)]
-        self.table_top_m = table_top
         # the fixture: a floor plate and four walls around a square hole
         outer = side / 2 + wall
         zc = table_top + FIXTURE_FLOOR_M + depth / 2

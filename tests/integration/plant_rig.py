@@ -49,11 +49,13 @@ class Rig:
 
     def synced(self, robot: str) -> tuple[Any, np.void]:
         """Feedback and ground truth from the same plant step (retries until they match)."""
-        for _ in range(50):
+        for _ in range(200):
+            before = self.truth(robot)
             fb = self.drivers[robot].read_feedback()
-            tr = self.truth(robot)
-            if fb.coherent and int(tr["step"]) == fb.step:
-                return fb, tr
+            after = self.truth(robot)
+            for tr in (before, after):
+                if fb.coherent and int(tr["step"]) == fb.step:
+                    return fb, tr
         raise AssertionError("could not catch feedback and truth in the same step")
 
 

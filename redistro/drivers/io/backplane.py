@@ -7,7 +7,7 @@ plant), :class:`BoardPort`: ``outputs(address)`` and ``publish(address, record)`
 
 Every operation is bounded by the I/O timeout: a board that has not updated
 (shm) or answered (CAN) within it raises :class:`~redistro.errors.IOFault`.
-Implementations are chosen by ``plant.backplane`` through :data:`BACKPLANES`
+Implementations are chosen by ``plant.backplane`` in :func:`open_backplane`
 and imported only when used.
 """
 
@@ -167,6 +167,3 @@ def open_backplane(kind: str, session_id: str, timeout_s: float, **can: Any) -> 
 
         return CanBackplane(session_id, timeout_s, **can)
     raise ValueError(f"unknown backplane {kind!r}")
-
-
-BACKPLANES = ("shm", "can")

@@ -197,10 +197,6 @@ class RegisterBank:
     def truth(self, robot: int) -> Block:
         return self._block(self.view["truth"][robot : robot + 1].reshape(()), f"truth{robot}")
 
-    @property
-    def plant_pid(self) -> int:
-        return int(self.view["header"]["plant_pid"])
-
     def close(self) -> None:
         for b in self._blocks:
             b.detach()

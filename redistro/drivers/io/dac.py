@@ -20,9 +20,6 @@ class DacDriver(ModuleDriver):
     def zero(self) -> None:
         self.out["code"][:] = 0
 
-    def staged_volts(self, channels: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        return dac_volts(self.out["code"][channels])
-
     @staticmethod
     def readback_volts(rec: np.ndarray[Any, Any], channels: np.ndarray[Any, Any]) -> Any:
         return dac_volts(rec["readback"][channels])

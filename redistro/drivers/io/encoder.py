@@ -13,10 +13,6 @@ from redistro.drivers.io.registers import ENC_MODULO, BoardType
 class EncoderDriver(ModuleDriver):
     TYPE = BoardType.ENCODER
 
-    def counters(self, rec: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """The 24-bit counters (wrapping), shape (4,)."""
-        return rec["counter"].astype(np.int64)
-
     def preset(self, axis: int, value: int) -> int:
         """Ask the board to load ``value`` into ``axis``; returns the request
         number the board echoes in ``preset_ack`` once done."""
