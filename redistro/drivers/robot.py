@@ -66,13 +66,6 @@ class RobotDriver:
             * np.asarray(s.torque_constant_nm_a)
             * np.asarray(s.gear_ratio, dtype=np.float64)
         )
-        self.max_tau_nm = self.nm_per_volt * 10.0
-        self.max_tau_nm = np.minimum(
-            self.max_tau_nm,
-            np.asarray(s.max_current_a)
-            * np.asarray(s.torque_constant_nm_a)
-            * np.asarray(s.gear_ratio),
-        )
         self.tach_v = np.asarray(s.tach_volts_per_rad_s, dtype=np.float64)
         self.torque_v = np.asarray(s.torque_volts_per_nm, dtype=np.float64)
         self.modules: dict[int, ModuleDriver] = {
@@ -95,7 +88,6 @@ class RobotDriver:
         self._have_ref = False
         self._prev: tuple[int, np.ndarray] | None = None
         self._qd = np.zeros(DOF)
-        self._tau_cmd = np.zeros(DOF)
 
     # -- set-up --
 
@@ -197,7 +189,6 @@ class RobotDriver:
             assert isinstance(dac, DacDriver)
             dac.set_volts(ch, volts[js])
             dac.flush()
-        self._tau_cmd = tau
 
     def freeze(self) -> None:
         """Brakes on, then every DAC channel to zero."""
@@ -207,7 +198,6 @@ class RobotDriver:
             assert isinstance(dac, DacDriver)
             dac.zero()
             dac.flush()
-        self._tau_cmd = np.zeros(DOF)
 
     def release_brakes(self, joints: list[int] | None = None) -> None:
         """Release the brakes of ``joints`` (default: all); the others keep theirs."""
