@@ -95,6 +95,12 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("--gui", action="store_true", help="open the PyBullet window")
     pl.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
 
+    se = sub.add_parser(
+        "session", help="run a task: plant on, nodes, plant off, run folder", parents=[common]
+    )
+    se.add_argument("task", help="task file, e.g. tasks/self_calibration.yaml")
+    se.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
+
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
     return p
 
@@ -132,6 +138,13 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
     if args.command == "clean":
         return _clean()
+    if args.command == "session":
+        from redistro.decision import run_session
+
+        config, overrides = _config_args(args)
+        return run_session(
+            cfg, args.task, config_path=config, overrides=overrides, out_dir=args.out
+        )
     if args.command == "bench" and args.bench == "cycle":
         return _bench_cycle(args, cfg)
     if args.command == "bench" and args.bench == "ipc":

@@ -26,6 +26,11 @@ PAPER_PRIORITIES: dict[str, int] = {
     "ddm": 19,
     "logger": 15,
     "busy": 16,
+    # The simulated plant: a nice value only (priority 20 -> nice -10), never
+    # real time. A simulation that cannot keep up then slows its own clock
+    # instead of starving the controller (a busy real-time plant made the
+    # kernel throttle every real-time process on its CPU).
+    "plant": 20,
 }
 
 
@@ -34,6 +39,10 @@ class SessionConfig:
     """Where runs go and how long the session owner waits for its nodes."""
 
     runs_dir: str = "runs"
+    # Kept between sessions, under runs_dir: the final joint positions (one
+    # file per robot) and the simulated arms' pose while powered off.
+    positions_dir: str = "positions"
+    plant_pose_file: str = "plant-pose.json"
     startup_timeout_s: float = field(default=10.0, metadata={"gt": 0, "le": 600})
     shutdown_timeout_s: float = field(default=3.0, metadata={"gt": 0, "le": 60})
 
@@ -70,6 +79,67 @@ class NodeConfig:
     rate_hz: float = field(default=200.0, metadata={"gt": 0, "le": 10000})
     heartbeat_limit_cycles: int = field(default=25, metadata={"ge": 2, "le": 100000})
     cpus: list[int] = field(default_factory=list, metadata={"ge": 0})
+
+
+def _seven(*values: float) -> list[float]:
+    return list(values)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Limits the sender's safety guard checks before every command.
+
+    qd_max_rad_s: joint speed limits [rad/s], shape (7,).
+    tau_max_nm: joint torque limits [N m], commanded and measured, shape (7,).
+    force_max_n: limit on the wrist force's magnitude [N].
+    moment_max_nm: limit on the wrist moment's magnitude [N m].
+    """
+
+    qd_max_rad_s: list[float] = field(
+        default_factory=lambda: [1.0] * 7, metadata={"len": 7, "gt": 0}
+    )
+    tau_max_nm: list[float] = field(
+        default_factory=lambda: _seven(200, 200, 120, 120, 60, 60, 30),
+        metadata={"len": 7, "gt": 0},
+    )
+    force_max_n: float = field(default=120.0, metadata={"gt": 0})
+    moment_max_nm: float = field(default=15.0, metadata={"gt": 0})
+
+
+@dataclass(frozen=True)
+class PidConfig:
+    """Joint PID gains, per joint (7 values): kp [N m/rad], ki [N m/(rad s)],
+    kd [N m s/rad]; i_max_nm bounds the integral term [N m]."""
+
+    kp: list[float] = field(
+        default_factory=lambda: _seven(600, 1000, 200, 200, 20, 20, 10),
+        metadata={"len": 7, "ge": 0},
+    )
+    ki: list[float] = field(
+        default_factory=lambda: _seven(600, 1000, 200, 200, 20, 20, 10),
+        metadata={"len": 7, "ge": 0},
+    )
+    kd: list[float] = field(
+        default_factory=lambda: _seven(20, 40, 5, 5, 0.2, 0.2, 0.1),
+        metadata={"len": 7, "ge": 0},
+    )
+    i_max_nm: list[float] = field(default_factory=lambda: [20.0] * 7, metadata={"len": 7, "ge": 0})
+
+
+@dataclass(frozen=True)
+class EscConfig:
+    """The Execution-Stage Controller of each robot.
+
+    rate_hz: cycle rate [Hz] (paper: 200).
+    heartbeat_limit_cycles: missed heartbeats that make a worker hung.
+    cpus: CPUs the ESC's processes may run on (empty: all).
+    """
+
+    rate_hz: float = field(default=200.0, metadata={"gt": 0, "le": 10000})
+    heartbeat_limit_cycles: int = field(default=25, metadata={"ge": 2, "le": 100000})
+    cpus: list[int] = field(default_factory=list, metadata={"ge": 0})
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    pid: PidConfig = field(default_factory=PidConfig)
 
 
 @dataclass(frozen=True)
@@ -161,16 +231,24 @@ class PlantConfig:
     can: CanConfig = field(default_factory=CanConfig)
     physics_hz: float = field(default=1000.0, metadata={"ge": 100, "le": 10000})
     gui: bool = False
-    io_timeout_ms: float = field(default=30.0, metadata={"gt": 0, "le": 10000})
+    # 100 ms: host stalls of the plant up to ~100 ms were seen on a 2-vCPU VM
+    io_timeout_ms: float = field(default=100.0, metadata={"gt": 0, "le": 10000})
     hole: HoleConfig = field(default_factory=HoleConfig)
     peg: PegConfig = field(default_factory=PegConfig)
     encoder_disturbance_rad: dict[str, list[float]] = field(
-        default_factory=dict, metadata={"len": 7}
+        default_factory=lambda: {
+            "r1": [0.031, -0.022, 0.045, -0.013, 0.027, -0.038, 0.019],
+            "r2": [-0.024, 0.036, -0.017, 0.041, -0.029, 0.012, -0.033],
+        },
+        metadata={"len": 7},
     )
     ft_noise_n: float = field(default=0.05, metadata={"ge": 0})
     ft_noise_nm: float = field(default=0.005, metadata={"ge": 0})
     ft_bias: dict[str, list[float]] = field(default_factory=dict, metadata={"len": 6})
     seed: int = 0
+    # The arms' pose kept while powered off (JSON, per robot, rad): read at
+    # power-on, written at power-off. Empty: start at initial_q_rad each time.
+    pose_file: str = ""
 
 
 @dataclass(frozen=True)
@@ -185,6 +263,7 @@ class Config:
     )
     robots: dict[str, RobotConfig] = field(default_factory=_default_robots)
     plant: PlantConfig = field(default_factory=PlantConfig)
+    esc: EscConfig = field(default_factory=EscConfig)
     # The file this config was read from (relative hardware paths start from
     # its folder); set by the loader, never read from YAML.
     source: str = field(default="config/redistro.yaml", compare=False, metadata={"internal": True})

@@ -25,7 +25,7 @@ from redistro.drivers.io.dio import DioDriver
 from redistro.drivers.io.encoder import EncoderDriver
 from redistro.drivers.io.force import ForceDriver
 from redistro.drivers.io.module import ModuleDriver
-from redistro.drivers.io.registers import BOARD_NAMES, ENC_MODULO, LATCH_HOME_EDGES, wrap_delta
+from redistro.drivers.io.registers import BOARD_NAMES, ENC_MODULO, LATCH_HOME_EDGES
 from redistro.errors import ConfigError, IOFault
 
 DOF = 7
@@ -36,6 +36,13 @@ DRIVERS: dict[str, type[ModuleDriver]] = {
     "dio": DioDriver,
     "force": ForceDriver,
 }
+
+
+def _wrap(delta: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Signed changes between 24-bit counter readings (|change| < 2**23), per element."""
+    d = np.mod(delta, ENC_MODULO)
+    out: np.ndarray[Any, Any] = np.where(d >= ENC_MODULO // 2, d - ENC_MODULO, d)
+    return out
 
 
 @dataclass
@@ -49,6 +56,9 @@ class Feedback:
     step: int  # the plant step of the encoder sample (the oldest, if boards differ)
     stamp_ns: int  # CLOCK_MONOTONIC when read
     coherent: bool = True  # every encoder board sampled in the same plant step
+    latch_count: np.ndarray | None = None  # (7,) home-edge latches so far, per joint
+    latch_edge: np.ndarray | None = None  # (7,) EDGE_RISING / EDGE_FALLING of the last one
+    latch_q_rad: np.ndarray | None = None  # (7,) joint position at the last latch [rad]
 
 
 class RobotDriver:
@@ -91,8 +101,12 @@ class RobotDriver:
 
     # -- set-up --
 
-    def open(self) -> None:
-        """Check the chassis against the I/O config, freeze, set latch sources."""
+    def open(self, freeze: bool = True) -> None:
+        """Check the chassis against the I/O config, set latch sources, freeze.
+
+        freeze: False for a process that shares a robot another one froze
+        (an ESC worker): its brakes and DAC outputs are left as they are.
+        """
         chassis = self.bp.inventory()
         for name, b in self.hw.io.boards.items():
             if b.address not in chassis:
@@ -112,7 +126,8 @@ class RobotDriver:
             for k in axes.tolist():
                 enc.set_latch_mode(k, LATCH_HOME_EDGES)
             enc.flush()
-        self.freeze()
+        if freeze:
+            self.freeze()
         self.read_feedback()
 
     def close(self) -> None:
@@ -133,19 +148,28 @@ class RobotDriver:
                 break
         now = time.monotonic_ns()
         raw = np.zeros(DOF, dtype=np.int64)
+        latch_raw = np.zeros(DOF, dtype=np.int64)
+        latch_count = np.zeros(DOF, dtype=np.int64)
+        latch_edge = np.zeros(DOF, dtype=np.uint8)
         step = min(steps)
         for a, (js, axes) in self.enc.items():
-            raw[js] = recs[a]["counter"][axes]
+            rec = recs[a]
+            raw[js] = rec["counter"][axes]
+            latch_raw[js] = rec["latch"][axes]
+            latch_count[js] = rec["latch_count"][axes]
+            latch_edge[js] = rec["latch_edge"][axes]
         if not self._have_ref:
             signed = np.where(raw >= ENC_MODULO // 2, raw - ENC_MODULO, raw)
             self._q_ref = signed / self.counts_per_rad
             self._acc[:] = 0
             self._have_ref = True
         else:
-            for j in range(DOF):
-                self._acc[j] += wrap_delta(int(raw[j]), int(self._raw[j]))
+            self._acc += _wrap(raw - self._raw)
         self._raw = raw
         q = self._q_ref + self._acc / self.counts_per_rad
+        # a latched count is within half the counter's range of the present one
+        back = _wrap(latch_raw - raw)
+        latch_q = q + back / self.counts_per_rad
         if self.has_tach:
             qd = np.zeros(DOF)
             for a, (js, ch) in self.tach.items():
@@ -174,7 +198,30 @@ class RobotDriver:
         wrench = np.zeros(6)
         if self.hw.wrist is not None:
             wrench = ForceDriver.wrench(recs[self.hw.wrist.address])
-        return Feedback(q, qd, tau, wrench, home, brakes, step, now, min(steps) == max(steps))
+        return Feedback(
+            q,
+            qd,
+            tau,
+            wrench,
+            home,
+            brakes,
+            step,
+            now,
+            min(steps) == max(steps),
+            latch_count,
+            latch_edge,
+            latch_q,
+        )
+
+    def shift_zero(self, offset_rad: np.ndarray[Any, Any]) -> None:
+        """Take ``offset_rad`` out of every joint position from now on.
+
+        The counters are left alone: q_new = q_old - offset, exactly, even
+        while the arm moves (a counter preset would race the motion).
+        """
+        self._q_ref = self._q_ref - np.asarray(offset_rad, dtype=np.float64)
+        if self._prev is not None:
+            self._prev = (self._prev[0], self._prev[1] - offset_rad)
 
     # -- commands --
 

@@ -54,7 +54,9 @@ def apply(
 
     if policy in ("auto", "rr"):
         try:
-            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+            # reset on fork: a process this one spawns starts at the default
+            # policy (its start-up must not run at this priority)
+            os.sched_setscheduler(0, os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
             granted.policy, granted.priority = "SCHED_RR", priority
         except (PermissionError, OSError) as exc:
             granted.refused.append(f"SCHED_RR {priority}: {exc.strerror}")

@@ -46,8 +46,10 @@ class SharedMemory:
         except posix_ipc.ExistentialError:
             raise IPCError(f"shared memory {name} does not exist") from None
         try:
-            mapping = mmap.mmap(shm.fd, shm.size)
             size = shm.size
+            if size == 0:
+                raise IPCError(f"shared memory {name} is not sized yet (being created)")
+            mapping = mmap.mmap(shm.fd, size)
         finally:
             shm.close_fd()
         return cls(name, mapping, size, owner=False)

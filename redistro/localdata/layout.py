@@ -159,7 +159,70 @@ EXCHANGE = np.dtype(  # data exchange status: freshness of the data from the oth
     [("updates", "<u8"), ("last_update_ns", "<i8"), ("dropped", "<u8"), ("fresh", "u1")]
 )
 COUNTER = np.dtype([("count", "<u8"), ("stamp_ns", "<i8")])
-HOME = np.dtype([("home_switch", "u1", (DOF,)), ("stamp_ns", "<i8")])
+HOME = np.dtype(  # home switches and the encoder latches taken on their edges
+    [
+        ("stamp_ns", "<i8"),  # when the boards were read
+        ("step", "<u8"),  # the boards' sample number (plant step on the simulated chassis)
+        ("home_switch", "u1", (DOF,)),
+        ("latch_count", "<u4", (DOF,)),  # home-edge latches so far (a new one: count changed)
+        ("latch_edge", "u1", (DOF,)),  # 1 rising (switch came on), 2 falling, of the last latch
+        ("latch_q_rad", "<f8", (DOF,)),  # joint position captured at the last latch [rad]
+        ("offset_rad", "<f8", (DOF,)),  # zero offset taken out of every published q [rad]
+        ("offset_seq", "<u4"),  # the calibration request whose offset is applied (0: none)
+    ]
+)
+
+# -- ESC local dynamic data --
+
+SETPOINT = np.dtype(  # the joint reference of ESC-local motion (self-calibration, positioning)
+    [
+        ("stamp_ns", "<i8"),
+        ("cycle", "<u8"),  # manager cycle this setpoint belongs to
+        ("q_rad", "<f8", (DOF,)),
+        ("qd_rad_s", "<f8", (DOF,)),
+        ("qdd_rad_s2", "<f8", (DOF,)),
+        ("joint_on", "u1", (DOF,)),  # joints under control (their brakes released)
+        ("segment", "u1"),  # 1-based index of the running segment; 0 before the first
+        ("segment_t_s", "<f8"),  # time into that segment [s]
+        ("done", "u1"),  # 1: every segment finished, the session may end
+        ("failed", "u1"),  # 1: the segments cannot go on (the reason is in the message box)
+        ("offset_rad", "<f8", (DOF,)),  # zero offsets the acquisition is asked to apply [rad]
+        ("offset_seq", "<u4"),  # request number of offset_rad (0: no request)
+    ]
+)
+CALIBRATION = np.dtype(  # what the self-calibration found, per joint
+    [
+        ("edges", "u1", (DOF,)),  # home-switch edges seen in the sweeps
+        ("found", "u1", (DOF,)),  # 1: the zero offset of this joint was found
+        ("offset_found_rad", "<f8", (DOF,)),  # measured home position - configured home angle
+        ("applied", "u1"),  # 1: the acquisition applies the offsets
+    ]
+)
+CONTROL = np.dtype(  # the ESC's own control output (joint PID + gravity)
+    [
+        ("stamp_ns", "<i8"),
+        ("cycle", "<u8"),
+        ("tau_nm", "<f8", (DOF,)),
+        ("joint_on", "u1", (DOF,)),
+    ]
+)
+GUARD = np.dtype(  # the safety guard: what the sender sent, and whether it tripped
+    [
+        ("cycle", "<u8"),  # last cycle the sender ran the checks
+        ("sent_cycle", "<u8"),  # last cycle a command went out
+        ("tau_nm", "<f8", (DOF,)),  # torques sent [N m]
+        ("released", "u1", (DOF,)),  # brakes the sender released
+        ("tripped", "u1"),  # 1: a limit was violated; the robot is frozen
+        ("trip_cycle", "<u8"),
+        ("trip_step", "<u8"),  # board sample number of the offending feedback
+        ("trip_ns", "<i8"),  # CLOCK_MONOTONIC when the sender froze the robot
+        ("trip_joint", "i1"),  # 0-based joint, -1 for the wrist
+        ("trip_value", "<f8"),
+        ("trip_limit", "<f8"),
+        ("trip_quantity", "S24"),
+        ("trip_text", f"S{MSG_TEXT}"),
+    ]
+)
 
 # -- local copy of Robot Group Shared Data, per robot --
 
@@ -196,6 +259,10 @@ BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
     "home": (HOME, "robot"),
     "command": (COMMAND, "robot"),
     "feedback": (FEEDBACK, "robot"),
+    "setpoint": (SETPOINT, "robot"),
+    "calibration": (CALIBRATION, "robot"),
+    "control": (CONTROL, "robot"),
+    "guard": (GUARD, "robot"),
 }
 
 SELF = "<self>"
@@ -213,6 +280,10 @@ WRITERS: dict[str, dict[str, str]] = {
     "home": {"*": "acquisition"},
     "command": {"esc": "ddm", "ssc": "worker", "bench": "busy"},
     "feedback": {"esc": "acquisition", "ssc": "ddm", "bench": "busy"},
+    "setpoint": {"esc": "calibration"},
+    "calibration": {"esc": "calibration"},
+    "control": {"esc": "pid"},
+    "guard": {"esc": "sender"},
 }
 
 

@@ -25,6 +25,7 @@ from redistro.config.hardware import load_hardware
 from redistro.config.loader import load_config
 from redistro.drivers.io.backplane import BoardPort, ShmPort
 from redistro.drivers.io.bank import TRUTH, PlantState, RegisterBank
+from redistro.drivers.io.registers import ENC_MODULO
 from redistro.ipc import signals
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
@@ -52,8 +53,11 @@ def run_plant(
     bank: RegisterBank | None = None
     port: BoardPort | None = None
     result: dict[str, Any] = {"session": session_id, "backplane": cfg.plant.backplane}
+    chassis = None
     try:
-        world = World(cfg, gui=gui or cfg.plant.gui)
+        start_q = read_pose(cfg.plant.pose_file, list(cfg.robots))
+        result["started_from"] = "pose file" if start_q else "initial_q_rad"
+        world = World(cfg, gui=gui or cfg.plant.gui, start_q=start_q)
         chassis = Chassis(cfg, world, hardware)
         shm = cfg.plant.backplane == "shm"
         bank = RegisterBank.create(
@@ -70,6 +74,11 @@ def run_plant(
 
             c = cfg.plant.can
             port = CanPort(chassis.boards, open_bus(c.interface, c.channel, c.port, session_id))
+        from redistro.ipc import sched
+
+        policy = "none" if cfg.scheduling.policy == "none" else "nice"
+        granted = sched.apply(cfg.scheduling.priorities.get("plant", 20), None, policy)
+        result["scheduling"] = granted.as_dict()
         result.update(_loop(cfg.plant.physics_hz, seconds, chassis, bank, port))
         result["state"] = "stopped"
         return 0
@@ -79,6 +88,14 @@ def run_plant(
         log.error("plant failed: %s", exc)
         return 1
     finally:
+        if chassis is not None:
+            result["final_q_rad"] = {r.name: [float(v) for v in r.q] for r in chassis.rigs}
+            result["encoder_offset_rad"] = {
+                r.name: [float(v) for v in _signed(r.encoders.offset) / r.encoders.counts_per_rad]
+                for r in chassis.rigs
+            }
+            if cfg.plant.pose_file:
+                write_pose(cfg.plant.pose_file, result["final_q_rad"])
         if bank is not None:
             with bank.status.write() as d:
                 d["state"] = (
@@ -92,6 +109,32 @@ def run_plant(
             world.close()
         if result_path:
             Path(result_path).write_text(json.dumps(result, indent=2) + "\n")
+
+
+def _signed(counts: np.ndarray) -> np.ndarray:
+    d = np.mod(counts, ENC_MODULO)
+    out: np.ndarray = np.where(d >= ENC_MODULO // 2, d - ENC_MODULO, d)
+    return out
+
+
+def read_pose(path: str, robots: list[str]) -> dict[str, list[float]]:
+    """The arms' pose kept while powered off; {} when there is none (or it is unreadable)."""
+    if not path:
+        return {}
+    try:
+        data = json.loads(Path(path).read_text())
+        pose = {r: [float(v) for v in data["q_rad"][r]] for r in robots if r in data["q_rad"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    return {r: q for r, q in pose.items() if len(q) == 7 and all(np.isfinite(q))}
+
+
+def write_pose(path: str, q_rad: dict[str, list[float]]) -> None:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({"q_rad": q_rad}, indent=1) + "\n")
+    os.replace(tmp, p)
 
 
 def _loop(
@@ -109,9 +152,24 @@ def _loop(
     stop_set = set(signals.STOP_SIGNALS)
     steps_limit = int(seconds * physics_hz) if seconds > 0 else 0
     why = "signal"
+    # every time an arm becomes fully braked (a freeze), with the step and the time
+    freezes: list[dict[str, Any]] = []
+    all_braked = [bool(r.arm.braked.all()) for r in chassis.rigs]
     while True:
         outputs = {a: port.outputs(a) for a in boards}
         chassis.apply_outputs(outputs)
+        for i, rig in enumerate(chassis.rigs):
+            braked = bool(rig.arm.braked.all())
+            if braked != all_braked[i]:
+                all_braked[i] = braked
+                if braked and len(freezes) < 1000:
+                    freezes.append(
+                        {
+                            "robot": rig.name,
+                            "step": chassis.step_count + 1,
+                            "monotonic_ns": time.monotonic_ns(),
+                        }
+                    )
         chassis.step()
         # the truth of a step is out before its boards: a reader that sees a
         # board sample can find the truth of the same step
@@ -154,6 +212,7 @@ def _loop(
         "skipped_steps": skipped,
         "physics_hz": physics_hz,
         "pid": os.getpid(),
+        "freezes": freezes,
     }
 
 

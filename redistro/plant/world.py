@@ -82,7 +82,16 @@ def _quat_matrix(pb: Any, quat: Any) -> np.ndarray:
 class World:
     """The simulated scene. ``step()`` advances physics by one time step."""
 
-    def __init__(self, cfg: Config, *, gui: bool = False, urdf_dir: Path | None = None) -> None:
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        gui: bool = False,
+        urdf_dir: Path | None = None,
+        start_q: dict[str, list[float]] | None = None,
+    ) -> None:
+        """start_q: per robot, the joint angles to start from [rad] (default:
+        the robot's initial_q_rad)."""
         import pybullet
         import pybullet_data
 
@@ -126,7 +135,8 @@ class World:
             pb.setJointMotorControlArray(
                 body, joints, pb.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid
             )
-            for j, q in zip(joints, rc.initial_q_rad, strict=True):
+            q_start = (start_q or {}).get(name, rc.initial_q_rad)
+            for j, q in zip(joints, q_start, strict=True):
                 pb.resetJointState(body, j, q, 0.0, physicsClientId=cid)
             pb.enableJointForceTorqueSensor(body, sensor, True, physicsClientId=cid)
             self.arms[name] = Arm(

@@ -116,8 +116,18 @@ class Manager:
     def initialize(self) -> None:
         """Runs after Local Data exists and before any worker is spawned."""
 
+    def on_tick(self, cycle: int) -> bool:
+        """Runs at every tick after the heartbeat check, before the cycle is
+        dispatched. Raise NodeFault to end the session with that reason;
+        return True to end it orderly (the node's work is done)."""
+        return False
+
     def on_fault(self, reason: str, message: str) -> None:
         """Runs first on any fault (the ESC freezes its robot here)."""
+
+    def before_end(self) -> None:
+        """Runs first in Cleanup, on every exit path, before the workers are
+        ended (the ESC freezes its robot here)."""
 
     def cleanup(self) -> None:
         """Runs after every worker has been reaped."""
@@ -270,6 +280,8 @@ class Manager:
                 self._drain_messages()
                 if spec.cycles and self.cycle >= spec.cycles:
                     return
+                if self.on_tick(self.cycle):
+                    return
                 self.cycle += 1
                 mine["cycle"] = self.cycle
                 mine["tick_due_ns"] = due
@@ -374,6 +386,11 @@ class Manager:
     def _cleanup(self, started: float) -> None:
         try:
             self.timer.stop()
+            try:
+                self.before_end()
+            except Exception as exc:
+                log.exception("before_end hook failed")
+                self._fault("abnormal", f"cleanup error: {exc!r}")
             if self.block is not None:
                 with self.block.write() as d:
                     d["state"] = ProcState.CLEANUP
@@ -477,6 +494,9 @@ class Manager:
                 "missed_heartbeats": self.missed_heartbeats,
                 "deadline_misses": self.deadline_misses,
                 "incomplete_cycles": self.incomplete_cycles,
+                # timer periods without a completed cycle: finished late,
+                # unfinished at the next tick, or a tick never taken
+                "overrun_cycles": self.deadline_misses + self.incomplete_cycles + self.missed_ticks,
                 "lateness_us": self.lateness.summary_us(),
                 "makespan_us": self.makespan.summary_us(),
                 "manager_work_us": self.tick_work.summary_us(),
@@ -502,5 +522,7 @@ class Manager:
 
 
 def run_manager(spec_path: str) -> int:
+    from redistro.process.registry import manager_class
+
     spec = NodeSpec.load(spec_path)
-    return Manager(spec, spec_path).run()
+    return manager_class(spec.kind)(spec, spec_path).run()

@@ -14,6 +14,7 @@ import logging
 import os
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,69 +31,137 @@ OWNER_WAIT = frozenset({signal.SIGCHLD}) | signals.STOP_SIGNALS
 
 def run_node(spec: NodeSpec, session: Session) -> dict[str, Any]:
     """Run one node to its end; return the manager's result (always a dict)."""
+    return run_nodes([spec], session)[0]
+
+
+def run_nodes(
+    specs: list[NodeSpec],
+    session: Session,
+    *,
+    budget_s: float | None = None,
+    on_wait: Callable[[], None] | None = None,
+    keep: frozenset[int] = frozenset(),
+) -> list[dict[str, Any]]:
+    """Run nodes side by side to their ends; return each manager's result.
+
+    The first node that ends with a fault stops the others (one robot's
+    fault stops the group). Ctrl-C/SIGTERM is passed on as an orderly end.
+    budget_s: how long the nodes' routine may last before they are stopped
+    (start-up and shutdown time come on top); None: until they end (or their
+    ``cycles`` run out). on_wait: called about five times a second while
+    waiting. keep: pids of other children (the plant) not to reap here.
+    """
     signals.become_subreaper()
-    spec.owner_pid = os.getpid()
-    spec_path = session.directory / f"{spec.node}.spec.json"
-    result_path = session.directory / f"{spec.node}.result.json"
-    spec.result_path = str(result_path)
-    spec.save(spec_path)
-    proc = spawn(
-        ["manager", "--spec", str(spec_path)], pass_fds=(session.lock_fd,), env=session.child_env()
-    )
-    pidfd = os.pidfd_open(proc.pid)
-    budget = spec.startup_timeout_s + spec.shutdown_timeout_s + 5.0
-    deadline = time.monotonic() + budget + spec.cycles / spec.rate_hz if spec.cycles else None
-    interrupted: str | None = None
-    kill_at: float | None = None
-    status = 0
-    stragglers: list[int] = []
+    nodes: list[_Node] = []
     try:
-        while True:
-            info = signals.wait(OWNER_WAIT, 0.2)
-            pid, status = os.waitpid(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            now = time.monotonic()
-            if info is not None and info.si_signo in signals.STOP_SIGNALS and interrupted is None:
-                interrupted = signal.Signals(info.si_signo).name
-                signals.send(pidfd, signal.SIGTERM)
-                kill_at = now + spec.shutdown_timeout_s + 2.0
-            if deadline is not None and now > deadline and kill_at is None:
-                log.error("node %s ran past its time budget; stopping it", spec.node)
-                signals.send(pidfd, signal.SIGTERM)
-                kill_at = now + spec.shutdown_timeout_s + 2.0
-            if kill_at is not None and now > kill_at:
-                signals.send(pidfd, signal.SIGKILL)
+        for spec in specs:
+            spec.owner_pid = os.getpid()
+            spec_path = session.directory / f"{spec.node}.spec.json"
+            spec.result_path = str(session.directory / f"{spec.node}.result.json")
+            spec.save(spec_path)
+            proc = spawn(
+                ["manager", "--spec", str(spec_path)],
+                pass_fds=(session.lock_fd,),
+                env=session.child_env(),
+            )
+            proc.returncode = 0  # reaped below, not by Popen
+            nodes.append(_Node(spec, proc.pid, os.pidfd_open(proc.pid)))
+        _wait_nodes(nodes, budget_s, on_wait)
     finally:
-        proc.returncode = status
-        os.close(pidfd)
-        stragglers = reap_descendants(spec.shutdown_timeout_s)
-    try:
-        result: dict[str, Any] = json.loads(result_path.read_text())
-    except (OSError, ValueError):
-        result = {
-            "node": spec.node,
-            "result": "abnormal",
-            "reason": f"manager of {spec.node} died: {describe_status(status)}",
-        }
-    result["stragglers_killed"] = stragglers
-    if stragglers:
-        log.warning("killed processes of %s that did not end: %s", spec.node, stragglers)
-    if interrupted and result.get("result") == "ok":
-        result.update(result="abnormal", reason=f"interrupted by {interrupted}")
-    return result
+        for n in nodes:
+            os.close(n.pidfd)
+        stragglers = reap_descendants(
+            max((s.shutdown_timeout_s for s in specs), default=3.0), keep=keep
+        )
+    results = []
+    for n in nodes:
+        result = n.result()
+        result["stragglers_killed"] = stragglers
+        if stragglers:
+            log.warning("killed processes that did not end: %s", stragglers)
+        if n.interrupted and result.get("result") == "ok":
+            result.update(result="abnormal", reason=f"interrupted by {n.interrupted}")
+        results.append(result)
+    return results
 
 
-def reap_descendants(timeout_s: float) -> list[int]:
-    """Wait for orphaned descendants (we are their subreaper); SIGKILL stragglers."""
+class _Node:
+    def __init__(self, spec: NodeSpec, pid: int, pidfd: int) -> None:
+        self.spec = spec
+        self.pid = pid
+        self.pidfd = pidfd
+        self.status: int | None = None
+        self.interrupted: str | None = None
+        self.kill_at: float | None = None
+
+    def stop(self, why: str, now: float) -> None:
+        if self.status is None and self.kill_at is None:
+            self.interrupted = why
+            signals.send(self.pidfd, signal.SIGTERM)
+            self.kill_at = now + self.spec.shutdown_timeout_s + 2.0
+
+    def result(self) -> dict[str, Any]:
+        try:
+            out: dict[str, Any] = json.loads(Path(self.spec.result_path).read_text())
+            return out
+        except (OSError, ValueError):
+            return {
+                "node": self.spec.node,
+                "result": "abnormal",
+                "reason": f"manager of {self.spec.node} died: {describe_status(self.status or 0)}",
+            }
+
+
+def _wait_nodes(
+    nodes: list[_Node], budget_s: float | None, on_wait: Callable[[], None] | None
+) -> None:
+    start = time.monotonic()
+    specs = [n.spec for n in nodes]
+    margin = max(s.startup_timeout_s + s.shutdown_timeout_s for s in specs) + 5.0
+    if budget_s is not None:
+        deadline: float | None = start + margin + budget_s
+    elif all(s.cycles for s in specs):
+        deadline = start + margin + max(s.cycles / s.rate_hz for s in specs)
+    else:
+        deadline = None
+    while any(n.status is None for n in nodes):
+        info = signals.wait(OWNER_WAIT, 0.2)
+        now = time.monotonic()
+        for n in nodes:
+            if n.status is None:
+                pid, status = os.waitpid(n.pid, os.WNOHANG)
+                if pid:
+                    n.status = status
+                    if n.result().get("result") != "ok":
+                        for other in nodes:
+                            other.stop(f"a fault in {n.spec.node}", now)
+        if info is not None and info.si_signo in signals.STOP_SIGNALS:
+            for n in nodes:
+                n.stop(signal.Signals(info.si_signo).name, now)
+        if deadline is not None and now > deadline:
+            log.error("nodes ran past their time budget; stopping them")
+            for n in nodes:
+                n.stop("the session's time budget", now)
+        for n in nodes:
+            if n.status is None and n.kill_at is not None and now > n.kill_at:
+                signals.send(n.pidfd, signal.SIGKILL)
+        if on_wait is not None:
+            on_wait()
+
+
+def reap_descendants(timeout_s: float, keep: frozenset[int] = frozenset()) -> list[int]:
+    """Wait for orphaned descendants (we are their subreaper); SIGKILL stragglers.
+
+    keep: children to leave alone (and not wait for)."""
     me = os.getpid()
     deadline = time.monotonic() + timeout_s
     killed: list[int] = []
     while True:
-        with contextlib.suppress(ChildProcessError):
-            while os.waitpid(-1, os.WNOHANG)[0]:
-                pass
-        left = signals.children_of(me)
+        for pid in signals.children_of(me):
+            if pid not in keep:
+                with contextlib.suppress(ChildProcessError):
+                    os.waitpid(pid, os.WNOHANG)
+        left = [p for p in signals.children_of(me) if p not in keep]
         if not left:
             return killed
         if time.monotonic() > deadline:

@@ -37,6 +37,8 @@ class Worker:
         self.params: dict[str, Any] = self.me.params
         self.ld = ld
         self.msgbox: MessageBox = ld.msgbox(index)
+        self.due_ns = 0  # when the running cycle's tick was due (CLOCK_MONOTONIC)
+        self.period_ns = int(ld.static["period_ns"])
 
     # -- hooks for subclasses --
 
@@ -97,12 +99,24 @@ class _Runner:
             ready = Semaphore.attach(names.object_name(spec.session_id, spec.node, "ready"))
             sems = [*go, ready]
 
+            with row.write() as d:
+                d["pid"] = os.getpid()
+                d["state"] = ProcState.INITIALIZATION
+
+            from redistro.process.registry import worker_class
+
+            # initialization (imports, opening drivers) runs at the default
+            # priority: real-time priority is for the cycles
+            worker = worker_class(me.role)(spec, i, ld)
+            try:
+                worker.initialize()
+            except Exception as exc:
+                worker.post(f"initialization failed: {exc}", logging.ERROR)
+                raise
             granted = sched.apply(
                 me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory
             )
             with row.write() as d:
-                d["pid"] = os.getpid()
-                d["state"] = ProcState.INITIALIZATION
                 d["sched_policy"] = sched.POLICY_CODES[granted.policy]
                 d["sched_priority"] = granted.priority
                 d["nice"] = granted.nice
@@ -110,10 +124,6 @@ class _Runner:
             for refusal in granted.refused:
                 ld.msgbox(i).post(f"scheduling: {refusal}", logging.DEBUG)
 
-            from redistro.process.registry import worker_class
-
-            worker = worker_class(me.role)(spec, i, ld)
-            worker.initialize()
             with row.write() as d:
                 d["state"] = ProcState.ROUTINE
             ready.release()
@@ -187,7 +197,13 @@ class _Runner:
                 self.stage_timeouts += 1
             else:
                 t0 = time.monotonic_ns()
-                worker.step(cycle)
+                worker.due_ns = due_ns
+                try:
+                    worker.step(cycle)
+                except Exception as exc:
+                    # the manager sees the exit at once; the box says why
+                    worker.post(f"failed at cycle {cycle}: {exc}", logging.ERROR)
+                    raise
                 self.compute.add(time.monotonic_ns() - t0)
                 self.cycles += 1
             mine["heartbeat_cycle"] = cycle

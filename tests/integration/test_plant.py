@@ -19,7 +19,6 @@ from redistro.errors import ConfigError, IOFault
 from tests.integration.plant_rig import Model, plant_rig
 
 BACKPLANES = ["shm", "can"]
-VERTICAL = "[-0.1, -0.1, -0.1, -0.1, -0.1, -0.1, -0.1]"
 
 
 def one_count(d) -> np.ndarray:  # type: ignore[no-untyped-def]
@@ -84,7 +83,9 @@ def test_brakes_hold_against_gravity(backplane: str, tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("backplane", BACKPLANES)
 def test_home_switches_toggle_at_their_angles(backplane: str, tmp_path: Path) -> None:
-    sets = [f"robots.r1.initial_q_rad={VERTICAL}"]
+    # start 0.1 rad below every home mark (the park pose) and sweep up through them
+    start = [round(a - 0.1, 3) for a in [0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0]]
+    sets = [f"robots.r1.initial_q_rad={start}"]
     with plant_rig(backplane, tmp_path, sets) as rig:
         model = Model(rig.cfg)
         d = rig.drivers["r1"]
@@ -97,7 +98,7 @@ def test_home_switches_toggle_at_their_angles(backplane: str, tmp_path: Path) ->
 
         def sweep() -> None:
             t = rig.sim_time_s() - t0
-            target = -0.1 + 0.2 * min(1.0, t / 1.5)
+            target = np.asarray(s.home_angle_rad) - 0.1 + 0.2 * min(1.0, t / 1.5)
             fb, tr = rig.synced("r1")
             tau = model.gravity("r1", fb.q_rad) + kp * (target - fb.q_rad) - kd * fb.qd_rad_s
             d.send_torques(tau)
@@ -192,7 +193,7 @@ def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("backplane", BACKPLANES)
 def test_a_killed_plant_is_an_io_fault(backplane: str, tmp_path: Path) -> None:
-    with plant_rig(backplane, tmp_path) as rig:
+    with plant_rig(backplane, tmp_path, ["plant.io_timeout_ms=30"]) as rig:
         d = rig.drivers["r1"]
         d.read_feedback()
         os.kill(rig.plant.pid, signal.SIGKILL)

@@ -1,0 +1,71 @@
+"""Joint PID with gravity compensation, as a pure update function.
+
+    tau = g(q) + Kp (q_ref - q) + Kd (qd_ref - qd) + Ki * integral(q_ref - q)
+
+The integral is clamped per joint (``i_max_nm`` bounds Ki x integral), and it
+only integrates on joints that are on. Joints that are off get no torque at
+all (their brakes hold them). The state is a small dataclass the caller keeps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+F64 = np.ndarray[Any, np.dtype[np.float64]]
+
+
+@dataclass(frozen=True)
+class PidGains:
+    """Per joint, shape (n,): kp [N m/rad], ki [N m/(rad s)], kd [N m s/rad], i_max_nm [N m]."""
+
+    kp: F64
+    ki: F64
+    kd: F64
+    i_max_nm: F64
+    i_lim: F64 = field(init=False, repr=False)  # bound on the integral itself [rad s]
+
+    def __post_init__(self) -> None:
+        ki = np.asarray(self.ki, dtype=np.float64)
+        lim = np.zeros_like(ki)
+        np.divide(self.i_max_nm, ki, out=lim, where=ki > 0)
+        object.__setattr__(self, "i_lim", lim)
+
+
+@dataclass
+class PidState:
+    integral: F64 = field(default_factory=lambda: np.zeros(7))  # [rad s]
+
+    def reset(self) -> None:
+        self.integral[:] = 0.0
+
+
+def pid_update(
+    gains: PidGains,
+    state: PidState,
+    q: F64,
+    qd: F64,
+    q_ref: F64,
+    qd_ref: F64,
+    gravity_nm: F64,
+    on: np.ndarray[Any, Any],
+    dt_s: float,
+) -> F64:
+    """Joint torques [N m] for one cycle; updates ``state.integral`` in place.
+
+    q, qd: measured positions [rad] and speeds [rad/s]; q_ref, qd_ref: the
+    reference; gravity_nm: g(q) [N m]; on: bool mask of joints under control;
+    dt_s: time since the previous update [s].
+    """
+    e = q_ref - q
+    integral = state.integral + e * dt_s
+    np.minimum(integral, gains.i_lim, out=integral)
+    np.maximum(integral, -gains.i_lim, out=integral)
+    mask = on.astype(np.float64)
+    integral *= mask
+    state.integral = integral
+    tau: F64 = gravity_nm + gains.kp * e + gains.kd * (qd_ref - qd) + gains.ki * integral
+    tau *= mask
+    return tau

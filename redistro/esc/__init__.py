@@ -1,0 +1,1 @@
+"""The Execution-Stage Controller: one node per robot (manager + workers)."""

@@ -1,0 +1,38 @@
+"""What every ESC process opens: the config, its robot's hardware, a driver."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from redistro.config import Config, load_config
+from redistro.config.hardware import RobotHardware, load_hardware
+from redistro.drivers.io.backplane import open_backplane
+from redistro.drivers.robot import RobotDriver
+
+
+@dataclass
+class EscContext:
+    cfg: Config
+    robot: str
+    hw: RobotHardware
+
+    @classmethod
+    def load(cls, params: dict[str, Any]) -> EscContext:
+        """params: robot, config (path or None), overrides (list of KEY=VALUE)."""
+        cfg = load_config(params.get("config"), list(params.get("overrides", [])))
+        robot = str(params["robot"])
+        return cls(cfg, robot, load_hardware(cfg)[robot])
+
+    def driver(self, session_id: str) -> RobotDriver:
+        """A robot-level driver over its own backplane connection (not yet opened)."""
+        c = self.cfg.plant.can
+        bp = open_backplane(
+            self.cfg.plant.backplane,
+            session_id,
+            self.cfg.plant.io_timeout_ms / 1e3,
+            interface=c.interface,
+            channel=c.channel,
+            port=c.port,
+        )
+        return RobotDriver(self.hw, bp, self.cfg.plant.physics_hz)

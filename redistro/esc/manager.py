@@ -1,0 +1,161 @@
+"""The ESC Manager: the node's timer and watchdog, and its robot's last line of safety.
+
+Before any worker exists it opens the robot-level driver and freezes the
+robot, then presets the encoder counters from the positions file (when it is
+valid) and marks that file unclean until the session ends. Every tick it
+looks at the guard (a tripped sender ends the session ``unsafe``) and at the
+segments (done ends it ``ok``; failed ends it ``abnormal``). On any fault and
+on every exit path it freezes the robot through its own driver, before and
+after the workers end. At the end it records the final joint positions:
+clean when they were known at the start or the self-calibration corrected
+them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from redistro.drivers import positions
+from redistro.drivers.robot import RobotDriver
+from redistro.errors import NodeFault
+from redistro.esc.common import EscContext
+from redistro.localdata.block import Block, Record
+from redistro.localdata.layout import GUARD, SETPOINT
+from redistro.process.manager import Manager
+from redistro.process.spec import NodeSpec
+
+log = logging.getLogger(__name__)
+
+
+class EscManager(Manager):
+    def __init__(self, spec: NodeSpec, spec_path: str) -> None:
+        super().__init__(spec, spec_path)
+        self.robot = spec.robots[0] if spec.robots else ""
+        self.driver: RobotDriver | None = None
+        self.frozen_ns: list[int] = []
+        self.refused = False
+        self.calibrating = False
+        self.known_at_start = False
+        self.positions_note = ""
+        self.positions_path = ""
+        self.blocks: dict[str, Block] = {}
+
+    def initialize(self) -> None:
+        params = self.spec.workers[0].params  # every ESC worker carries the node's params
+        self.ctx = EscContext.load(params)
+        self.robot = self.ctx.robot
+        self.positions_path = str(params.get("positions_file", ""))
+        self.calibrating = bool(params.get("calibrates", False))
+        ld = self.ld
+        assert ld is not None
+        self.blocks = {n: ld.block(n, 0) for n in ("guard", "setpoint", "home", "calibration")}
+        self.guard_block = self.blocks["guard"]
+        self.setpoint_block = self.blocks["setpoint"]
+        self.guard = Record(GUARD)
+        self.sp = Record(SETPOINT)
+        driver = self.ctx.driver(self.spec.session_id)
+        driver.open()  # checks the chassis, then freezes: brakes on, DAC zero
+        self.driver = driver
+        self._freeze("start")
+        if self.positions_path:
+            try:
+                pos = positions.read(self.positions_path, [self.robot])
+                driver.preset_encoders(np.asarray(pos.q_rad[self.robot]))
+                self.known_at_start = True
+                self.positions_note = f"preset from {self.positions_path} (session {pos.session})"
+                # until this session ends cleanly the file does not say where the arm is
+                positions.write(self.positions_path, self.spec.session_id, pos.q_rad, clean=False)
+            except positions.PositionsUnknown as exc:
+                self.positions_note = str(exc)
+                if not self.calibrating:
+                    self.refused = True
+                    raise NodeFault(
+                        "abnormal",
+                        f"motion refused: {exc}; run a self-calibration first",
+                    ) from None
+        self._message(
+            "manager", logging.INFO, f"{self.robot}: frozen; positions {self.positions_note}"
+        )
+
+    def _freeze(self, why: str) -> None:
+        if self.driver is None:
+            return
+        try:
+            self.driver.freeze()
+            self.frozen_ns.append(time.monotonic_ns())
+        except Exception as exc:  # the plant may be gone: say so, never mask the exit
+            self._message("manager", logging.ERROR, f"freeze ({why}) failed: {exc}")
+
+    def on_tick(self, cycle: int) -> bool:
+        self.guard_block.read_into(self.guard.bytes)
+        if self.guard["tripped"]:
+            text = bytes(self.guard.array["trip_text"]).decode(errors="replace")
+            raise NodeFault("unsafe", text)
+        self.setpoint_block.read_into(self.sp.bytes)
+        if self.sp["failed"]:
+            raise NodeFault("abnormal", f"{self.robot}: the segments cannot go on (see messages)")
+        return bool(self.sp["done"])
+
+    def on_fault(self, reason: str, message: str) -> None:
+        self._freeze(reason)
+
+    def before_end(self) -> None:
+        self._freeze("end")
+
+    def cleanup(self) -> None:
+        self._freeze("end, workers gone")
+        extra: dict[str, Any] = {"robot": self.robot}
+        if not self.blocks:  # initialization failed early
+            if self.driver is not None:
+                self.driver.close()
+            self.result.update(extra)
+            return
+        home = self.blocks["home"].read()
+        cal = self.blocks["calibration"].read()
+        guard = self.blocks["guard"].read()
+        applied = int(home["offset_seq"]) > 0
+        offset = np.asarray(home["offset_rad"], dtype=np.float64)
+        if self.calibrating:
+            extra["calibration"] = {
+                "applied": applied,
+                "found": [bool(v) for v in cal["found"]],
+                "edges": [int(v) for v in cal["edges"]],
+                "offset_found_rad": [float(v) for v in cal["offset_found_rad"]],
+            }
+        if int(guard["tripped"]):
+            extra["violation"] = {
+                "quantity": bytes(guard["trip_quantity"]).decode(),
+                "joint": int(guard["trip_joint"]) + 1 if int(guard["trip_joint"]) >= 0 else None,
+                "value": float(guard["trip_value"]),
+                "limit": float(guard["trip_limit"]),
+                "cycle": int(guard["trip_cycle"]),
+                "sample_step": int(guard["trip_step"]),
+                "frozen_monotonic_ns": int(guard["trip_ns"]),
+                "text": bytes(guard["trip_text"]).decode(errors="replace"),
+            }
+        extra["freeze_monotonic_ns"] = self.frozen_ns
+        final = None
+        if self.driver is not None:
+            try:
+                fb = self.driver.read_feedback()
+                final = fb.q_rad - offset
+            except Exception as exc:
+                self._message("manager", logging.ERROR, f"final positions unreadable: {exc}")
+        known = self.known_at_start or applied
+        extra["positions"] = {
+            "file": self.positions_path,
+            "at_start": self.positions_note,
+            "known_at_end": bool(known and final is not None),
+            "q_rad": [float(v) for v in final] if final is not None else None,
+        }
+        if self.positions_path and final is not None and not self.refused:
+            positions.write(
+                self.positions_path, self.spec.session_id, {self.robot: final}, clean=known
+            )
+        if self.driver is not None:
+            self.driver.close()
+        self.result.update(extra)

@@ -1,0 +1,73 @@
+"""ESC PID Computation (paper priority 16): joint PID with gravity compensation.
+
+Tracks the setpoint block (the calibration's joint reference) from this
+cycle's feedback; gravity g(q) from Pinocchio on the plant's own arm model.
+Publishes the torques in the control block for the sender.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from redistro.control.dynamics import ArmModel
+from redistro.control.pid import PidGains, PidState, pid_update
+from redistro.esc.common import EscContext
+from redistro.localdata.block import Record
+from redistro.localdata.layout import CONTROL, FEEDBACK, SETPOINT
+from redistro.process.worker import Worker
+from redistro.robotmodel import Peg
+
+
+class Pid(Worker):
+    def initialize(self) -> None:
+        ctx = EscContext.load(self.params)
+        cfg = ctx.cfg
+        g = cfg.esc.pid
+        self.gains = PidGains(
+            np.asarray(g.kp, dtype=np.float64),
+            np.asarray(g.ki, dtype=np.float64),
+            np.asarray(g.kd, dtype=np.float64),
+            np.asarray(g.i_max_nm, dtype=np.float64),
+        )
+        peg = None
+        if cfg.robots[ctx.robot].peg:
+            p = cfg.plant.peg
+            peg = Peg(p.side_m, p.length_m, p.mass_kg)
+        self.model = ArmModel(peg)
+        self.state = PidState()
+        ld = self.ld
+        self.control_block = ld.writer("control", 0, role="pid")
+        self.feedback_block = ld.block("feedback", 0)
+        self.setpoint_block = ld.block("setpoint", 0)
+        self.fb = Record(FEEDBACK)
+        self.sp = Record(SETPOINT)
+        self.out = Record(CONTROL)
+        self.last_due_ns = 0
+
+    def step(self, cycle: int) -> None:
+        self.feedback_block.read_into(self.fb.bytes)
+        self.setpoint_block.read_into(self.sp.bytes)
+        fb, sp = self.fb.array, self.sp.array
+        dt = (self.due_ns - self.last_due_ns) / 1e9 if self.last_due_ns else self.period_ns / 1e9
+        self.last_due_ns = self.due_ns
+        q = fb["q_rad"]
+        on = sp["joint_on"].astype(bool)
+        if self.sp["cycle"] == 0:
+            on[:] = False  # no reference yet
+        tau = pid_update(
+            self.gains,
+            self.state,
+            q,
+            fb["qd_rad_s"],
+            sp["q_rad"],
+            sp["qd_rad_s"],
+            self.model.gravity(q),
+            on,
+            min(dt, 10 * self.period_ns / 1e9),
+        )
+        o = self.out.array
+        self.out["stamp_ns"] = self.due_ns
+        self.out["cycle"] = cycle
+        o["tau_nm"] = tau
+        o["joint_on"] = on
+        self.control_block.publish(self.out.bytes)

@@ -1,0 +1,85 @@
+"""The ESC node a task needs, as a NodeSpec: workers, stages, priorities, params."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from redistro.config.hardware import RobotHardware
+from redistro.config.model import Config
+from redistro.config.task import Task
+from redistro.process.spec import NodeSpec, WorkerSpec
+
+# Within a cycle: acquisition publishes feedback, the calibration its joint
+# reference, the pid its torques, then the sender checks and sends.
+ESC_WORKERS = (("acquisition", 0), ("calibration", 1), ("pid", 2), ("sender", 3))
+
+
+def esc_segments(task: Task, robot: str, hw: RobotHardware) -> list[dict[str, Any]]:
+    """The ESC-local segments of ``task`` for ``robot`` (calibration worker params)."""
+    if task.kind == "self_calibration":
+        c = task.calibration
+        r = math.radians(c.range_deg)
+        final = c.final_q_rad.get(robot, list(hw.sensors.home_angle_rad))
+        t1, t2, t3 = c.segment_s
+        return [
+            {"name": "clockwise", "kind": "sweep", "duration_s": t1, "delta_rad": -r},
+            {"name": "counter_clockwise", "kind": "sweep", "duration_s": t2, "delta_rad": r},
+            {"name": "final_positioning", "kind": "position", "duration_s": t3, "goal_rad": final},
+        ]
+    return [
+        {"name": s.name, "kind": "position", "duration_s": s.duration_s, "goal_rad": s.q_rad[robot]}
+        for s in task.segments
+    ]
+
+
+def task_seconds(task: Task) -> float:
+    """How long the task's motion lasts [s] (for time budgets and progress)."""
+    if task.kind == "self_calibration":
+        return sum(task.calibration.segment_s) + task.calibration.settle_s
+    return sum(s.duration_s for s in task.segments) + task.settle_s
+
+
+def esc_spec(
+    cfg: Config,
+    task: Task,
+    robot: str,
+    hw: RobotHardware,
+    session_id: str,
+    *,
+    config_path: str | None,
+    overrides: list[str],
+    positions_file: str,
+    messages_path: str = "",
+) -> NodeSpec:
+    settle = task.calibration.settle_s if task.kind == "self_calibration" else task.settle_s
+    params: dict[str, Any] = {
+        "robot": robot,
+        "config": config_path,
+        "overrides": list(overrides),
+        "positions_file": positions_file,
+        "calibrates": task.kind == "self_calibration",
+        "segments": esc_segments(task, robot, hw),
+        "settle_s": settle,
+    }
+    prio = cfg.scheduling.priorities
+    workers = [
+        WorkerSpec(name=role, role=role, stage=stage, priority=prio.get(role, 16), params=params)
+        for role, stage in ESC_WORKERS
+    ]
+    return NodeSpec(
+        session_id=session_id,
+        node=f"esc.{robot}",
+        kind="esc",
+        rate_hz=cfg.esc.rate_hz,
+        heartbeat_limit_cycles=cfg.esc.heartbeat_limit_cycles,
+        workers=workers,
+        robots=[robot],
+        startup_timeout_s=cfg.session.startup_timeout_s,
+        shutdown_timeout_s=cfg.session.shutdown_timeout_s,
+        sched_policy=cfg.scheduling.policy,
+        lock_memory=cfg.scheduling.lock_memory,
+        manager_priority=prio.get("manager", 20),
+        cpus=list(cfg.esc.cpus),
+        messages_path=messages_path,
+    )

@@ -1,0 +1,172 @@
+"""ESC Command Sender & Safety Guard (paper priority 18).
+
+Before every command it checks, in this order: the feedback is finite; joint
+speeds, measured joint torques and the wrist force and moment are within the
+limits of ``esc.safety``; the command is finite and its torques within
+limits. (NaN passes every ``>`` test: finiteness is checked first.) A
+violation freezes the robot at once through the sender's own driver, records
+what tripped in the guard block (the manager ends the session ``unsafe``),
+and the sender sends nothing more. Otherwise it releases the brakes of joints
+that came under control, engages those of joints that left it, and writes
+the torques.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from redistro.esc.common import EscContext
+from redistro.localdata.block import Record
+from redistro.localdata.layout import CONTROL, FEEDBACK, GUARD, HOME, MANAGER
+from redistro.process.worker import Worker
+
+DOF = 7
+
+
+class Violation(Exception):
+    def __init__(self, quantity: str, joint: int, value: float, limit: float, unit: str) -> None:
+        where = "wrist" if joint < 0 else f"joint {joint + 1}"
+        super().__init__(f"{where} {quantity} {value:.4g} {unit} over the limit {limit:.4g} {unit}")
+        self.quantity = quantity
+        self.joint = joint
+        self.value = value
+        self.limit = limit
+
+
+def check(
+    q: np.ndarray,
+    qd: np.ndarray,
+    tau: np.ndarray,
+    wrench: np.ndarray,
+    tau_cmd: np.ndarray,
+    qd_max: np.ndarray,
+    tau_max: np.ndarray,
+    force_max: float,
+    moment_max: float,
+) -> None:
+    """Raise Violation naming the first limit broken (pure; unit-tested)."""
+    for name, v in (
+        ("position", q),
+        ("velocity", qd),
+        ("torque", tau),
+    ):
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            j = int(bad[0])
+            raise Violation(f"measured {name} not finite", j, float(v[j]), 0.0, "")
+    if not np.all(np.isfinite(wrench)):
+        raise Violation("wrist wrench not finite", -1, float("nan"), 0.0, "")
+    over = np.flatnonzero(np.abs(qd) > qd_max)
+    if over.size:
+        j = int(over[0])
+        raise Violation("velocity", j, float(qd[j]), float(qd_max[j]), "rad/s")
+    over = np.flatnonzero(np.abs(tau) > tau_max)
+    if over.size:
+        j = int(over[0])
+        raise Violation("measured torque", j, float(tau[j]), float(tau_max[j]), "N m")
+    f = float(np.linalg.norm(wrench[:3]))
+    if f > force_max:
+        raise Violation("force", -1, f, force_max, "N")
+    m = float(np.linalg.norm(wrench[3:]))
+    if m > moment_max:
+        raise Violation("moment", -1, m, moment_max, "N m")
+    bad = np.flatnonzero(~np.isfinite(tau_cmd))
+    if bad.size:
+        j = int(bad[0])
+        raise Violation("commanded torque not finite", j, float(tau_cmd[j]), 0.0, "")
+    over = np.flatnonzero(np.abs(tau_cmd) > tau_max)
+    if over.size:
+        j = int(over[0])
+        raise Violation("commanded torque", j, float(tau_cmd[j]), float(tau_max[j]), "N m")
+
+
+class Sender(Worker):
+    def initialize(self) -> None:
+        ctx = EscContext.load(self.params)
+        self.robot = ctx.robot
+        lim = ctx.cfg.esc.safety
+        self.qd_max = np.asarray(lim.qd_max_rad_s, dtype=np.float64)
+        self.tau_max = np.asarray(lim.tau_max_nm, dtype=np.float64)
+        self.force_max = lim.force_max_n
+        self.moment_max = lim.moment_max_nm
+        self.driver = ctx.driver(self.spec.session_id)
+        self.driver.open(freeze=False)  # the manager froze the robot before we existed
+        ld = self.ld
+        self.guard_block = ld.writer("guard", 0, role="sender")
+        self.feedback_block = ld.block("feedback", 0)
+        self.home_block = ld.block("home", 0)
+        self.control_block = ld.block("control", 0)
+        self.manager_block = ld.block("manager")
+        self.fb = Record(FEEDBACK)
+        self.home = Record(HOME)
+        self.ctl = Record(CONTROL)
+        self.mgr = Record(MANAGER)
+        self.guard = Record(GUARD)
+        self.released = np.zeros(DOF, dtype=bool)
+        self.tripped = False
+
+    def step(self, cycle: int) -> None:
+        self.manager_block.read_into(self.mgr.bytes)
+        if self.tripped or self.mgr["estop"]:
+            return  # frozen: nothing goes out any more
+        self.feedback_block.read_into(self.fb.bytes)
+        self.control_block.read_into(self.ctl.bytes)
+        fb, ctl = self.fb.array, self.ctl.array
+        on = ctl["joint_on"].astype(bool)
+        tau_cmd = np.where(on, ctl["tau_nm"], 0.0)
+        self.guard["cycle"] = cycle
+        try:
+            check(
+                fb["q_rad"],
+                fb["qd_rad_s"],
+                fb["tau_nm"],
+                fb["wrench"],
+                tau_cmd,
+                self.qd_max,
+                self.tau_max,
+                self.force_max,
+                self.moment_max,
+            )
+        except Violation as v:
+            self._trip(cycle, v)
+            return
+        if (on != self.released).any():
+            up = np.flatnonzero(on & ~self.released).tolist()
+            down = np.flatnonzero(~on & self.released).tolist()
+            if down:
+                self.driver.engage_brakes(down)
+            if up:
+                self.driver.release_brakes(up)
+            self.released = on.copy()
+            self.guard.array["released"] = on
+        self.driver.send_torques(tau_cmd)
+        self.guard["sent_cycle"] = cycle
+        self.guard.array["tau_nm"] = tau_cmd
+        self.guard_block.publish(self.guard.bytes)
+
+    def _trip(self, cycle: int, v: Violation) -> None:
+        self.driver.freeze()
+        frozen_ns = time.monotonic_ns()
+        self.tripped = True
+        self.home_block.read_into(self.home.bytes)
+        text = f"{self.robot} {v}"
+        g = self.guard
+        g["tripped"] = 1
+        g["trip_cycle"] = cycle
+        g["trip_step"] = self.home["step"]
+        g["trip_ns"] = frozen_ns
+        g["trip_joint"] = v.joint
+        g["trip_value"] = v.value
+        g["trip_limit"] = v.limit
+        g.array["trip_quantity"] = v.quantity.encode()[:24]
+        g.array["trip_text"] = text.encode()[:112]
+        g.array["released"] = 0
+        g.array["tau_nm"] = 0.0
+        self.guard_block.publish(g.bytes)
+        self.post(f"unsafe: {text}; robot frozen", logging.ERROR)
+
+    def cleanup(self) -> None:
+        self.driver.close()
