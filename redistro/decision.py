@@ -140,10 +140,8 @@ def run_session(
         plant_overrides = list(overrides)
         if not cfg.plant.pose_file:
             plant_overrides.append(f"plant.pose_file={runs / cfg.session.plant_pose_file}")
-        say(
-            f"session {s.id}: task {task.task} ({task.kind}) on {', '.join(task.robots)}; "
-            f"run folder {run_dir}"
-        )
+        say(f"session {s.id}")
+        say(f"task {task.task} ({task.kind}) on {', '.join(task.robots)}; run folder {run_dir}")
         plant = PlantProcess.start(s, run_dir, config=config_path, overrides=plant_overrides)
         say(f"plant running ({cfg.plant.backplane} backplane, {cfg.plant.physics_hz:g} Hz)")
         try:

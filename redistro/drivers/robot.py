@@ -38,10 +38,13 @@ DRIVERS: dict[str, type[ModuleDriver]] = {
 }
 
 
+_HALF = ENC_MODULO // 2
+_MASK = ENC_MODULO - 1
+
+
 def _wrap(delta: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
     """Signed changes between 24-bit counter readings (|change| < 2**23), per element."""
-    d = np.mod(delta, ENC_MODULO)
-    out: np.ndarray[Any, Any] = np.where(d >= ENC_MODULO // 2, d - ENC_MODULO, d)
+    out: np.ndarray[Any, Any] = ((delta + _HALF) & _MASK) - _HALF
     return out
 
 
@@ -101,11 +104,15 @@ class RobotDriver:
 
     # -- set-up --
 
-    def open(self, freeze: bool = True) -> None:
-        """Check the chassis against the I/O config, set latch sources, freeze.
+    def open(self, owner: bool = True) -> None:
+        """Check the chassis against the I/O config; as the owner, set the
+        encoders' latch sources and freeze.
 
-        freeze: False for a process that shares a robot another one froze
-        (an ESC worker): its brakes and DAC outputs are left as they are.
+        A board's output registers are written whole from the driver's own
+        copy, so each must have one writer at a time: the owner (the ESC
+        manager) writes the encoder boards (latch sources, presets); a
+        non-owner (an ESC worker) never writes them, and leaves the brakes
+        and DAC outputs as they are.
         """
         chassis = self.bp.inventory()
         for name, b in self.hw.io.boards.items():
@@ -120,13 +127,13 @@ class RobotDriver:
                     f"{self.hw.io_path}: boards.{name}.type: the chassis has a "
                     f"{chassis[b.address].name.lower()} board at address {b.address}, not {b.type}"
                 )
-        for a, (_js, axes) in self.enc.items():
-            enc = self.modules[a]
-            assert isinstance(enc, EncoderDriver)
-            for k in axes.tolist():
-                enc.set_latch_mode(k, LATCH_HOME_EDGES)
-            enc.flush()
-        if freeze:
+        if owner:
+            for a, (_js, axes) in self.enc.items():
+                enc = self.modules[a]
+                assert isinstance(enc, EncoderDriver)
+                for k in axes.tolist():
+                    enc.set_latch_mode(k, LATCH_HOME_EDGES)
+                enc.flush()
             self.freeze()
         self.read_feedback()
 

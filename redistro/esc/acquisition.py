@@ -21,7 +21,7 @@ class Acquisition(Worker):
     def initialize(self) -> None:
         ctx = EscContext.load(self.params)
         self.driver = ctx.driver(self.spec.session_id)
-        self.driver.open(freeze=False)  # the manager froze the robot before we existed
+        self.driver.open(owner=False)  # the manager froze the robot before we existed
         ld = self.ld
         self.feedback_block = ld.writer("feedback", 0, role="acquisition")
         self.home_block = ld.writer("home", 0, role="acquisition")

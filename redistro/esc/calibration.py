@@ -90,6 +90,11 @@ class Calibration(Worker):
             for d in self.params["segments"]
         ]
         self.settle_s = float(self.params.get("settle_s", 0.5))
+        # Segments are timed by the boards' sample clock (home.step): the same
+        # as wall time on real hardware; on a simulation that falls behind real
+        # time the reference slows with the physics instead of running ahead.
+        self.sample_ns = 1e9 / ctx.cfg.plant.physics_hz
+        self.now_ns = 0
         ld = self.ld
         self.setpoint_block = ld.writer("setpoint", 0, role="calibration")
         self.calib_block = ld.writer("calibration", 0, role="calibration")
@@ -115,6 +120,7 @@ class Calibration(Worker):
     def step(self, cycle: int) -> None:
         self.feedback_block.read_into(self.fb.bytes)
         self.home_block.read_into(self.home.bytes)
+        self.now_ns = int(self.home["step"] * self.sample_ns)
         sp = self.sp.array
         if self.index < 0:
             self.q_init = self.fb.array["q_rad"].copy()
@@ -136,12 +142,12 @@ class Calibration(Worker):
             return
         if seg is None:
             self._publish(cycle, self.ref, np.zeros(DOF), np.zeros(DOF))
-            if self.due_ns >= self.end_ns and not self.sp["done"]:
+            if self.now_ns >= self.end_ns and not self.sp["done"]:
                 self.sp["done"] = 1
                 self._publish(cycle, self.ref, np.zeros(DOF), np.zeros(DOF))
                 self.post("all segments done")
             return
-        t = (self.due_ns - self.seg_t0_ns) / 1e9
+        t = (self.now_ns - self.seg_t0_ns) / 1e9
         goal = self._goal(seg)
         q, qd, qdd = quintic(self.seg_q0, goal, seg.duration_s, t)
         self.ref = q
@@ -157,14 +163,14 @@ class Calibration(Worker):
 
     def _start(self, index: int, q0: np.ndarray) -> None:
         self.index = index
-        self.seg_t0_ns = self.due_ns
+        self.seg_t0_ns = self.now_ns
         self.seg_q0 = np.asarray(q0, dtype=np.float64).copy()
         if index < len(self.segments):
             seg = self.segments[index]
             self.sp["segment"] = index + 1
             self.post(f"segment {index + 1} {seg.name} ({seg.kind}, {seg.duration_s:g} s)")
         else:
-            self.end_ns = self.due_ns + int(self.settle_s * 1e9)
+            self.end_ns = self.now_ns + int(self.settle_s * 1e9)
 
     def _finish_segment(self, seg: Segment, goal: np.ndarray) -> None:
         nxt = self.index + 1
@@ -237,5 +243,5 @@ class Calibration(Worker):
         sp["qd_rad_s"] = qd
         sp["qdd_rad_s2"] = qdd
         sp["joint_on"] = 0 if self.sp["failed"] else 1
-        self.sp["segment_t_s"] = max(0.0, (self.due_ns - self.seg_t0_ns) / 1e9)
+        self.sp["segment_t_s"] = max(0.0, (self.now_ns - self.seg_t0_ns) / 1e9)
         self.setpoint_block.publish(self.sp.bytes)

@@ -93,7 +93,7 @@ class EscManager(Manager):
     def on_tick(self, cycle: int) -> bool:
         self.guard_block.read_into(self.guard.bytes)
         if self.guard["tripped"]:
-            text = bytes(self.guard.array["trip_text"]).decode(errors="replace")
+            text = self.guard.array["trip_text"].item().decode(errors="replace")
             raise NodeFault("unsafe", text)
         self.setpoint_block.read_into(self.sp.bytes)
         if self.sp["failed"]:

@@ -13,7 +13,7 @@ from redistro.control.dynamics import ArmModel
 from redistro.control.pid import PidGains, PidState, pid_update
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Record
-from redistro.localdata.layout import CONTROL, FEEDBACK, SETPOINT
+from redistro.localdata.layout import CONTROL, FEEDBACK, HOME, SETPOINT
 from redistro.process.worker import Worker
 from redistro.robotmodel import Peg
 
@@ -42,14 +42,20 @@ class Pid(Worker):
         self.fb = Record(FEEDBACK)
         self.sp = Record(SETPOINT)
         self.out = Record(CONTROL)
-        self.last_due_ns = 0
+        self.home_block = ld.block("home", 0)
+        self.home = Record(HOME)
+        self.sample_s = 1.0 / cfg.plant.physics_hz
+        self.last_step = -1
 
     def step(self, cycle: int) -> None:
         self.feedback_block.read_into(self.fb.bytes)
         self.setpoint_block.read_into(self.sp.bytes)
         fb, sp = self.fb.array, self.sp.array
-        dt = (self.due_ns - self.last_due_ns) / 1e9 if self.last_due_ns else self.period_ns / 1e9
-        self.last_due_ns = self.due_ns
+        self.home_block.read_into(self.home.bytes)
+        # the integral advances by the time between the samples (boards' clock)
+        step = self.home["step"]
+        dt = (step - self.last_step) * self.sample_s if self.last_step >= 0 else 0.0
+        self.last_step = step
         q = fb["q_rad"]
         on = sp["joint_on"].astype(bool)
         if self.sp["cycle"] == 0:
@@ -63,7 +69,7 @@ class Pid(Worker):
             sp["qd_rad_s"],
             self.model.gravity(q),
             on,
-            min(dt, 10 * self.period_ns / 1e9),
+            min(max(dt, 0.0), 10 * self.period_ns / 1e9),
         )
         o = self.out.array
         self.out["stamp_ns"] = self.due_ns

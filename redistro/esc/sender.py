@@ -93,7 +93,7 @@ class Sender(Worker):
         self.force_max = lim.force_max_n
         self.moment_max = lim.moment_max_nm
         self.driver = ctx.driver(self.spec.session_id)
-        self.driver.open(freeze=False)  # the manager froze the robot before we existed
+        self.driver.open(owner=False)  # the manager froze the robot before we existed
         ld = self.ld
         self.guard_block = ld.writer("guard", 0, role="sender")
         self.feedback_block = ld.block("feedback", 0)

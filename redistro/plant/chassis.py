@@ -170,6 +170,7 @@ class Chassis:
         """Joint states -> every board's ``in`` bank."""
         for rig in self.rigs:
             rig.q, rig.qd, rig.tau = self.world.joint_states(rig.arm)
+            self.world.settle_brakes(rig.arm, rig.q, rig.qd)
             counts = rig.encoders.counts(rig.q)
             before = rig.homes.state
             home = rig.homes.update(rig.q)

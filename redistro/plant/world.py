@@ -7,7 +7,7 @@ NamedTuples; joints are found by name, never by a hard-coded index.
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -66,6 +66,8 @@ class Arm:
     tool_com_m: np.ndarray  # tool centre of mass in the sensor frame
     braked: np.ndarray  # bool (7,): brake engaged (the joint motor is a brake)
     brake_torque_nm: np.ndarray
+    # bool (7,): the engaged brake has stopped its joint and holds its angle
+    brake_held: np.ndarray = field(default_factory=lambda: np.zeros(7, dtype=bool))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -77,6 +79,12 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _quat_matrix(pb: Any, quat: Any) -> np.ndarray:
     return np.asarray(pb.getMatrixFromQuaternion(quat), dtype=np.float64).reshape(3, 3)
+
+
+# A braked joint slower than this has stopped; its brake then holds the angle
+# with PyBullet's position motor (velocity target = gain x angle error / dt).
+BRAKE_STOPPED_RAD_S = 1e-3
+BRAKE_POSITION_GAIN = 0.1
 
 
 class World:
@@ -277,7 +285,9 @@ class World:
 
     def set_brakes(self, arm: Arm, engaged: np.ndarray, torque_nm: np.ndarray) -> None:
         """Engage or release brakes. An engaged brake is a friction clamp: it
-        holds its joint still up to ``torque_nm``."""
+        stops its joint (a zero-velocity motor up to ``torque_nm``), and once
+        the joint has stopped it holds that angle (:meth:`settle_brakes`), so
+        it does not creep under a steady load."""
         changed = engaged != arm.braked
         if not changed.any():
             return
@@ -292,7 +302,27 @@ class World:
             physicsClientId=self.client,
         )
         arm.braked = engaged.copy()
+        arm.brake_held = arm.brake_held & engaged
         arm.brake_torque_nm = np.asarray(torque_nm, dtype=np.float64).copy()
+
+    def settle_brakes(self, arm: Arm, q: np.ndarray, qd: np.ndarray) -> None:
+        """Braked joints that have stopped are held at their angle from now on."""
+        stopped = arm.braked & ~arm.brake_held & (np.abs(qd) < BRAKE_STOPPED_RAD_S)
+        if not stopped.any():
+            return
+        js = np.flatnonzero(stopped)
+        self.pb.setJointMotorControlArray(
+            arm.body,
+            [arm.joints[j] for j in js],
+            self.pb.POSITION_CONTROL,
+            targetPositions=[float(q[j]) for j in js],
+            targetVelocities=[0.0] * len(js),
+            forces=[float(arm.brake_torque_nm[j]) for j in js],
+            positionGains=[BRAKE_POSITION_GAIN] * len(js),
+            velocityGains=[1.0] * len(js),
+            physicsClientId=self.client,
+        )
+        arm.brake_held = arm.brake_held | stopped
 
     def set_torques(self, arm: Arm, tau_nm: np.ndarray) -> None:
         """Motor torques for the next step [N m]; a braked joint's motor is inhibited."""

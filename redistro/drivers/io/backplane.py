@@ -79,6 +79,7 @@ class ShmBackplane(Backplane):
         self._in: dict[int, Any] = {}
         self._out: dict[int, Any] = {}
         self._recs: dict[int, np.ndarray[Any, Any]] = {}
+        self._views: dict[int, memoryview] = {}  # byte views of _recs (no per-read allocation)
         self._last: dict[int, tuple[int, int]] = {}  # address -> (step, monotonic ns seen)
 
     def inventory(self) -> dict[int, BoardType]:
@@ -90,7 +91,9 @@ class ShmBackplane(Backplane):
             if address not in self.bank.index:
                 raise IOFault(f"no board at address {address} in the chassis")
             block = self._in[address] = self.bank.board_in(address)
-            self._recs[address] = np.zeros((), BANKS[self.bank.types[self.bank.index[address]]][0])
+            rec = np.zeros((), BANKS[self.bank.types[self.bank.index[address]]][0])
+            self._recs[address] = rec
+            self._views[address] = memoryview(rec.reshape(1).view(np.uint8))
         return block
 
     def read(self, addresses: list[int]) -> dict[int, np.ndarray[Any, Any]]:
@@ -99,10 +102,10 @@ class ShmBackplane(Backplane):
         now = time.monotonic_ns()
         out = {}
         for a in addresses:
-            block = self._in_block(a)
+            block = self._in.get(a) or self._in_block(a)
             rec = self._recs[a]
             try:
-                block.read_into(rec, budget_s=self.timeout_s)
+                block.read_into(self._views[a], budget_s=self.timeout_s)
             except TornReadTimeout:
                 raise IOFault(f"board {a}: register bank stuck mid-update") from None
             step = int(rec["step"])

@@ -1,0 +1,173 @@
+"""Real ESC sessions: plant, ESC managers and workers, the decision stage (CLI)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from redistro.config import load_config
+from redistro.config.hardware import load_hardware
+from tests.helpers import ROOT, attach_running, load_json, read_session_id, run_cli, start_cli
+
+SHORT = "tasks/self_calibration_short.yaml"
+
+
+def _summary(run: Path) -> dict[str, Any]:
+    return load_json(run / "summary.json")
+
+
+def _count_rad(robot: str) -> np.ndarray:
+    """One encoder count of each joint, in joint radians."""
+    hw = load_hardware(load_config(ROOT / "config/redistro.yaml"), ROOT / "config")[robot]
+    s = hw.sensors
+    return 2 * np.pi / (np.asarray(s.counts_per_rev, dtype=float) * np.asarray(s.gear_ratio))
+
+
+def _check_calibrated(summary: dict[str, Any], robots: list[str]) -> None:
+    assert summary["result"] == "ok", summary["reason"]
+    for r in robots:
+        rows = summary["calibration"][r]
+        bound = np.maximum(0.001, _count_rad(r))
+        for row, b in zip(rows, bound, strict=True):
+            assert row["error_rad"] is not None, f"{r} joint {row['joint']}: no offset found"
+            assert abs(row["error_rad"]) <= b, f"{r} joint {row['joint']}: {row}"
+            assert abs(row["offset_true_rad"]) > 0.01  # the plant really was disturbed
+        pos = summary["positions"][r]
+        assert pos["known_at_end"], pos
+
+
+def _positions_clean(runs: Path, robot: str) -> bool:
+    from redistro.drivers import positions
+
+    return positions.read(runs / "positions" / f"{robot}.json", [robot]).clean
+
+
+def _plant_truth_final(run: Path) -> dict[str, list[float]]:
+    data: dict[str, list[float]] = json.loads((run / "plant.json").read_text())["final_q_rad"]
+    return data
+
+
+def test_self_calibration_at_1khz_then_the_next_session_needs_none(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    task = tmp_path / "cal.yaml"
+    # one robot at a time: two ESCs at 1 kHz and the plant do not fit in two vCPUs
+    task.write_text((ROOT / SHORT).read_text().replace("together", "one_at_a_time"))
+    fast = ["--set", "esc.rate_hz=1000", "--set", "esc.heartbeat_limit_cycles=100"]
+    sets = ["--set", f"session.runs_dir={runs}"]
+
+    # before any calibration, motion is refused: the positions are unknown
+    refused = run_cli(*sets, "session", "tasks/park.yaml", "--out", str(tmp_path / "r0"))
+    assert refused.returncode == 1, refused.stderr
+    assert "motion refused" in refused.stderr and "missing" in refused.stderr
+    assert not (tmp_path / "r0").exists()
+
+    done = run_cli(*sets, *fast, "session", str(task), "--out", str(tmp_path / "r1"), timeout=180)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    summary = _summary(tmp_path / "r1")
+    _check_calibrated(summary, ["r1", "r2"])
+    for node in ("esc.r1", "esc.r2"):
+        n = summary["nodes"][node]
+        assert n["rate_hz"] == 1000.0 and n["cycles"] > 3000, n
+        assert set(n["lateness_us"]) == {"p50", "p99", "max"}
+    truth = _plant_truth_final(tmp_path / "r1")
+    frame = {}  # encoder frame vs the arm after the calibration: within its error
+    for r in ("r1", "r2"):
+        assert _positions_clean(runs, r)
+        assert (tmp_path / "r1" / f"positions.{r}.json").exists()
+        frame[r] = np.asarray(summary["positions"][r]["q_rad"]) - np.asarray(truth[r])
+        assert np.all(np.abs(frame[r]) <= np.maximum(0.001, _count_rad(r))), frame[r]
+
+    # the next session presets the counters from the recorded positions: no calibration
+    park = run_cli(*sets, "session", "tasks/park.yaml", "--out", str(tmp_path / "r2"))
+    assert park.returncode == 0, park.stdout[-3000:] + park.stderr[-3000:]
+    summary = _summary(tmp_path / "r2")
+    assert summary["result"] == "ok"
+    truth = _plant_truth_final(tmp_path / "r2")
+    for r in ("r1", "r2"):
+        pos = summary["positions"][r]
+        assert pos["at_start"].startswith("preset from"), pos
+        # the encoders carry the calibrated frame over: the same offset from the arm
+        again = np.asarray(pos["q_rad"]) - np.asarray(truth[r])
+        err = np.abs(again - frame[r]) / _count_rad(r)
+        assert np.all(err <= 2.0), f"{r}: the frame moved by {err} counts between sessions"
+
+
+def test_a_velocity_limit_too_low_ends_unsafe_within_a_cycle(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    done = run_cli(
+        "--set",
+        f"session.runs_dir={tmp_path / 'runs'}",
+        "--set",
+        "esc.safety.qd_max_rad_s=[0.03, 0.03, 0.03, 0.03, 0.03, 0.03, 0.03]",
+        "session",
+        SHORT,
+        "--out",
+        str(out),
+    )
+    assert done.returncode == 1, done.stderr[-2000:]
+    summary = _summary(out)
+    assert summary["result"] == "unsafe", summary
+    reason = summary["reason"]
+    robot = reason.split()[0]
+    assert robot in ("r1", "r2") and "joint" in reason and "velocity" in reason
+    assert "over the limit 0.03 rad/s" in reason, reason
+    v = summary["violations"][robot]
+    assert v["quantity"] == "velocity" and abs(v["value"]) > v["limit"] == 0.03
+    # the sample that showed the violation, and the plant's brakes: within one cycle
+    rate = summary["nodes"][f"esc.{robot}"]["rate_hz"]
+    steps_per_cycle = 1000.0 / rate
+    freezes = [f for f in summary["plant"]["freezes"] if f["robot"] == robot]
+    first = min(f["step"] for f in freezes if f["step"] >= v["sample_step"])
+    print(f"unsafe: sample step {v['sample_step']}, brakes on at step {first}")
+    assert first - v["sample_step"] <= steps_per_cycle + 1, (v, freezes)
+    # the whole group stopped, every robot frozen at the end
+    assert {f["robot"] for f in summary["plant"]["freezes"]} == {"r1", "r2"}
+    assert "robot frozen" in (out / "messages.log").read_text()
+
+
+def test_a_killed_pid_worker_ends_abnormal_with_the_robot_frozen(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    proc = start_cli(
+        "--set", f"session.runs_dir={tmp_path / 'runs'}", "session", SHORT, "--out", str(out)
+    )
+    try:
+        sid = read_session_id(proc)
+        ld = attach_running(sid, "esc.r1", min_cycle=100, timeout=60)
+        try:
+            roles = ld.proc_roles()
+            pid = int(ld.block("proc", roles.index("pid")).read()["pid"])
+        finally:
+            ld.close()
+        os.kill(pid, signal.SIGKILL)
+        killed_ns = time.monotonic_ns()
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        assert proc.stdout is not None and proc.stderr is not None
+        proc.stdout.close()
+        proc.stderr.close()
+    assert proc.returncode == 1
+    summary = _summary(out)
+    assert summary["result"] == "abnormal"
+    assert "worker pid" in summary["reason"] and "SIGKILL" in summary["reason"], summary["reason"]
+    period_ns = 1e9 / summary["nodes"]["esc.r1"]["rate_hz"]
+    # the manager's freeze (brakes on, DAC zero written to the boards) after the kill
+    froze = [t for t in summary["nodes"]["esc.r1"]["freeze_monotonic_ns"] if t >= killed_ns]
+    latency = min(froze) - killed_ns
+    # and when the plant's next step applied it (the simulated hardware may lag)
+    freezes = [f for f in summary["plant"]["freezes"] if f["robot"] == "r1"]
+    applied = min(f["monotonic_ns"] for f in freezes if f["monotonic_ns"] >= killed_ns)
+    print(
+        f"pid worker killed: r1 frozen by its manager {latency / 1e6:.1f} ms later, "
+        f"brakes on at the plant {(applied - killed_ns) / 1e6:.1f} ms later"
+    )
+    assert latency <= 2 * period_ns, f"frozen {latency / 1e6:.1f} ms after the kill"
+    assert summary["positions"]["r1"]["known_at_end"] is False  # calibration never finished
