@@ -134,7 +134,10 @@ PROC_STATUS = np.dtype(
         ("cycles", "<u8"),
         ("overruns", "<u8"),  # wake-ups that found more than one sync queued
         ("skipped", "<u8"),  # the extra syncs found then: cycles this process did not run
-        ("stage_timeouts", "<u8"),  # cycles skipped because a previous stage did not finish
+        (
+            "stage_timeouts",
+            "<u8",
+        ),  # cycles skipped: a previous stage did not finish, or no consistent input
         ("torn_reads", "<u8"),  # snapshot attempts that had to be retried
         ("cpu_s", "<f8"),  # CPU time spent in Routine (written at Cleanup)
         ("lateness_us", "<f4", (3,)),  # p50, p99, max over the run (written at Cleanup)

@@ -79,7 +79,11 @@ def run_nodes(
         result["stragglers_killed"] = stragglers
         if stragglers:
             log.warning("killed processes that did not end: %s", stragglers)
-        if n.interrupted and result.get("result") == "ok":
+        if n.interrupted and (
+            result.get("result") == "ok"
+            or str(result.get("reason", "")).startswith("interrupted by SIGTERM")
+        ):
+            # the manager saw our SIGTERM; the reason is why we sent it
             result.update(result="abnormal", reason=f"interrupted by {n.interrupted}")
         results.append(result)
     return results

@@ -200,6 +200,11 @@ class _Runner:
                 worker.due_ns = due_ns
                 try:
                     worker.step(cycle)
+                except TornReadTimeout:
+                    # a writer was held off inside its write (a host stall):
+                    # no consistent input this cycle; skip it, keep signing
+                    # (a writer that stays stuck misses its own heartbeats)
+                    self.stage_timeouts += 1
                 except Exception as exc:
                     # the manager sees the exit at once; the box says why
                     worker.post(f"failed at cycle {cycle}: {exc}", logging.ERROR)

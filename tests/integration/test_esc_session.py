@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from redistro.config import load_config
 from redistro.config.hardware import load_hardware
@@ -126,8 +127,11 @@ def test_a_velocity_limit_too_low_ends_unsafe_within_a_cycle(tmp_path: Path) -> 
     first = min(f["step"] for f in freezes if f["step"] >= v["sample_step"])
     print(f"unsafe: sample step {v['sample_step']}, brakes on at step {first}")
     assert first - v["sample_step"] <= steps_per_cycle + 1, (v, freezes)
-    # the whole group stopped, every robot frozen at the end
-    assert {f["robot"] for f in summary["plant"]["freezes"]} == {"r1", "r2"}
+    # the whole group stopped: the other ESC was ended, its manager froze its robot too
+    other = "r2" if robot == "r1" else "r1"
+    node = summary["nodes"][f"esc.{other}"]
+    assert node["result"] == "abnormal" and f"a fault in esc.{robot}" in node["reason"], node
+    assert any(t >= v["frozen_monotonic_ns"] for t in node["freeze_monotonic_ns"]), node
     assert "robot frozen" in (out / "messages.log").read_text()
 
 
@@ -171,3 +175,39 @@ def test_a_killed_pid_worker_ends_abnormal_with_the_robot_frozen(tmp_path: Path)
     )
     assert latency <= 2 * period_ns, f"frozen {latency / 1e6:.1f} ms after the kill"
     assert summary["positions"]["r1"]["known_at_end"] is False  # calibration never finished
+
+
+SESSION_BAD_INPUTS = [
+    (["session", "tasks/no_such_task.yaml"], "tasks/no_such_task.yaml: cannot read"),
+    (["session", "{task}"], "robots[1]: no robot named 'r7'"),
+    (["--set", "esc.rate_hz=0", "session", SHORT], "esc.rate_hz: expected a number > 0"),
+    (
+        ["--set", "esc.safety.qd_max_rad_s=[1, 2]", "session", SHORT],
+        "esc.safety.qd_max_rad_s: expected a list of exactly 7 items",
+    ),
+    (["--set", "esc.pid.kp=fast", "session", SHORT], "esc.pid.kp: expected a list of a number"),
+    (["session"], "the following arguments are required: task"),
+]
+
+
+@pytest.mark.parametrize(("args", "expect"), SESSION_BAD_INPUTS)
+def test_bad_session_input_is_one_line_exit_2_nothing_started(
+    tmp_path: Path, args: list[str], expect: str
+) -> None:
+    from redistro.ipc import names
+
+    task = tmp_path / "bad.yaml"
+    task.write_text("task: t\nkind: self_calibration\nrobots: [r1, r7]\n")
+    args = [a.replace("{task}", str(task)) for a in args]
+    runtime = names.runtime_dir()
+    before = set(os.listdir(runtime)) if runtime.exists() else set()
+    shm_before = {e for e in os.listdir("/dev/shm") if "redistro" in e}
+    done = run_cli("--set", f"session.runs_dir={tmp_path / 'runs'}", *args)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("redistro: error: "), done.stderr
+    assert expect in lines[0], lines[0]
+    assert done.stdout == ""
+    assert {e for e in os.listdir("/dev/shm") if "redistro" in e} == shm_before
+    assert (set(os.listdir(runtime)) if runtime.exists() else set()) == before
+    assert not (tmp_path / "runs").exists()

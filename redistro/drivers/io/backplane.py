@@ -93,7 +93,7 @@ class ShmBackplane(Backplane):
             block = self._in[address] = self.bank.board_in(address)
             rec = np.zeros((), BANKS[self.bank.types[self.bank.index[address]]][0])
             self._recs[address] = rec
-            self._views[address] = memoryview(rec.reshape(1).view(np.uint8))
+            self._views[address] = memoryview(rec.reshape(1).view(np.uint8))  # type: ignore[arg-type]
         return block
 
     def read(self, addresses: list[int]) -> dict[int, np.ndarray[Any, Any]]:
