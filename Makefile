@@ -33,9 +33,9 @@ system-deps:
 	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq rt-tests >/dev/null; \
 	fi
 
-# The main job: the cycle benchmark until the peg-insertion session exists.
+# The main job (until the peg-insertion session exists): self-calibration of both arms.
 run: install
-	$(BIN)/redistro bench cycle --rate 1000 --workers 5 --seconds 10 --json runs/bench-cycle.json
+	$(BIN)/redistro session tasks/self_calibration.yaml
 
 test: install-test system-deps
 	$(BIN)/ruff check .

@@ -56,9 +56,8 @@ def _plant_truth_final(run: Path) -> dict[str, list[float]]:
 
 def test_self_calibration_at_1khz_then_the_next_session_needs_none(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
-    task = tmp_path / "cal.yaml"
     # one robot at a time: two ESCs at 1 kHz and the plant do not fit in two vCPUs
-    task.write_text((ROOT / SHORT).read_text().replace("together", "one_at_a_time"))
+    task = "tasks/self_calibration_short_serial.yaml"
     fast = ["--set", "esc.rate_hz=1000", "--set", "esc.heartbeat_limit_cycles=100"]
     sets = ["--set", f"session.runs_dir={runs}"]
 
@@ -68,7 +67,7 @@ def test_self_calibration_at_1khz_then_the_next_session_needs_none(tmp_path: Pat
     assert "motion refused" in refused.stderr and "missing" in refused.stderr
     assert not (tmp_path / "r0").exists()
 
-    done = run_cli(*sets, *fast, "session", str(task), "--out", str(tmp_path / "r1"), timeout=180)
+    done = run_cli(*sets, *fast, "session", task, "--out", str(tmp_path / "r1"), timeout=180)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     summary = _summary(tmp_path / "r1")
     _check_calibrated(summary, ["r1", "r2"])
