@@ -63,7 +63,7 @@ class _Progress:
         self.t0 = time.monotonic()
         self.next = self.t0 + 1.0
         self.lds: dict[str, Any] = {}
-        self.last: dict[str, tuple[int, int]] = {}
+        self.blocks: dict[str, Any] = {}
 
     def __call__(self) -> None:
         now = time.monotonic()
@@ -87,9 +87,12 @@ class _Progress:
                 except (IPCError, LayoutError, OSError):
                     parts.append(f"{spec.node} starting")
                     continue
+            blocks = self.blocks.get(spec.node)
+            if blocks is None:
+                blocks = self.blocks[spec.node] = (ld.block("setpoint", 0), ld.block("manager"))
             try:
-                sp = ld.block("setpoint", 0).read()
-                mgr = ld.block("manager").read()
+                sp = blocks[0].read()
+                mgr = blocks[1].read()
             except Exception:
                 continue
             segs = spec.workers[0].params["segments"]
@@ -107,6 +110,7 @@ class _Progress:
         self.out(f"[{now - self.t0:6.1f} s] " + " | ".join(parts))
 
     def close(self) -> None:
+        self.blocks.clear()
         for ld in self.lds.values():
             with contextlib.suppress(Exception):
                 ld.close()

@@ -133,16 +133,19 @@ class Sender(Worker):
         except Violation as v:
             self._trip(cycle, v)
             return
+        # brakes on before a joint's torque goes to zero; its torque out
+        # before its brake comes off (the amplifier is inhibited while braked)
+        up: list[int] = []
         if (on != self.released).any():
             up = np.flatnonzero(on & ~self.released).tolist()
             down = np.flatnonzero(~on & self.released).tolist()
             if down:
                 self.driver.engage_brakes(down)
-            if up:
-                self.driver.release_brakes(up)
             self.released = on.copy()
             self.guard.array["released"] = on
         self.driver.send_torques(tau_cmd)
+        if up:
+            self.driver.release_brakes(up)
         self.guard["sent_cycle"] = cycle
         self.guard.array["tau_nm"] = tau_cmd
         self.guard_block.publish(self.guard.bytes)

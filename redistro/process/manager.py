@@ -155,9 +155,6 @@ class Manager:
 
     def _initialization(self) -> None:
         spec = self.spec
-        self.granted = sched.apply(
-            spec.manager_priority, spec.cpus, spec.sched_policy, spec.lock_memory
-        )
         manifest = Manifest.for_session(spec.session_id)
         stage_of = {}
         for k, group in enumerate(spec.stages()):
@@ -195,6 +192,12 @@ class Manager:
             )
 
         self.initialize()
+        # real-time priority for the routine only: the set-up above (imports,
+        # opening drivers) must not hold off the plant or other nodes; the
+        # workers spawned below start at the default policy (reset on fork)
+        self.granted = sched.apply(
+            spec.manager_priority, spec.cpus, spec.sched_policy, spec.lock_memory
+        )
 
         lock_fd = os.environ.get(LOCK_FD_ENV)
         pass_fds = (int(lock_fd),) if lock_fd else ()
@@ -353,9 +356,9 @@ class Manager:
             self.incomplete_cycles += 1
 
     def _drain_messages(self) -> None:
-        for child, box in zip(self.children, self.boxes, strict=True):
+        for w, box in zip(self.spec.workers, self.boxes, strict=True):
             for stamp_ns, level, text in box.drain():
-                self._message(child.name, level, text, stamp_ns)
+                self._message(w.name, level, text, stamp_ns)
 
     def _message(self, process: str, level: int, text: str, stamp_ns: int | None = None) -> None:
         line = f"[{self.spec.node}/{process}] {text}"
