@@ -375,7 +375,7 @@ class Manager:
         if self.result["result"] != "ok":
             return  # the first fault is the cause; later ones are consequences
         self.result.update(result=reason, reason=message, fault_monotonic_ns=time.monotonic_ns())
-        self._message("manager", logging.ERROR, f"{reason}: {message}")
+        # act first (e-stop for the workers, the ESC freezes its robot), then tell
         if self.block is not None:
             with self.block.write() as d:
                 d["estop"] = 1
@@ -383,6 +383,7 @@ class Manager:
             self.on_fault(reason, message)
         except Exception:
             log.exception("on_fault hook failed")
+        self._message("manager", logging.ERROR, f"{reason}: {message}")
 
     # -- cleanup --
 
