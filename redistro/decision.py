@@ -25,15 +25,12 @@ from redistro.drivers import positions
 from redistro.errors import IPCError, LayoutError, RedistroError
 from redistro.esc.plan import esc_spec, task_seconds
 from redistro.ipc import session as ipc_session
+from redistro.process.manager import iso_time
 from redistro.process.owner import run_nodes, write_json
 from redistro.process.spec import NodeSpec
 
 log = logging.getLogger(__name__)
 RESULTS = ("ok", "unsafe", "starving", "abnormal")
-
-
-def _iso(t: float) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
 
 
 def positions_file(cfg: Config, robot: str) -> Path:
@@ -269,8 +266,8 @@ def build_summary(
         "robots": task.robots,
         "result": result,
         "reason": fault.get("reason", "") if fault else "",
-        "started": _iso(started),
-        "ended": _iso(ended),
+        "started": iso_time(started),
+        "ended": iso_time(ended),
         "run_dir": str(run_dir),
         "nodes": nodes,
     }

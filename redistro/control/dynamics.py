@@ -14,7 +14,7 @@ F64 = np.ndarray[Any, np.dtype[np.float64]]
 
 
 class ArmModel:
-    """Gravity torques and mass matrix of one arm (its tool included).
+    """Gravity torques of one arm (its tool included).
 
     The URDF is the plant's (:mod:`redistro.robotmodel`): same links, same
     inertias, same tool. The base is not rotated; gravity is -z.
@@ -35,9 +35,4 @@ class ArmModel:
     def gravity(self, q: F64) -> F64:
         """g(q): joint torques [N m] that hold the arm still against gravity."""
         out: F64 = self._pin.computeGeneralizedGravity(self.model, self.data, q).copy()
-        return out
-
-    def mass_matrix(self, q: F64) -> F64:
-        m = self._pin.crba(self.model, self.data, q)
-        out: F64 = np.triu(m) + np.triu(m, 1).T
         return out

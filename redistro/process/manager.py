@@ -52,7 +52,8 @@ def _triple(values: Any) -> dict[str, float]:
     return {k: round(float(v), 1) for k, v in zip(("p50", "p99", "max"), values, strict=True)}
 
 
-def _iso(t: float) -> str:
+def iso_time(t: float) -> str:
+    """UNIX time as ISO 8601 UTC with milliseconds."""
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
 
 
@@ -484,8 +485,8 @@ class Manager:
                 "node": self.spec.node,
                 "kind": self.spec.kind,
                 "session_id": self.spec.session_id,
-                "started": _iso(started),
-                "ended": _iso(ended),
+                "started": iso_time(started),
+                "ended": iso_time(ended),
                 "rate_hz": self.spec.rate_hz,
                 "period_us": self.timer.period_ns / 1e3,
                 "cycles": self.cycle,

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
+import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +20,25 @@ from redistro.config.hardware import load_hardware
 from tests.helpers import ROOT, attach_running, load_json, read_session_id, run_cli, start_cli
 
 SHORT = "tasks/self_calibration_short.yaml"
+
+
+@contextlib.contextmanager
+def _session(tmp_path: Path, out: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A short calibration session in the background: (process, session id).
+    On the way out it is waited for (killed if still running), pipes closed."""
+    proc = start_cli(
+        "--set", f"session.runs_dir={tmp_path / 'runs'}", "session", SHORT, "--out", str(out)
+    )
+    try:
+        yield proc, read_session_id(proc)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        assert proc.stdout is not None and proc.stderr is not None
+        proc.stdout.close()
+        proc.stderr.close()
 
 
 def _summary(run: Path) -> dict[str, Any]:
@@ -139,11 +161,7 @@ def test_a_velocity_limit_too_low_ends_unsafe_within_a_cycle(tmp_path: Path) -> 
 
 def test_a_killed_pid_worker_ends_abnormal_with_the_robot_frozen(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    proc = start_cli(
-        "--set", f"session.runs_dir={tmp_path / 'runs'}", "session", SHORT, "--out", str(out)
-    )
-    try:
-        sid = read_session_id(proc)
+    with _session(tmp_path, out) as (proc, sid):
         ld = attach_running(sid, "esc.r1", min_cycle=100, timeout=60)
         try:
             roles = ld.proc_roles()
@@ -152,14 +170,6 @@ def test_a_killed_pid_worker_ends_abnormal_with_the_robot_frozen(tmp_path: Path)
             ld.close()
         os.kill(pid, signal.SIGKILL)
         killed_ns = time.monotonic_ns()
-        proc.wait(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        assert proc.stdout is not None and proc.stderr is not None
-        proc.stdout.close()
-        proc.stderr.close()
     assert proc.returncode == 1
     summary = _summary(out)
     assert summary["result"] == "abnormal"
@@ -221,23 +231,10 @@ def test_bad_session_input_is_one_line_exit_2_nothing_started(
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_or_sigterm_freezes_and_ends_in_order(tmp_path: Path, sig: int) -> None:
     out = tmp_path / "run"
-    proc = start_cli(
-        "--set", f"session.runs_dir={tmp_path / 'runs'}", "session", SHORT, "--out", str(out)
-    )
-    try:
-        sid = read_session_id(proc)
-        ld = attach_running(sid, "esc.r2", min_cycle=60, timeout=60)
-        ld.close()
+    with _session(tmp_path, out) as (proc, sid):
+        attach_running(sid, "esc.r2", min_cycle=60, timeout=60).close()
         proc.send_signal(sig)
         sent_ns = time.monotonic_ns()
-        proc.wait(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        assert proc.stdout is not None and proc.stderr is not None
-        proc.stdout.close()
-        proc.stderr.close()
     assert proc.returncode == 1
     summary = _summary(out)
     assert summary["result"] == "abnormal"
