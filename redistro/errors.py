@@ -42,3 +42,11 @@ class NodeFault(RedistroError, RuntimeError):
 class IOFault(RedistroError, OSError):
     """A board did not answer or update within its timeout, a frame was bad,
     or the plant behind the backplane is gone: the robot must be frozen."""
+
+
+class WireError(RedistroError, ValueError):
+    """A DDM wire record that cannot be trusted (size, magic, version, kind, checksum)."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason

@@ -1,0 +1,1 @@
+"""Data Distribution Managers: Robot Group Shared Data between nodes."""

@@ -1,0 +1,163 @@
+"""The DDM wire record: fixed size, versioned, checksummed.
+
+Every record carries one robot's Robot Group Shared Data, a Command (SSC ->
+ESC) or a Feedback (ESC -> SSC), as the same bytes as its Local Data block
+payload (:mod:`redistro.localdata.layout`), behind a header::
+
+    magic u4 | version u2 | kind u1 | robot u1 | source S16 | seq u8 |
+    stamp_ns i8 | estop u1 | pad | crc32 u4 (over everything else)
+
+``seq`` counts the source's records of that kind and robot; ``stamp_ns`` is
+the source's CLOCK_MONOTONIC when it sent the record (comparable only with
+the same source's earlier stamps: there is no global clock). :func:`decode`
+refuses anything malformed with :class:`WireError` naming why; it never
+raises anything else, whatever the bytes. :class:`Admission` drops
+duplicate, out-of-order and stale records and counts each kind of drop.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from redistro.errors import WireError
+from redistro.localdata.layout import COMMAND, FEEDBACK
+
+MAGIC = 0x52445344  # "DSDR" little-endian
+VERSION = 1
+KIND_COMMAND = 1
+KIND_FEEDBACK = 2
+PAYLOADS: dict[int, np.dtype[Any]] = {KIND_COMMAND: COMMAND, KIND_FEEDBACK: FEEDBACK}
+PAYLOAD_BYTES = max(d.itemsize for d in PAYLOADS.values())
+
+HEADER = np.dtype(
+    [
+        ("magic", "<u4"),
+        ("version", "<u2"),
+        ("kind", "u1"),
+        ("robot", "u1"),
+        ("source", "S16"),
+        ("seq", "<u8"),
+        ("stamp_ns", "<i8"),
+        ("estop", "u1"),
+        ("pad", "u1", (3,)),
+        ("crc32", "<u4"),
+    ]
+)
+WIRE = np.dtype([("header", HEADER), ("payload", "u1", (PAYLOAD_BYTES,))])
+SIZE = WIRE.itemsize
+_CRC_AT = HEADER.fields["crc32"][1]  # type: ignore[index]
+
+
+def _crc(buf: bytes | bytearray | memoryview) -> int:
+    view = memoryview(buf)
+    return zlib.crc32(view[_CRC_AT + 4 :], zlib.crc32(view[:_CRC_AT])) & 0xFFFFFFFF
+
+
+@dataclass(frozen=True)
+class Decoded:
+    kind: int
+    robot: int
+    source: str
+    seq: int
+    stamp_ns: int
+    estop: bool
+    payload: np.ndarray[Any, Any]  # 0-d record of PAYLOADS[kind]
+
+
+def encode(
+    kind: int,
+    robot: int,
+    source: str,
+    seq: int,
+    stamp_ns: int,
+    payload: np.ndarray[Any, Any] | np.void | bytes,
+    estop: bool = False,
+) -> bytes:
+    """One record's bytes. payload: a record (or its bytes) of PAYLOADS[kind]."""
+    if kind not in PAYLOADS:
+        raise ValueError(f"unknown record kind {kind}")
+    raw = payload if isinstance(payload, bytes) else np.asarray(payload).tobytes()
+    if len(raw) != PAYLOADS[kind].itemsize:
+        raise ValueError(f"payload of kind {kind} must be {PAYLOADS[kind].itemsize} bytes")
+    rec = np.zeros((), WIRE)
+    h = rec["header"]
+    h["magic"] = MAGIC
+    h["version"] = VERSION
+    h["kind"] = kind
+    h["robot"] = robot
+    h["source"] = source.encode()[:16]
+    h["seq"] = seq
+    h["stamp_ns"] = stamp_ns
+    h["estop"] = 1 if estop else 0
+    rec["payload"][: len(raw)] = np.frombuffer(raw, dtype=np.uint8)
+    out = bytearray(rec.tobytes())
+    out[_CRC_AT : _CRC_AT + 4] = _crc(out).to_bytes(4, "little")
+    return bytes(out)
+
+
+def decode(buf: bytes | bytearray | memoryview) -> Decoded:
+    """The record in ``buf``, or WireError(reason) with reason one of
+    size, magic, version, kind, checksum."""
+    if len(buf) != SIZE:
+        raise WireError("size", f"{len(buf)} bytes, expected {SIZE}")
+    rec = np.frombuffer(bytes(buf), dtype=WIRE)[0]
+    h = rec["header"]
+    if int(h["magic"]) != MAGIC:
+        raise WireError("magic", f"{int(h['magic']):#010x}")
+    if int(h["version"]) != VERSION:
+        raise WireError("version", f"{int(h['version'])}, expected {VERSION}")
+    kind = int(h["kind"])
+    if kind not in PAYLOADS:
+        raise WireError("kind", str(kind))
+    if int(h["crc32"]) != _crc(buf):
+        raise WireError("checksum")
+    dtype = PAYLOADS[kind]
+    payload = np.frombuffer(rec["payload"][: dtype.itemsize].tobytes(), dtype=dtype)[0]
+    return Decoded(
+        kind=kind,
+        robot=int(h["robot"]),
+        source=bytes(h["source"]).decode(errors="replace"),
+        seq=int(h["seq"]),
+        stamp_ns=int(h["stamp_ns"]),
+        estop=bool(h["estop"]),
+        payload=np.asarray(payload),
+    )
+
+
+@dataclass
+class Admission:
+    """Which decoded records to trust: per (source, kind, robot), sequence
+    numbers must grow and the source's stamps must move forward.
+
+    duplicate: the same seq again; out_of_order: an older seq; stale: a newer
+    seq whose stamp is not newer than the last accepted one (a replay).
+    """
+
+    last: dict[tuple[str, int, int], tuple[int, int]] = field(default_factory=dict)
+    accepted: int = 0
+    dropped: dict[str, int] = field(
+        default_factory=lambda: {"duplicate": 0, "out_of_order": 0, "stale": 0}
+    )
+
+    def admit(self, d: Decoded) -> bool:
+        key = (d.source, d.kind, d.robot)
+        prev = self.last.get(key)
+        if prev is not None:
+            seq, stamp = prev
+            why = ""
+            if d.seq == seq:
+                why = "duplicate"
+            elif d.seq < seq:
+                why = "out_of_order"
+            elif d.stamp_ns <= stamp:
+                why = "stale"
+            if why:
+                self.dropped[why] += 1
+                return False
+        self.last[key] = (d.seq, d.stamp_ns)
+        self.accepted += 1
+        return True

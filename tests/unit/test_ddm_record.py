@@ -1,0 +1,100 @@
+"""The DDM wire record: round trip, refusal of anything malformed, admission."""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from redistro.ddm.record import (
+    KIND_COMMAND,
+    KIND_FEEDBACK,
+    SIZE,
+    Admission,
+    decode,
+    encode,
+)
+from redistro.errors import WireError
+from redistro.localdata.layout import COMMAND, FEEDBACK
+
+
+def _feedback(q0: float = 0.5) -> np.ndarray:
+    fb = np.zeros((), FEEDBACK)
+    fb["q_rad"] = np.arange(7) * 0.1 + q0
+    fb["wrench"] = [1, 2, 3, 0.1, 0.2, 0.3]
+    return fb
+
+
+def test_round_trip_keeps_every_field() -> None:
+    fb = _feedback()
+    buf = encode(KIND_FEEDBACK, 1, "esc.r2", 42, 123456789, fb, estop=True)
+    assert len(buf) == SIZE
+    d = decode(buf)
+    assert (d.kind, d.robot, d.source, d.seq, d.stamp_ns, d.estop) == (
+        KIND_FEEDBACK,
+        1,
+        "esc.r2",
+        42,
+        123456789,
+        True,
+    )
+    assert d.payload.tobytes() == fb.tobytes()
+    cmd = np.zeros((), COMMAND)
+    cmd["tau_nm"] = 3.5
+    assert decode(encode(KIND_COMMAND, 0, "ssc", 1, 5, cmd)).payload["tau_nm"][6] == 3.5
+
+
+@pytest.mark.parametrize(
+    ("mutate", "reason"),
+    [
+        (lambda b: b[:-1], "size"),
+        (lambda b: b + b"\0", "size"),
+        (lambda b: b"\0\0\0\0" + b[4:], "magic"),
+        (lambda b: b[:4] + b"\x09\x00" + b[6:], "version"),
+        (lambda b: b[:6] + b"\x07" + b[7:], "kind"),
+        (lambda b: b[:40] + bytes([b[40] ^ 1]) + b[41:], "checksum"),
+        (lambda b: b[:-1] + bytes([b[-1] ^ 0x80]), "checksum"),
+    ],
+)
+def test_malformed_records_are_refused_with_the_reason(mutate, reason: str) -> None:  # type: ignore[no-untyped-def]
+    buf = encode(KIND_FEEDBACK, 0, "esc.r1", 1, 10, _feedback())
+    with pytest.raises(WireError) as exc:
+        decode(mutate(buf))
+    assert exc.value.reason == reason
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.binary(min_size=0, max_size=2 * SIZE))
+def test_random_bytes_never_crash_the_decoder(data: bytes) -> None:
+    with contextlib.suppress(WireError):  # anything else fails the test
+        decode(data)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(min_value=0, max_value=SIZE - 1), st.integers(min_value=1, max_value=255))
+def test_any_flipped_byte_is_caught(at: int, flip: int) -> None:
+    buf = bytearray(encode(KIND_FEEDBACK, 0, "esc.r1", 7, 99, _feedback()))
+    buf[at] ^= flip
+    with pytest.raises(WireError):
+        decode(bytes(buf))
+
+
+def test_admission_drops_duplicates_old_and_replayed_records() -> None:
+    adm = Admission()
+
+    def rec(seq: int, stamp: int, source: str = "esc.r1", robot: int = 0):  # type: ignore[no-untyped-def]
+        return decode(encode(KIND_FEEDBACK, robot, source, seq, stamp, _feedback()))
+
+    assert adm.admit(rec(1, 100))
+    assert adm.admit(rec(2, 200))
+    assert not adm.admit(rec(2, 200))  # duplicate
+    assert not adm.admit(rec(1, 100))  # out of order
+    assert not adm.admit(rec(3, 150))  # newer seq, older stamp: a replay
+    assert adm.admit(rec(3, 300))
+    assert adm.admit(rec(1, 50, source="esc.r2"))  # another source has its own count
+    assert adm.admit(rec(1, 50, robot=1))
+    assert adm.dropped == {"duplicate": 1, "out_of_order": 1, "stale": 1}
+    assert adm.accepted == 5
