@@ -50,3 +50,7 @@ class WireError(RedistroError, ValueError):
     def __init__(self, reason: str, detail: str = "") -> None:
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason = reason
+
+
+class TransportError(RedistroError, ConnectionError):
+    """A DDM link is lost (peer closed, reset or unreachable)."""

@@ -66,7 +66,10 @@ def _subreaper() -> None:
 
 @pytest.fixture(autouse=True)
 def no_leaks() -> Iterator[None]:
+    from redistro.ipc import sysv
+
     shm_before = redistro_shm_entries()
+    cards_before = sysv.our_keys()
     procs_before = descendants(os.getpid())
     yield
     deadline = time.monotonic() + 10.0
@@ -74,7 +77,8 @@ def no_leaks() -> Iterator[None]:
         reap_zombies()
         procs = {p for p in descendants(os.getpid()) - procs_before if not is_zombie(p)}
         shm = redistro_shm_entries() - shm_before
-        if (not procs and not shm) or time.monotonic() > deadline:
+        cards = sysv.our_keys() - cards_before
+        if (not procs and not shm and not cards) or time.monotonic() > deadline:
             break
         time.sleep(0.05)  # polling the OS for a condition, with a deadline
     problems = []
@@ -93,6 +97,10 @@ def no_leaks() -> Iterator[None]:
         for entry in shm:
             session.unlink(*names.entry_to_name(entry))
         problems.append(f"/dev/shm entries left: {sorted(shm)}")
+    if cards:
+        for key in cards:
+            sysv.remove_key(key)
+        problems.append(f"SysV memory cards left: {sorted(hex(k) for k in cards)}")
     if problems:
         reap_zombies()
         pytest.fail("; ".join(problems))

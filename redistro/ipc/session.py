@@ -61,7 +61,8 @@ class Manifest:
         out = []
         for line in text.splitlines():
             kind, _, name = line.partition(" ")
-            if kind in ("shm", "sem") and name.startswith("/"):
+            posix = kind in ("shm", "sem") and name.startswith("/")
+            if posix or (kind == "sysv" and name.startswith("0x")):
                 out.append((kind, name))
         return out
 
@@ -138,6 +139,10 @@ class Session:
 
 def unlink(kind: str, name: str) -> bool:
     """Unlink a named object; False if it was already gone."""
+    if kind == "sysv":
+        from redistro.ipc import sysv
+
+        return sysv.remove_key(int(name, 16))
     try:
         if kind == "sem":
             posix_ipc.unlink_semaphore(name)

@@ -1,0 +1,142 @@
+"""A simulated reflective-memory network, in the style of SCRAMNet / GE reflective memory.
+
+Each node has its own memory card: a SysV shared-memory segment with one
+slot per (record kind, robot). A write to a node's card is broadcast to
+every other node's card: the record goes out as one UDP datagram to a
+multicast group on loopback (and to configured peers on other hosts);
+``receive`` drains the datagrams that arrived and writes each into this
+node's card. Nobody blocks and nobody waits for anybody: a card always holds
+the latest record of each slot, whoever wrote it last. Each slot is
+seqlocked (a counter, odd while written) so a reader never takes a torn copy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import struct
+import zlib
+
+from redistro.ddm.record import SIZE
+from redistro.ddm.transport import Transport
+from redistro.errors import IPCError, TransportError
+from redistro.ipc.session import Manifest
+from redistro.ipc.sysv import Card, card_key
+from redistro.localdata.layout import MAX_ROBOTS
+
+KINDS = 2
+SLOT = 8 + SIZE  # seq (u8) + one record
+DEFAULT_GROUP = "239.255.68.68"
+_SOURCE = slice(8, 24)  # the record header's source field
+
+
+def group_port(session_id: str) -> int:
+    """A UDP port derived from the session id (nodes of one session meet there)."""
+    return 40000 + zlib.crc32(session_id.encode()) % 20000
+
+
+class ReflectiveTransport(Transport):
+    def __init__(
+        self,
+        session_id: str,
+        node: str,
+        *,
+        group: str = DEFAULT_GROUP,
+        port: int = 0,
+        peers: list[tuple[str, int]] | None = None,
+        manifest: Manifest | None = None,
+    ) -> None:
+        self.node = node
+        self.source = node.encode()[:16].ljust(16, b"\0")
+        self.group = (group, port or group_port(session_id))
+        self.peers = list(peers or [])
+        self.card = Card.create(card_key(session_id, node), KINDS * MAX_ROBOTS * SLOT, manifest)
+        self.seqs = [0] * (KINDS * MAX_ROBOTS)
+        try:
+            self.sock = _multicast_socket(*self.group)
+        except OSError as exc:
+            self.card.close()
+            self.card.remove()
+            raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
+
+    @staticmethod
+    def _slot(record: bytes, robot: int) -> int:
+        kind = record[6]
+        if not 1 <= kind <= KINDS or not 0 <= robot < MAX_ROBOTS:
+            raise ValueError(f"no card slot for kind {kind}, robot {robot}")
+        return (kind - 1) * MAX_ROBOTS + robot
+
+    def _write_card(self, slot: int, record: bytes) -> None:
+        at = slot * SLOT
+        seq = self.seqs[slot] + 1
+        self.card.write(struct.pack("<Q", seq), at)  # odd: being written
+        self.card.write(record, at + 8)
+        self.card.write(struct.pack("<Q", seq + 1), at)
+        self.seqs[slot] = seq + 1
+
+    def read_card(self, kind: int, robot: int) -> bytes | None:
+        """The latest record of (kind, robot) on this node's card (None: never written)."""
+        at = ((kind - 1) * MAX_ROBOTS + robot) * SLOT
+        for _ in range(100):
+            s1 = struct.unpack("<Q", self.card.read(8, at))[0]
+            if s1 == 0:
+                return None
+            if s1 & 1:
+                continue
+            data = self.card.read(SIZE, at + 8)
+            if struct.unpack("<Q", self.card.read(8, at))[0] == s1:
+                return data
+        raise IPCError(f"card slot {kind}/{robot}: no consistent copy")
+
+    def send(self, record: bytes, robot: int) -> None:
+        self._write_card(self._slot(record, robot), record)
+        for addr in (self.group, *self.peers):
+            try:
+                self.sock.sendto(record, addr)
+            except BlockingIOError:
+                pass  # the network is a broadcast medium: a lost update is a lost update
+            except OSError as exc:
+                raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
+
+    def receive(self) -> list[bytes]:
+        out: list[bytes] = []
+        while True:
+            try:
+                data = self.sock.recv(2 * SIZE)
+            except BlockingIOError:
+                return out
+            except OSError as exc:
+                raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
+            if len(data) == SIZE and data[_SOURCE] == self.source:
+                continue  # our own broadcast, looped back
+            if len(data) == SIZE and 1 <= data[6] <= KINDS and data[7] < MAX_ROBOTS:
+                self._write_card(self._slot(data, data[7]), data)
+            out.append(data)
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.close()
+        self.card.close()
+        self.card.remove()
+
+
+def _multicast_socket(group: str, port: int) -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        s.bind(("", port))
+        lo = socket.inet_aton("127.0.0.1")
+        s.setsockopt(
+            socket.IPPROTO_IP,
+            socket.IP_ADD_MEMBERSHIP,
+            struct.pack("4s4s", socket.inet_aton(group), lo),
+        )
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, lo)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+        s.setblocking(False)
+    except OSError:
+        s.close()
+        raise
+    return s

@@ -1,0 +1,47 @@
+"""The DDM transport interface: move whole wire records between nodes.
+
+Every call is non-blocking: ``send`` queues one record for the peer that
+handles ``robot`` (the SSC's ddm talks to one ESC per robot; an ESC's ddm to
+the SSC); ``receive`` returns the records that have arrived since the last
+call (whole records, not yet validated: the DDM decodes and admits them). A
+lost link raises :class:`~redistro.errors.TransportError`. Transports are
+chosen by ``ddm.transport`` and imported only when used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from typing import Any
+
+
+class Transport(ABC):
+    @abstractmethod
+    def send(self, record: bytes, robot: int) -> None: ...
+
+    @abstractmethod
+    def receive(self) -> list[bytes]: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Transport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+TRANSPORTS: dict[str, str] = {
+    "socket": "redistro.ddm.sockets:SocketTransport",
+    "reflective": "redistro.ddm.reflective:ReflectiveTransport",
+}
+
+
+def transport_class(key: str) -> Any:
+    try:
+        target = TRANSPORTS[key]
+    except KeyError:
+        raise KeyError(f"unknown transport {key!r} (known: {', '.join(TRANSPORTS)})") from None
+    module, _, name = target.partition(":")
+    return getattr(importlib.import_module(module), name)
