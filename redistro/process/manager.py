@@ -87,6 +87,7 @@ class Manager:
         self.cycle = 0
         self.result: dict[str, Any] = {"result": "ok", "reason": ""}
         self.children: list[_Child] = []
+        self.on_cycle: list[_Child] = []  # the children the sync signal goes to
         self.lateness = Samples()
         self.makespan = Samples()
         self.tick_work = Samples()
@@ -157,7 +158,7 @@ class Manager:
     def _initialization(self) -> None:
         spec = self.spec
         manifest = Manifest.for_session(spec.session_id)
-        stage_of = {}
+        stage_of = {j: -1 for j in range(len(spec.workers))}  # -1: off the cycle
         for k, group in enumerate(spec.stages()):
             for j in group:
                 stage_of[j] = k
@@ -217,6 +218,7 @@ class Manager:
             )
             self.children.append(_Child(w.name, proc.pid, os.pidfd_open(proc.pid)))
             proc.returncode = 0  # reaped by _Child.reap, not by Popen
+        self.on_cycle = [c for c, w in zip(self.children, spec.workers, strict=True) if w.on_cycle]
         self._wait_ready()
 
     def _wait_ready(self) -> None:
@@ -293,7 +295,7 @@ class Manager:
                 mine["overruns"] = self.overruns
                 mine["missed_ticks"] = self.missed_ticks
                 block.publish(mine.bytes)
-                for child in self.children:
+                for child in self.on_cycle:
                     signals.send(child.pidfd, signals.SIG_SYNC)
                 self._due_ns = due
                 self.tick_work.add(time.monotonic_ns() - now)

@@ -15,6 +15,10 @@ class WorkerSpec:
     role: registry key of the worker class (redistro.process.registry).
     stage: position in the cycle; workers of one stage run in parallel and a
         collecting point waits for all of them before the next stage starts.
+        A negative stage takes the worker off the cycle: it keeps its own
+        timer at ``rate_hz`` (a DDM runs at its own rate), still signs its
+        heartbeat (with the newest manager cycle) and is watched like any.
+    rate_hz: the own timer's rate of an off-cycle worker.
     cpus: CPUs to pin this worker to (empty: the node's CPUs).
     priority: paper priority (higher runs first).
     """
@@ -25,6 +29,11 @@ class WorkerSpec:
     cpus: list[int] = field(default_factory=list)
     priority: int = 16
     params: dict[str, Any] = field(default_factory=dict)
+    rate_hz: float = 0.0
+
+    @property
+    def on_cycle(self) -> bool:
+        return self.stage >= 0
 
 
 @dataclass
@@ -48,8 +57,8 @@ class NodeSpec:
     messages_path: str = ""
 
     def stages(self) -> list[list[int]]:
-        """Worker indices grouped by stage, in stage order."""
-        order = sorted({w.stage for w in self.workers})
+        """Indices of the workers on the cycle, grouped by stage, in stage order."""
+        order = sorted({w.stage for w in self.workers if w.on_cycle})
         return [[i for i, w in enumerate(self.workers) if w.stage == s] for s in order]
 
     def to_json(self) -> str:

@@ -89,9 +89,12 @@ class _Runner:
             manager_block = ld.block("manager")
             rows = [ld.block("proc", j) for j in range(len(spec.workers))]
             stages = spec.stages()
-            my_stage = next(k for k, s in enumerate(stages) if i in s)
-            preds = stages[my_stage - 1] if my_stage > 0 else []
-            succs = stages[my_stage + 1] if my_stage + 1 < len(stages) else []
+            preds: list[int] = []
+            succs: list[int] = []
+            if me.on_cycle:
+                my_stage = next(k for k, s in enumerate(stages) if i in s)
+                preds = stages[my_stage - 1] if my_stage > 0 else []
+                succs = stages[my_stage + 1] if my_stage + 1 < len(stages) else []
             go = [
                 Semaphore.attach(names.object_name(spec.session_id, spec.node, f"go{j}"))
                 for j in range(len(spec.workers))
@@ -128,7 +131,12 @@ class _Runner:
                 d["state"] = ProcState.ROUTINE
             ready.release()
 
-            reason = self._routine(worker, row, manager_block, rows, preds, succs, go, manager_fd)
+            if me.on_cycle:
+                reason = self._routine(
+                    worker, row, manager_block, rows, preds, succs, go, manager_fd
+                )
+            else:
+                reason = self._routine_timed(worker, row, manager_block, me.rate_hz, manager_fd)
             if reason:
                 worker.post(reason, logging.WARNING)
             with row.write() as d:
@@ -221,6 +229,75 @@ class _Runner:
             row.publish(mine.bytes)
             for j in succs:
                 go[j].release()
+
+    def _routine_timed(
+        self, worker: Worker, row: Any, manager_block: Any, rate_hz: float, manager_fd: int
+    ) -> str:
+        """The loop of an off-cycle worker: its own timer at ``rate_hz``.
+
+        Each tick it runs one step and signs its heartbeat with the newest
+        manager cycle, so the manager watches it like any worker.
+        """
+        import gc
+
+        from redistro.ipc.timer import IntervalTimer
+
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self.cpu_start_s = time.process_time()
+        timer = IntervalTimer(rate_hz)
+        worker.period_ns = timer.period_ns
+        watch_s = max(0.05, 4 * timer.period_s)
+        mine = Record(PROC_STATUS)
+        row.read_into(mine.bytes)
+        tick = Record(MANAGER)
+        waits = frozenset({signal.SIGALRM}) | WAIT_SET - {signals.SIG_SYNC}
+        timer.start()
+        try:
+            while True:
+                info = signals.wait(waits, watch_s)
+                if info is None:
+                    if not signals.process_alive(manager_fd):
+                        return "manager vanished; stopping"
+                    continue
+                sig = info.si_signo
+                if sig == signals.SIG_END:
+                    return ""
+                if sig == signals.SIG_ORPHAN:
+                    return "manager died; stopping"
+                if sig != signal.SIGALRM:
+                    return f"stopped by {signal.Signals(sig).name}"
+                wake_ns = time.monotonic_ns()
+                due_ns, late_ns, missed = timer.due(wake_ns)
+                self.lateness.add(late_ns)
+                if missed:
+                    self.overruns += 1
+                    self.skipped += missed
+                try:
+                    manager_block.read_into(tick.bytes)
+                    cycle = tick["cycle"]
+                    worker.due_ns = due_ns
+                    t0 = time.monotonic_ns()
+                    worker.step(cycle)
+                    self.compute.add(time.monotonic_ns() - t0)
+                    self.cycles += 1
+                except TornReadTimeout:
+                    self.stage_timeouts += 1
+                    continue
+                except Exception as exc:
+                    worker.post(f"failed at cycle {self.cycles}: {exc}", logging.ERROR)
+                    raise
+                mine["heartbeat_cycle"] = cycle
+                mine["wake_ns"] = wake_ns
+                mine["done_ns"] = time.monotonic_ns()
+                mine["cycles"] = self.cycles
+                mine["overruns"] = self.overruns
+                mine["skipped"] = self.skipped
+                mine["stage_timeouts"] = self.stage_timeouts
+                row.publish(mine.bytes)
+        finally:
+            timer.stop()
 
     def _wait_stage(
         self, cycle: int, preds: list[tuple[Any, Record]], my_go: Semaphore, deadline_ns: int

@@ -203,3 +203,37 @@ def test_parallel_stages_and_comparison(tmp_path: Path) -> None:
     assert serial["compute_us"]["p50"] >= 300 and parallel["compute_us"]["p50"] >= 300
     pinned = [w["scheduling"]["cpus"] for w in parallel["node_result"]["workers"]]
     assert all(len(c) == 1 for c in pinned) and pinned[0] != pinned[1]
+
+
+def test_an_off_cycle_worker_keeps_its_own_rate_and_is_watched(tmp_path: Path) -> None:
+    """A worker with a negative stage runs on its own timer (as a DDM does) beside
+    the node's cycle, signs heartbeats (the node ends ok: none went stale) and
+    ends in order."""
+    from redistro.ipc.session import Session
+    from redistro.process.owner import run_node
+    from redistro.process.spec import NodeSpec, WorkerSpec
+
+    def spec(sid: str, cycles: int) -> NodeSpec:
+        return NodeSpec(
+            session_id=sid,
+            node="bench",
+            kind="bench",
+            rate_hz=100.0,
+            heartbeat_limit_cycles=20,
+            workers=[
+                WorkerSpec(name="a", role="busy", stage=0),
+                WorkerSpec(name="b", role="busy", stage=1),
+                WorkerSpec(name="own", role="busy", stage=-1, rate_hz=400.0),
+            ],
+            cycles=cycles,
+        )
+
+    with Session.create() as s:
+        r = run_node(spec(s.id, 200), s)
+    assert r["result"] == "ok", r["reason"]
+    by_name = {w["name"]: w for w in r["workers"]}
+    assert by_name["a"]["cycles"] + by_name["a"]["stage_timeouts"] + by_name["a"]["skipped"] == 200
+    own = by_name["own"]["cycles"] + by_name["own"]["skipped"]
+    # 2 s at 400 Hz beside the 100 Hz cycle (start-up and end give or take)
+    assert 600 <= own <= 900, by_name["own"]
+    assert by_name["own"]["exit"] == "exited with code 0"
