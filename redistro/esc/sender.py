@@ -13,7 +13,9 @@ the torques.
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import time
 
 import numpy as np
@@ -24,6 +26,17 @@ from redistro.localdata.layout import CONTROL, FEEDBACK, GUARD, HOME, MANAGER
 from redistro.process.worker import Worker
 
 DOF = 7
+TRACE_CYCLES = 400  # the cycles kept for the trace written when the guard trips
+TRACE = np.dtype(
+    [
+        ("cycle", "<u8"),
+        ("step", "<u8"),  # the boards' sample number
+        ("q_rad", "<f8", (DOF,)),
+        ("qd_rad_s", "<f8", (DOF,)),
+        ("tau_nm", "<f8", (DOF,)),  # measured
+        ("tau_cmd_nm", "<f8", (DOF,)),
+    ]
+)
 
 
 class Violation(Exception):
@@ -107,6 +120,11 @@ class Sender(Worker):
         self.guard = Record(GUARD)
         self.released = np.zeros(DOF, dtype=bool)
         self.tripped = False
+        # the last cycles as the guard saw them, written out if it trips
+        self.trace = np.zeros(TRACE_CYCLES, dtype=TRACE)
+        self.traced = 0
+        run_dir = os.path.dirname(self.spec.messages_path)
+        self.trace_path = os.path.join(run_dir, f"trip-{self.robot}.json") if run_dir else ""
 
     def step(self, cycle: int) -> None:
         self.manager_block.read_into(self.mgr.bytes)
@@ -118,6 +136,15 @@ class Sender(Worker):
         on = ctl["joint_on"].astype(bool)
         tau_cmd = np.where(on, ctl["tau_nm"], 0.0)
         self.guard["cycle"] = cycle
+        self.home_block.read_into(self.home.bytes)
+        row = self.trace[self.traced % TRACE_CYCLES]
+        row["cycle"] = cycle
+        row["step"] = self.home["step"]
+        row["q_rad"] = fb["q_rad"]
+        row["qd_rad_s"] = fb["qd_rad_s"]
+        row["tau_nm"] = fb["tau_nm"]
+        row["tau_cmd_nm"] = tau_cmd
+        self.traced += 1
         try:
             check(
                 fb["q_rad"],
@@ -154,7 +181,6 @@ class Sender(Worker):
         self.driver.freeze()
         frozen_ns = time.monotonic_ns()
         self.tripped = True
-        self.home_block.read_into(self.home.bytes)
         text = f"{self.robot} {v}"
         g = self.guard
         g["tripped"] = 1
@@ -170,6 +196,22 @@ class Sender(Worker):
         g.array["tau_nm"] = 0.0
         self.guard_block.publish(g.bytes)
         self.post(f"unsafe: {text}; robot frozen", logging.ERROR)
+        self._write_trace()
+
+    def _write_trace(self) -> None:
+        """The last cycles before the trip, oldest first, as JSON columns."""
+        if not self.trace_path:
+            return
+        n = min(self.traced, TRACE_CYCLES)
+        start = self.traced - n
+        rows = self.trace[np.arange(start, self.traced) % TRACE_CYCLES]
+        doc = {name: rows[name].tolist() for name in TRACE.names or ()}
+        try:
+            with open(self.trace_path, "w", encoding="utf-8") as f:
+                json.dump({"robot": self.robot, "cycles": n, **doc}, f)
+            self.post(f"the last {n} cycles before the trip: {self.trace_path}")
+        except OSError as exc:
+            self.post(f"trip trace not written: {exc}", logging.WARNING)
 
     def cleanup(self) -> None:
         self.driver.close()

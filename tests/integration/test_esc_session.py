@@ -148,6 +148,11 @@ def test_a_velocity_limit_too_low_ends_unsafe_within_a_cycle(tmp_path: Path) -> 
     first = min(f["step"] for f in freezes if f["step"] >= v["sample_step"])
     print(f"unsafe: sample step {v['sample_step']}, brakes on at step {first}")
     assert first - v["sample_step"] <= steps_per_cycle + 1, (v, freezes)
+    # the trace the guard wrote: the sample that tripped it is the first over the limit
+    trace = json.loads((out / f"trip-{robot}.json").read_text())
+    qd = np.abs(np.asarray(trace["qd_rad_s"]))
+    assert trace["step"][-1] == v["sample_step"] and trace["cycle"][-1] == v["cycle"]
+    assert qd[-1, v["joint"] - 1] > 0.03 and np.all(qd[:-1] <= 0.03), qd[-3:]
     # the whole group stopped: the other ESC was ended, its manager froze its robot too
     other = "r2" if robot == "r1" else "r1"
     node = summary["nodes"][f"esc.{other}"]
