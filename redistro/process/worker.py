@@ -204,31 +204,40 @@ class _Runner:
             if pred_recs and not self._wait_stage(cycle, pred_recs, my_go, due_ns + self.period_ns):
                 self.stage_timeouts += 1
             else:
-                t0 = time.monotonic_ns()
-                worker.due_ns = due_ns
-                try:
-                    worker.step(cycle)
-                except TornReadTimeout:
-                    # a writer was held off inside its write (a host stall):
-                    # no consistent input this cycle; skip it, keep signing
-                    # (a writer that stays stuck misses its own heartbeats)
-                    self.stage_timeouts += 1
-                except Exception as exc:
-                    # the manager sees the exit at once; the box says why
-                    worker.post(f"failed at cycle {cycle}: {exc}", logging.ERROR)
-                    raise
-                self.compute.add(time.monotonic_ns() - t0)
-                self.cycles += 1
-            mine["heartbeat_cycle"] = cycle
-            mine["wake_ns"] = wake_ns
-            mine["done_ns"] = time.monotonic_ns()
-            mine["cycles"] = self.cycles
-            mine["overruns"] = self.overruns
-            mine["skipped"] = self.skipped
-            mine["stage_timeouts"] = self.stage_timeouts
-            row.publish(mine.bytes)
+                self._step(worker, cycle, due_ns)
+            self._sign(mine, row, cycle, wake_ns)
             for j in succs:
                 go[j].release()
+
+    def _step(self, worker: Worker, cycle: int, due_ns: int) -> None:
+        """One step of the worker, timed and counted."""
+        t0 = time.monotonic_ns()
+        worker.due_ns = due_ns
+        try:
+            worker.step(cycle)
+        except TornReadTimeout:
+            # a writer was held off inside its write (a host stall): no
+            # consistent input this cycle; skip it, keep signing (a writer
+            # that stays stuck misses its own heartbeats)
+            self.stage_timeouts += 1
+            return
+        except Exception as exc:
+            # the manager sees the exit at once; the box says why
+            worker.post(f"failed at cycle {cycle}: {exc}", logging.ERROR)
+            raise
+        self.compute.add(time.monotonic_ns() - t0)
+        self.cycles += 1
+
+    def _sign(self, mine: Record, row: Any, cycle: int, wake_ns: int) -> None:
+        """Sign the heartbeat (the cycle done) and publish this process's counters."""
+        mine["heartbeat_cycle"] = cycle
+        mine["wake_ns"] = wake_ns
+        mine["done_ns"] = time.monotonic_ns()
+        mine["cycles"] = self.cycles
+        mine["overruns"] = self.overruns
+        mine["skipped"] = self.skipped
+        mine["stage_timeouts"] = self.stage_timeouts
+        row.publish(mine.bytes)
 
     def _routine_timed(
         self, worker: Worker, row: Any, manager_block: Any, rate_hz: float, manager_fd: int
@@ -276,26 +285,12 @@ class _Runner:
                     self.skipped += missed
                 try:
                     manager_block.read_into(tick.bytes)
-                    cycle = tick["cycle"]
-                    worker.due_ns = due_ns
-                    t0 = time.monotonic_ns()
-                    worker.step(cycle)
-                    self.compute.add(time.monotonic_ns() - t0)
-                    self.cycles += 1
                 except TornReadTimeout:
-                    self.stage_timeouts += 1
+                    self.stage_timeouts += 1  # no cycle to sign: the next tick will
                     continue
-                except Exception as exc:
-                    worker.post(f"failed at cycle {self.cycles}: {exc}", logging.ERROR)
-                    raise
-                mine["heartbeat_cycle"] = cycle
-                mine["wake_ns"] = wake_ns
-                mine["done_ns"] = time.monotonic_ns()
-                mine["cycles"] = self.cycles
-                mine["overruns"] = self.overruns
-                mine["skipped"] = self.skipped
-                mine["stage_timeouts"] = self.stage_timeouts
-                row.publish(mine.bytes)
+                cycle = tick["cycle"]
+                self._step(worker, cycle, due_ns)
+                self._sign(mine, row, cycle, wake_ns)
         finally:
             timer.stop()
 
