@@ -180,18 +180,11 @@ class _Runner:
             # collecting point. (Waiting at the collecting point first and taking
             # the sync on the token was measured slower: the wake-up work then
             # lands on the critical path of the stage chain.)
-            info = signals.wait(WAIT_SET, watch_s)
-            if info is None:
-                if not signals.process_alive(manager_fd):
-                    return "manager vanished; stopping"
+            got = self._wait_for(signals.SIG_SYNC, WAIT_SET, watch_s, manager_fd)
+            if got is None:
                 continue
-            sig = info.si_signo
-            if sig == signals.SIG_END:
-                return ""
-            if sig == signals.SIG_ORPHAN:
-                return "manager died; stopping"
-            if sig != signals.SIG_SYNC:
-                return f"stopped by {signal.Signals(sig).name}"
+            if isinstance(got, str):
+                return got
             extra = signals.drain(signals.SIG_SYNC)
             wake_ns = time.monotonic_ns()
             if extra:
@@ -208,6 +201,24 @@ class _Runner:
             self._sign(mine, row, cycle, wake_ns)
             for j in succs:
                 go[j].release()
+
+    @staticmethod
+    def _wait_for(
+        wanted: int, waits: frozenset[int], watch_s: float, manager_fd: int
+    ) -> int | str | None:
+        """Wait for the signal that starts a step: ``wanted`` when it came, the
+        reason to stop ('' for an orderly end), or None (nothing yet, manager alive)."""
+        info = signals.wait(waits, watch_s)
+        if info is None:
+            return None if signals.process_alive(manager_fd) else "manager vanished; stopping"
+        sig = info.si_signo
+        if sig == signals.SIG_END:
+            return ""
+        if sig == signals.SIG_ORPHAN:
+            return "manager died; stopping"
+        if sig != wanted:
+            return f"stopped by {signal.Signals(sig).name}"
+        return sig
 
     def _step(self, worker: Worker, cycle: int, due_ns: int) -> None:
         """One step of the worker, timed and counted."""
@@ -265,18 +276,11 @@ class _Runner:
         timer.start()
         try:
             while True:
-                info = signals.wait(waits, watch_s)
-                if info is None:
-                    if not signals.process_alive(manager_fd):
-                        return "manager vanished; stopping"
+                got = self._wait_for(signal.SIGALRM, waits, watch_s, manager_fd)
+                if got is None:
                     continue
-                sig = info.si_signo
-                if sig == signals.SIG_END:
-                    return ""
-                if sig == signals.SIG_ORPHAN:
-                    return "manager died; stopping"
-                if sig != signal.SIGALRM:
-                    return f"stopped by {signal.Signals(sig).name}"
+                if isinstance(got, str):
+                    return got
                 wake_ns = time.monotonic_ns()
                 due_ns, late_ns, missed = timer.due(wake_ns)
                 self.lateness.add(late_ns)
