@@ -30,24 +30,33 @@ from redistro.process.owner import run_nodes, write_json
 from redistro.process.spec import NodeSpec
 
 log = logging.getLogger(__name__)
-RESULTS = ("ok", "unsafe", "starving", "abnormal")
+RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal")
 
 
 def positions_file(cfg: Config, robot: str) -> Path:
     return Path(cfg.session.runs_dir) / cfg.session.positions_dir / f"{robot}.json"
 
 
-def check_positions(cfg: Config, task: Task) -> None:
-    """Motion needs known joint positions, unless the task is the self-calibration."""
-    if task.kind == "self_calibration":
-        return
+def unknown_positions(cfg: Config, task: Task) -> dict[str, str]:
+    """Robots of the task whose joint positions are not known, and why."""
+    out: dict[str, str] = {}
     for r in task.robots:
         try:
             positions.read(positions_file(cfg, r), [r])
         except positions.PositionsUnknown as exc:
-            raise RedistroError(
-                f"motion refused: {exc}; run tasks/self_calibration.yaml first"
-            ) from None
+            out[r] = str(exc)
+    return out
+
+
+def check_positions(cfg: Config, task: Task) -> None:
+    """Motion needs known joint positions, unless the task is the self-calibration
+    (or a strategy task that runs one first when they are unknown)."""
+    if task.kind == "self_calibration":
+        return
+    if task.kind == "strategy" and task.calibrate_if_needed:
+        return
+    for why in unknown_positions(cfg, task).values():
+        raise RedistroError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
 
 
 class _Progress:
@@ -61,6 +70,7 @@ class _Progress:
         self.next = self.t0 + 1.0
         self.lds: dict[str, Any] = {}
         self.blocks: dict[str, Any] = {}
+        self.ssc_segments: list[tuple[str, float]] = []
 
     def __call__(self) -> None:
         now = time.monotonic()
@@ -92,6 +102,9 @@ class _Progress:
                 mgr = blocks[1].read()
             except Exception:
                 continue
+            if spec.kind == "ssc":
+                parts.append(self._ssc(spec, ld, int(mgr["cycle"])))
+                continue
             segs = spec.workers[0].params["segments"]
             k = int(sp["segment"])
             if int(sp["done"]):
@@ -105,6 +118,23 @@ class _Progress:
                     f"{float(sp['segment_t_s']):5.1f}/{seg['duration_s']:g} s"
                 )
         self.out(f"[{now - self.t0:6.1f} s] " + " | ".join(parts))
+
+    def _ssc(self, spec: NodeSpec, ld: Any, cycle: int) -> str:
+        names = self.ssc_segments
+        for i in range(len(spec.robots)):
+            pl = ld.block("plan", i).read()
+            if not int(pl["moving"]) and not int(pl["done"]):
+                continue
+            k = int(pl["segment"])
+            if int(pl["done"]):
+                return "ssc done"
+            if 1 <= k <= len(names):
+                name, dur = names[k - 1]
+                return (
+                    f"ssc {k}/{len(names)} {name} ({spec.robots[i]}) "
+                    f"{float(pl['segment_t_s']):5.1f}/{dur:g} s"
+                )
+        return f"ssc cycle {cycle}"
 
     def close(self) -> None:
         self.blocks.clear()
@@ -123,21 +153,83 @@ def run_session(
     out_dir: str | None = None,
     say: Callable[[str], None] | None = None,
 ) -> int:
-    from redistro.plant.launch import PlantProcess
-
     say = say or (lambda text: print(text, flush=True))
     task = load_task(task_path, cfg)
-    hardware = load_hardware(cfg)
+    load_hardware(cfg)
     check_positions(cfg, task)
-    runs = Path(cfg.session.runs_dir)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
+    if task.kind == "strategy" and task.calibrate_if_needed:
+        unknown = unknown_positions(cfg, task)
+        if unknown:
+            robots = [r for r in task.robots if r in unknown]
+            say(f"joint positions unknown ({'; '.join(unknown.values())})")
+            say(f"self-calibration of {', '.join(robots)} first")
+            cal = Task(
+                task=f"self_calibration (before {task.task})",
+                kind="self_calibration",
+                robots=robots,
+                source=task.source,
+            )
+            cal_dir = str(Path(out_dir) / "self_calibration") if out_dir else None
+            rc = _run_task(
+                cfg, cal, config_path=config_path, overrides=overrides, out_dir=cal_dir, say=say
+            )
+            if rc != 0:
+                say(f"{task.task} not started: the self-calibration did not end ok")
+                return rc
+    return _run_task(
+        cfg, task, config_path=config_path, overrides=overrides, out_dir=out_dir, say=say
+    )
+
+
+def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
+    """True once every ESC's acquisition has published its first feedback."""
+    from redistro.localdata import LocalData
+
+    seen: set[str] = set()
+
+    def ready() -> bool:
+        for node in nodes:
+            if node in seen:
+                continue
+            try:
+                ld = LocalData.attach(session_id, node)
+            except (IPCError, LayoutError, OSError):
+                return False
+            try:
+                if int(ld.block("feedback", 0).read()["seq_src"]) > 0:
+                    seen.add(node)
+            except Exception:
+                return False
+            finally:
+                ld.close()
+        return len(seen) == len(nodes)
+
+    return ready
+
+
+def _run_task(
+    cfg: Config,
+    task: Task,
+    *,
+    config_path: str | None,
+    overrides: list[str],
+    out_dir: str | None,
+    say: Callable[[str], None],
+) -> int:
+    from redistro.plant.launch import PlantProcess
+    from redistro.ssc.plan import ssc_spec
+
+    hardware = load_hardware(cfg)
+    runs = Path(cfg.session.runs_dir)
     started = time.time()
     node_results: list[dict[str, Any]] = []
     plant_result: dict[str, Any] = {}
     with ipc_session.Session.create() as s:
         run_dir = Path(out_dir) if out_dir else runs / s.id
         run_dir.mkdir(parents=True, exist_ok=True)
+        messages = str(run_dir / "messages.log")
         plant_overrides = list(overrides)
         if not cfg.plant.pose_file:
             plant_overrides.append(f"plant.pose_file={runs / cfg.session.plant_pose_file}")
@@ -159,19 +251,41 @@ def run_session(
                         config_path=config_path,
                         overrides=overrides,
                         positions_file=str(positions_file(cfg, r)),
-                        messages_path=str(run_dir / "messages.log"),
+                        messages_path=messages,
                     )
                     for r in group
                 ]
-                say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
-                progress = _Progress(s.id, specs, say)
+                later: list[NodeSpec] = []
+                if task.kind == "strategy":
+                    later = [
+                        ssc_spec(
+                            cfg,
+                            task,
+                            s.id,
+                            config_path=config_path,
+                            overrides=overrides,
+                            run_dir=str(run_dir),
+                            messages_path=messages,
+                        )
+                    ]
+                    say(
+                        f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz; "
+                        f"ssc at {cfg.ssc.rate_hz:g} Hz once every ESC has published its "
+                        f"robot's state; ddm {cfg.ddm.transport} at {cfg.ddm.rate_hz:g} Hz"
+                    )
+                else:
+                    say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
+                progress = _Progress(s.id, specs + later, say)
+                progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
                 try:
                     results = run_nodes(
                         specs,
                         s,
-                        budget_s=1.5 * task_seconds(task) + 10.0,
+                        budget_s=budget_s(task),
                         on_wait=progress,
                         keep=frozenset({plant.pid}),
+                        later=later,
+                        later_ready=_esc_ready(s.id, [sp.node for sp in specs]) if later else None,
                     )
                 finally:
                     progress.close()
@@ -196,8 +310,37 @@ def run_session(
             errs = [j["error_rad"] for j in joints if j["error_rad"] is not None]
             worst = max((abs(e) for e in errs), default=float("nan"))
             say(f"{robot}: {len(errs)}/7 zero offsets found, worst error {worst:.2e} rad")
+    for seg in summary.get("segments", []):
+        say(_segment_line(seg))
+    if "inserted" in summary:
+        say(
+            f"inserted: {summary['inserted']} (depth {summary['insertion_depth_m'] * 1e3:.2f} mm "
+            f"of {summary['hole_depth_m'] * 1e3:.1f} mm)"
+        )
     say(f"wrote {run_dir / 'summary.json'}")
     return 0 if summary["result"] == "ok" else 1
+
+
+def budget_s(task: Task) -> float:
+    """How long a task's nodes may run [s wall]: the task counts on the boards'
+    sample clock, and a loaded host runs the simulated plant at 0.4-0.9 of
+    real time (the SSC also starts after the ESCs' start-up datum)."""
+    if task.kind == "strategy":
+        return 3.0 * task_seconds(task) + 30.0
+    return 1.5 * task_seconds(task) + 10.0
+
+
+def _segment_line(seg: dict[str, Any]) -> str:
+    text = f"  {seg['name']:<10} {seg['robot']} {seg['scheme']:<8} {seg['duration_s']:6.2f} s"
+    e = seg.get("final_pose_error")
+    if e:
+        text += f"  pose error {e['position_m'] * 1e3:.2f} mm {e['orientation_rad']:.4f} rad"
+    if seg.get("force_rms_error_n") is not None:
+        text += (
+            f"  force error mean {seg['force_mean_error_n']:.2f} N"
+            f" rms {seg['force_rms_error_n']:.2f} N"
+        )
+    return text
 
 
 def _first_fault(results: list[dict[str, Any]]) -> dict[str, Any] | None:
@@ -300,6 +443,18 @@ def build_summary(
                 )
             cal[robot] = rows
         summary["calibration"] = cal
+    ssc = next((r for r in results if r.get("kind") == "ssc"), None)
+    if task.kind == "strategy":
+        segs = ssc.get("segments", []) if ssc else []
+        summary["segments"] = segs
+        depth = float(ssc.get("insertion_depth_m", 0.0)) if ssc else 0.0
+        hole_depth = float(ssc.get("hole_depth_m", 0.0)) if ssc else 0.0
+        summary["insertion_depth_m"] = depth
+        summary["hole_depth_m"] = hole_depth
+        summary["inserted"] = bool(ssc) and hole_depth > 0 and abs(depth - hole_depth) <= 0.002
+        summary["ddm"] = {
+            str(r.get("node")): r.get("ddm") for r in results if r.get("ddm") is not None
+        }
     summary["plant"] = {
         k: plant.get(k)
         for k in ("state", "error", "steps", "rtf", "late_steps", "skipped_steps", "freezes")

@@ -32,7 +32,7 @@ class TornReadTimeout(CycleTimeout):
 
 
 class NodeFault(RedistroError, RuntimeError):
-    """A node ended on a fault; `reason` is one of unsafe, starving, abnormal."""
+    """A node ended on a fault; `reason` is one of unsafe, starving, estop, abnormal."""
 
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)

@@ -85,6 +85,10 @@ def _seven(*values: float) -> list[float]:
     return list(values)
 
 
+def _six(*values: float) -> list[float]:
+    return list(values)
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
     """Limits the sender's safety guard checks before every command.
@@ -147,6 +151,105 @@ class EscConfig:
     cpus: list[int] = field(default_factory=list, metadata={"ge": 0})
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     pid: PidConfig = field(default_factory=PidConfig)
+
+
+@dataclass(frozen=True)
+class ImpedanceConfig:
+    """Cartesian impedance of the TCP (world axes x, y, z, rx, ry, rz) and the
+    joint terms under it. Chosen for robustness to delay: the SSC closes this
+    loop through two DDMs and two node cycles (10-15 ms at 200 Hz), and the
+    host can hold a node off for 20-35 ms; with these gains the peg insertion
+    stays stable with 30 ms of constant delay in simulation.
+
+    k: stiffness [N/m, N m/rad]; d: damping [N s/m, N m s/rad]; ki: integral
+    gain [N/(m s), N m/(rad s)]; i_max: bound on the integral force [N, N m];
+    k_null: posture stiffness in the Jacobian's null space [N m/rad] (7);
+    d_joint: joint damping [N m s/rad] (7).
+    """
+
+    k: list[float] = field(
+        default_factory=lambda: _six(300, 300, 300, 3, 3, 3), metadata={"len": 6, "ge": 0}
+    )
+    d: list[float] = field(
+        default_factory=lambda: _six(10, 10, 10, 0.03, 0.03, 0.03), metadata={"len": 6, "ge": 0}
+    )
+    ki: list[float] = field(
+        default_factory=lambda: _six(300, 300, 300, 10, 10, 10), metadata={"len": 6, "ge": 0}
+    )
+    i_max: list[float] = field(
+        default_factory=lambda: _six(10, 10, 10, 2, 2, 2), metadata={"len": 6, "ge": 0}
+    )
+    k_null: list[float] = field(
+        default_factory=lambda: _seven(10, 10, 10, 10, 1, 1, 0.5), metadata={"len": 7, "ge": 0}
+    )
+    d_joint: list[float] = field(
+        default_factory=lambda: _seven(2, 2, 1, 1, 0.05, 0.05, 0.02), metadata={"len": 7, "ge": 0}
+    )
+
+
+@dataclass(frozen=True)
+class ForceControlConfig:
+    """Force-controlled axes: admittance k_adm [m/(N s)] and k_adm_rot
+    [rad/(N m s)] move the reference; v_max [m/s] and w_max [rad/s] bound its
+    speed (the approach speed in free space); contact_n: force that means
+    contact [N]; ramp_s: time to feed the goal wrench in after contact [s]."""
+
+    k_adm: float = field(default=0.002, metadata={"gt": 0, "le": 1})
+    k_adm_rot: float = field(default=0.05, metadata={"gt": 0, "le": 10})
+    v_max: float = field(default=0.01, metadata={"gt": 0, "le": 0.2})
+    w_max: float = field(default=0.05, metadata={"gt": 0, "le": 1})
+    contact_n: float = field(default=3.0, metadata={"gt": 0, "le": 100})
+    ramp_s: float = field(default=0.1, metadata={"gt": 0, "le": 10})
+
+
+@dataclass(frozen=True)
+class SscConfig:
+    """The Strategy-Stage Controller of the robot group.
+
+    rate_hz: cycle rate [Hz] (paper: 200); heartbeat_limit_cycles: missed
+    heartbeats that make a worker hung; cpus: CPUs for its processes;
+    impedance, force: the Cartesian control laws; pid: joint PID of joint
+    segments and of robots that hold their pose (defaults: the ESC's).
+    """
+
+    rate_hz: float = field(default=200.0, metadata={"gt": 0, "le": 10000})
+    heartbeat_limit_cycles: int = field(default=25, metadata={"ge": 2, "le": 100000})
+    cpus: list[int] = field(default_factory=list, metadata={"ge": 0})
+    impedance: ImpedanceConfig = field(default_factory=ImpedanceConfig)
+    force: ForceControlConfig = field(default_factory=ForceControlConfig)
+    pid: PidConfig = field(default_factory=PidConfig)
+
+
+@dataclass(frozen=True)
+class DdmConfig:
+    """The Distributed Data Managers: how nodes exchange Robot Group Shared Data.
+
+    transport: ``socket`` (TCP send/receive/reply: the SSC's ddm connects to
+        each ESC's ddm) or ``reflective`` (simulated reflective memory: a
+        SysV memory card per node, writes broadcast by UDP multicast).
+    rate_hz: each ddm's own timer [Hz] (paper: 1000).
+    starving_limit_cycles: an ESC whose sender has sent this many commands
+        since the last fresh one ends ``starving`` (the SSC likewise, counted
+        in its own cycles without fresh feedback from a robot).
+    connect_timeout_s: how long a node waits for its peer's first record.
+    listen_host: where an ESC's ddm listens (socket transport).
+    esc_hosts, esc_ports: per robot, where the SSC finds that ESC's ddm;
+        port 0: derived from the session id (one host only).
+    group, port: the reflective network's multicast group and UDP port
+        (0: derived from the session id); peers: host:port of nodes on other
+        hosts that also get every write.
+    """
+
+    transport: Literal["socket", "reflective"] = "socket"
+    rate_hz: float = field(default=1000.0, metadata={"gt": 0, "le": 10000})
+    starving_limit_cycles: int = field(default=40, metadata={"ge": 2, "le": 100000})
+    connect_timeout_s: float = field(default=30.0, metadata={"gt": 0, "le": 3600})
+    listen_host: str = "127.0.0.1"
+    esc_hosts: dict[str, str] = field(default_factory=dict)
+    esc_ports: dict[str, int] = field(default_factory=dict, metadata={"ge": 0, "le": 65535})
+    group: str = "239.255.68.68"
+    port: int = field(default=0, metadata={"ge": 0, "le": 65535})
+    peers: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -271,6 +374,8 @@ class Config:
     robots: dict[str, RobotConfig] = field(default_factory=_default_robots)
     plant: PlantConfig = field(default_factory=PlantConfig)
     esc: EscConfig = field(default_factory=EscConfig)
+    ssc: SscConfig = field(default_factory=SscConfig)
+    ddm: DdmConfig = field(default_factory=DdmConfig)
     # The file this config was read from (relative hardware paths start from
     # its folder); set by the loader, never read from YAML.
     source: str = field(default="config/redistro.yaml", compare=False, metadata={"internal": True})

@@ -9,6 +9,15 @@ A task names its robots and its kind; each kind has its own section.
   met in segments 1 and 2 give each joint's zero offset.
 - ``joint_move``: ESC-local positioning segments (quintic moves under the
   joint PID) to joint goals; needs known joint positions.
+- ``strategy``: the SSC drives the group (paper Table 6.III): each segment
+  moves one robot under a control scheme (``joint``: joint PID to
+  ``goal.q_rad``; ``position``: Cartesian impedance to a TCP pose; ``force``:
+  hybrid position/force control with a task-frame command) while the other
+  robots hold their pose. Poses may be given relative to the hole fixture
+  (``relative_to: hole``, the hole's pose from the config). A segment ends
+  after ``duration_s``, or earlier when its ``end`` conditions hold for
+  ``end.hold_s``. Needs known joint positions: when they are unknown, a
+  self-calibration runs first (``calibrate_if_needed``).
 """
 
 from __future__ import annotations
@@ -42,22 +51,68 @@ class CalibrationTask:
 
 
 @dataclass(frozen=True)
+class Goal:
+    """A strategy segment's goal.
+
+    q_rad: joint goal (scheme ``joint``) [rad];
+    pos_xyz_rot_xyz: TCP goal pose: position [m] and rotation vector [rad]
+        (world from tool; the rotation is always absolute);
+    relative_to: ``world``, or ``hole`` (the position is an offset from the
+        hole's mouth centre, ``plant.hole.xyz_m``);
+    force_xyz_torque_xyz: the wrench the tool applies [N, N m], task axes;
+    selection_vector: per task axis, 1 force controlled, 0 position controlled;
+    frame: the task frame's axes: ``world``, or ``tool`` (at segment start);
+    move_s: time to reach the goal pose (default: 3/4 of the segment).
+    """
+
+    q_rad: list[float] = field(default_factory=list, metadata={"len": 7})
+    pos_xyz_rot_xyz: list[float] = field(default_factory=list, metadata={"len": 6})
+    relative_to: Literal["world", "hole"] = "world"
+    force_xyz_torque_xyz: list[float] = field(
+        default_factory=lambda: [0.0] * 6, metadata={"len": 6}
+    )
+    selection_vector: list[int] = field(
+        default_factory=lambda: [0] * 6, metadata={"len": 6, "ge": 0, "le": 1}
+    )
+    frame: Literal["world", "tool"] = "world"
+    move_s: float = field(default=0.0, metadata={"ge": 0, "le": 3600})
+
+
+@dataclass(frozen=True)
+class EndConditions:
+    """End a segment early when every given tolerance holds for hold_s:
+    pose_within_m (TCP position error), rot_within_rad, force_within_n (force
+    error on the force axes); 0 means not checked. hold_s 0: no early end."""
+
+    pose_within_m: float = field(default=0.0, metadata={"ge": 0})
+    rot_within_rad: float = field(default=0.0, metadata={"ge": 0})
+    force_within_n: float = field(default=0.0, metadata={"ge": 0})
+    hold_s: float = field(default=0.0, metadata={"ge": 0, "le": 3600})
+
+
+@dataclass(frozen=True)
 class MoveSegment:
-    """One positioning segment: per robot a joint goal [rad], reached in duration_s."""
+    """One segment. joint_move: per robot a joint goal (q_rad), reached in
+    duration_s. strategy: ``robot`` moves under ``scheme`` to ``goal``."""
 
     name: str
     duration_s: float = field(metadata={"gt": 0, "le": 3600})
     q_rad: dict[str, list[float]] = field(default_factory=dict, metadata={"len": 7})
+    robot: str = ""
+    scheme: Literal["joint", "position", "force"] = "joint"
+    goal: Goal = field(default_factory=Goal)
+    end: EndConditions = field(default_factory=EndConditions)
 
 
 @dataclass(frozen=True)
 class Task:
     task: str
-    kind: Literal["self_calibration", "joint_move"]
+    kind: Literal["self_calibration", "joint_move", "strategy"]
     robots: list[str] = field(metadata={"min_len": 1})
     calibration: CalibrationTask = field(default_factory=CalibrationTask)
     segments: list[MoveSegment] = field(default_factory=list)
     settle_s: float = field(default=0.5, metadata={"ge": 0, "le": 60})
+    calibrate_if_needed: bool = True
     source: str = field(default="", compare=False, metadata={"internal": True})
 
 
@@ -88,6 +143,8 @@ def load_task(path: Path | str, cfg: Config) -> Task:
             for r in task.robots:
                 if r not in seg.q_rad:
                     raise ConfigError(f"{where}: segments[{i}].q_rad: no goal for robot {r!r}")
+    elif task.kind == "strategy":
+        _check_strategy(task, where)
     elif task.segments:
         raise ConfigError(f"{where}: segments: not used by a {task.kind} task")
     return Task(
@@ -97,5 +154,37 @@ def load_task(path: Path | str, cfg: Config) -> Task:
         task.calibration,
         task.segments,
         task.settle_s,
+        task.calibrate_if_needed,
         source=where,
     )
+
+
+def _check_strategy(task: Task, where: str) -> None:
+    if not task.segments:
+        raise ConfigError(f"{where}: segments: a strategy task needs at least one segment")
+    for i, seg in enumerate(task.segments):
+        at = f"{where}: segments[{i}]"
+        if seg.robot not in task.robots:
+            raise ConfigError(
+                f"{at}.robot: {seg.robot!r} is not in robots ({', '.join(task.robots)})"
+            )
+        if seg.q_rad:
+            raise ConfigError(f"{at}.q_rad: not used by a strategy task (goal.q_rad is)")
+        g = seg.goal
+        if g.move_s > seg.duration_s:
+            raise ConfigError(f"{at}.goal.move_s: {g.move_s} is longer than duration_s")
+        if seg.scheme == "joint":
+            if not g.q_rad:
+                raise ConfigError(f"{at}.goal.q_rad: a joint segment needs a joint goal")
+            continue
+        if not g.pos_xyz_rot_xyz:
+            raise ConfigError(f"{at}.goal.pos_xyz_rot_xyz: a {seg.scheme} segment needs a pose")
+        if seg.scheme == "position" and any(g.selection_vector):
+            raise ConfigError(
+                f"{at}.goal.selection_vector: a position segment has no force axes "
+                "(use scheme: force)"
+            )
+        if seg.scheme == "force" and not any(g.selection_vector):
+            raise ConfigError(
+                f"{at}.goal.selection_vector: a force segment needs at least one force axis"
+            )

@@ -3,24 +3,43 @@
 from __future__ import annotations
 
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from redistro.robotmodel import JOINT_NAMES, Peg, write_arm_urdf
+from redistro.robotmodel import JOINT_NAMES, PLATE, TOOL_LINK, Peg, write_arm_urdf
 
 F64 = np.ndarray[Any, np.dtype[np.float64]]
 
 
-class ArmModel:
-    """Gravity torques of one arm (its tool included).
+@dataclass(frozen=True)
+class Kinematics:
+    """The tool centre point (TCP) of one arm at one joint position, world frame.
 
-    The URDF is the plant's (:mod:`redistro.robotmodel`): same links, same
-    inertias, same tool. The base is not rotated; gravity is -z.
+    p: TCP position [m]; R: world-from-tool rotation (the wrist sensor's
+    frame has the same axes); J: 6x7 Jacobian of the TCP's linear and angular
+    velocity in world axes; sensor_p: the wrist sensor's origin [m].
     """
 
-    def __init__(self, peg: Peg | None) -> None:
+    p: F64
+    R: F64
+    J: F64
+    sensor_p: F64
+
+
+class ArmModel:
+    """Gravity torques and TCP kinematics of one arm (its tool included).
+
+    The URDF is the plant's (:mod:`redistro.robotmodel`): same links, same
+    inertias, same tool. The base is not rotated; gravity is -z. The TCP is
+    the tool's far end on the tool axis: the peg's tip on an arm carrying the
+    peg, the sensor plate's face otherwise. ``base_xyz_m`` places the arm in
+    the world.
+    """
+
+    def __init__(self, peg: Peg | None, base_xyz_m: list[float] | None = None) -> None:
         import pinocchio as pin
 
         self._pin = pin
@@ -31,8 +50,30 @@ class ArmModel:
         if names != JOINT_NAMES:
             raise ValueError(f"unexpected joints in the arm model: {names}")
         self.data = self.model.createData()
+        self.tool_frame = self.model.getFrameId(TOOL_LINK)
+        self.tcp_offset_m = peg.length_m if peg is not None else PLATE[1]
+        self.base = np.asarray(base_xyz_m or [0.0, 0.0, 0.0], dtype=np.float64)
 
     def gravity(self, q: F64) -> F64:
         """g(q): joint torques [N m] that hold the arm still against gravity."""
         out: F64 = self._pin.computeGeneralizedGravity(self.model, self.data, q).copy()
         return out
+
+    def kinematics(self, q: F64) -> Kinematics:
+        """TCP pose and Jacobian at ``q`` (world frame)."""
+        pin = self._pin
+        J = pin.computeFrameJacobian(
+            self.model, self.data, q, self.tool_frame, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        )
+        M = self.data.oMf[self.tool_frame]
+        R = np.array(M.rotation)
+        sensor = np.array(M.translation) + self.base
+        r = R[:, 2] * self.tcp_offset_m  # tool origin -> TCP, world axes
+        Jt = np.array(J)
+        # v_tcp = v_tool + w x r  =>  J_lin -= [r]x J_ang
+        Jt[:3] -= _skew(r) @ Jt[3:]
+        return Kinematics(p=sensor + r, R=R, J=Jt, sensor_p=sensor)
+
+
+def _skew(v: F64) -> F64:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])

@@ -51,6 +51,7 @@ class Acquisition(Worker):
         a["qd_rad_s"] = fb.qd_rad_s
         a["tau_nm"] = fb.tau_nm
         a["wrench"] = fb.wrench
+        a["step"] = fb.step
         self.feedback_block.publish(self.fb.bytes)
         h = self.home.array
         h["stamp_ns"] = fb.stamp_ns

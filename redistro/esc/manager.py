@@ -24,7 +24,7 @@ from redistro.drivers.robot import RobotDriver
 from redistro.errors import NodeFault
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Block, Record
-from redistro.localdata.layout import GUARD, SETPOINT
+from redistro.localdata.layout import COMMAND, COUNTER, GUARD, SETPOINT, SessionStatus
 from redistro.process.manager import Manager
 from redistro.process.spec import NodeSpec
 
@@ -50,9 +50,22 @@ class EscManager(Manager):
         self.robot = self.ctx.robot
         self.positions_path = str(params.get("positions_file", ""))
         self.calibrating = bool(params.get("calibrates", False))
+        self.from_ssc = params.get("commands") == "ssc"
         ld = self.ld
         assert ld is not None
-        self.blocks = {n: ld.block(n, 0) for n in ("guard", "setpoint", "home", "calibration")}
+        self.blocks = {
+            n: ld.block(n, 0)
+            for n in ("guard", "setpoint", "home", "calibration", "command", "exchange")
+        }
+        self.sent_block = ld.block("starving_sent")
+        self.delivered_block = ld.block("starving_delivered")
+        self.sent = Record(COUNTER)
+        self.delivered = Record(COUNTER)
+        self.cmd = Record(COMMAND)
+        self.starving_limit = self.ctx.cfg.ddm.starving_limit_cycles
+        self.wait_first_s = self.ctx.cfg.ddm.connect_timeout_s
+        self.starving_max = 0
+        self.first_command_cycle = 0
         self.guard_block = self.blocks["guard"]
         self.setpoint_block = self.blocks["setpoint"]
         self.guard = Record(GUARD)
@@ -95,10 +108,39 @@ class EscManager(Manager):
         if self.guard["tripped"]:
             text = self.guard.array["trip_text"].item().decode(errors="replace")
             raise NodeFault("unsafe", text)
+        if self.from_ssc:
+            return self._check_commands(cycle)
         self.setpoint_block.read_into(self.sp.bytes)
         if self.sp["failed"]:
             raise NodeFault("abnormal", f"{self.robot}: the segments cannot go on (see messages)")
         return bool(self.sp["done"])
+
+    def _check_commands(self, cycle: int) -> bool:
+        """Strategy sessions: the SSC's commands must keep coming (starving
+        index within its limit); a finished session ends the node."""
+        self.blocks["command"].read_into(self.cmd.bytes)
+        if int(self.cmd["seq_src"]) == 0:
+            if cycle > self.wait_first_s * self.spec.rate_hz:
+                raise NodeFault(
+                    "starving",
+                    f"{self.robot}: no command from the SSC within {self.wait_first_s} s",
+                )
+            return False
+        if not self.first_command_cycle:
+            self.first_command_cycle = cycle
+        if int(self.cmd["session_status"]) == SessionStatus.FINISHED:
+            return True
+        self.sent_block.read_into(self.sent.bytes)
+        self.delivered_block.read_into(self.delivered.bytes)
+        index = int(self.sent["count"]) - int(self.delivered["count"])
+        self.starving_max = max(self.starving_max, index)
+        if index > self.starving_limit:
+            raise NodeFault(
+                "starving",
+                f"{self.robot}: starving index {index} over the limit {self.starving_limit} "
+                f"(no fresh command for {index} cycles) at cycle {cycle}",
+            )
+        return False
 
     def on_fault(self, reason: str, message: str) -> None:
         self._freeze(reason)
@@ -138,6 +180,10 @@ class EscManager(Manager):
                 "text": bytes(guard["trip_text"]).decode(errors="replace"),
             }
         extra["freeze_monotonic_ns"] = self.frozen_ns
+        if self.from_ssc:
+            ex = self.blocks["exchange"].read()
+            extra["ddm"] = _exchange_dict(ex)
+            extra["ddm"]["starving_index_max"] = self.starving_max
         final = None
         if self.driver is not None:
             try:
@@ -159,3 +205,26 @@ class EscManager(Manager):
         if self.driver is not None:
             self.driver.close()
         self.result.update(extra)
+
+
+def _exchange_dict(ex: Any) -> dict[str, Any]:
+    """The exchange block as JSON (counts, e-stop, command latency)."""
+    out: dict[str, Any] = {
+        k: int(ex[k])
+        for k in (
+            "updates",
+            "sent",
+            "dropped",
+            "malformed",
+            "duplicate",
+            "out_of_order",
+            "stale",
+            "latency_n",
+        )
+    }
+    out["estop_in"] = bool(ex["estop_in"])
+    out["estop_source"] = bytes(ex["estop_source"]).decode(errors="replace")
+    out["link_lost"] = bool(ex["link_lost"])
+    lat = [float(v) for v in ex["latency_us"]]
+    out["command_latency_us"] = {"p50": lat[0], "p99": lat[1], "max": lat[2]}
+    return out

@@ -13,10 +13,16 @@ from redistro.process.spec import NodeSpec, WorkerSpec
 # Within a cycle: acquisition publishes feedback, the calibration its joint
 # reference, the pid its torques, then the sender checks and sends.
 ESC_WORKERS = (("acquisition", 0), ("calibration", 1), ("pid", 2), ("sender", 3))
+# In a strategy session the SSC computes the torques: the acquisition
+# publishes feedback, the sender checks and sends the SSC's command, and the
+# ddm (off the cycle, on its own timer) carries both between the nodes.
+ESC_STRATEGY_WORKERS = (("acquisition", 0), ("sender", 1), ("ddm", -1))
 
 
 def esc_segments(task: Task, robot: str, hw: RobotHardware) -> list[dict[str, Any]]:
     """The ESC-local segments of ``task`` for ``robot`` (calibration worker params)."""
+    if task.kind == "strategy":
+        return []
     if task.kind == "self_calibration":
         c = task.calibration
         r = math.radians(c.range_deg)
@@ -62,10 +68,20 @@ def esc_spec(
         "segments": esc_segments(task, robot, hw),
         "settle_s": settle,
     }
+    strategy = task.kind == "strategy"
+    if strategy:
+        params["commands"] = "ssc"
     prio = cfg.scheduling.priorities
     workers = [
-        WorkerSpec(name=role, role=role, stage=stage, priority=prio.get(role, 16), params=params)
-        for role, stage in ESC_WORKERS
+        WorkerSpec(
+            name=role,
+            role=role,
+            stage=stage,
+            priority=prio.get(role, 16),
+            params=params,
+            rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
+        )
+        for role, stage in (ESC_STRATEGY_WORKERS if strategy else ESC_WORKERS)
     ]
     return NodeSpec(
         session_id=session_id,

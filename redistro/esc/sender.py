@@ -9,6 +9,13 @@ what tripped in the guard block (the manager ends the session ``unsafe``),
 and the sender sends nothing more. Otherwise it releases the brakes of joints
 that came under control, engages those of joints that left it, and writes
 the torques.
+
+Its commands come from the ESC's own pid (``control`` block; self-calibration
+and positioning), or, in a strategy session, from the SSC (``command``
+block, written by the ddm): then the robot stays frozen until the first
+command arrives, every command sent adds one to the starving index
+(``starving_sent``; the ddm pays it back when a fresh command arrives), and
+a command with the session finished engages every brake.
 """
 
 from __future__ import annotations
@@ -22,7 +29,16 @@ import numpy as np
 
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Record
-from redistro.localdata.layout import CONTROL, FEEDBACK, GUARD, HOME, MANAGER
+from redistro.localdata.layout import (
+    COMMAND,
+    CONTROL,
+    COUNTER,
+    FEEDBACK,
+    GUARD,
+    HOME,
+    MANAGER,
+    SessionStatus,
+)
 from redistro.process.worker import Worker
 
 DOF = 7
@@ -111,7 +127,16 @@ class Sender(Worker):
         self.guard_block = ld.writer("guard", 0, role="sender")
         self.feedback_block = ld.block("feedback", 0)
         self.home_block = ld.block("home", 0)
-        self.control_block = ld.block("control", 0)
+        self.from_ssc = self.params.get("commands") == "ssc"
+        if self.from_ssc:
+            self.command_block = ld.block("command", 0)
+            self.cmd = Record(COMMAND)
+            self.sent_block = ld.writer("starving_sent", role="sender")
+            self.stamp_block = ld.writer("command_stamp", role="sender")
+            self.sent = Record(COUNTER)
+            self.stamp = Record(COUNTER)
+        else:
+            self.control_block = ld.block("control", 0)
         self.manager_block = ld.block("manager")
         self.fb = Record(FEEDBACK)
         self.home = Record(HOME)
@@ -131,10 +156,21 @@ class Sender(Worker):
         if self.tripped or self.mgr["estop"]:
             return  # frozen: nothing goes out any more
         self.feedback_block.read_into(self.fb.bytes)
-        self.control_block.read_into(self.ctl.bytes)
-        fb, ctl = self.fb.array, self.ctl.array
-        on = ctl["joint_on"].astype(bool)
-        tau_cmd = np.where(on, ctl["tau_nm"], 0.0)
+        fb = self.fb.array
+        if self.from_ssc:
+            self.command_block.read_into(self.cmd.bytes)
+            cmd = self.cmd.array
+            if int(cmd["seq_src"]) == 0:
+                return  # no command yet: the robot stays frozen
+            on = cmd["joint_on"].astype(bool)
+            if int(cmd["session_status"]) == SessionStatus.FINISHED:
+                on = np.zeros(DOF, dtype=bool)
+            tau_cmd = np.where(on, cmd["tau_nm"], 0.0)
+        else:
+            self.control_block.read_into(self.ctl.bytes)
+            ctl = self.ctl.array
+            on = ctl["joint_on"].astype(bool)
+            tau_cmd = np.where(on, ctl["tau_nm"], 0.0)
         self.guard["cycle"] = cycle
         self.home_block.read_into(self.home.bytes)
         row = self.trace[self.traced % TRACE_CYCLES]
@@ -176,6 +212,14 @@ class Sender(Worker):
         self.guard["sent_cycle"] = cycle
         self.guard.array["tau_nm"] = tau_cmd
         self.guard_block.publish(self.guard.bytes)
+        if self.from_ssc:
+            now = time.monotonic_ns()
+            self.sent["count"] += 1
+            self.sent["stamp_ns"] = now
+            self.sent_block.publish(self.sent.bytes)
+            self.stamp["count"] = self.cmd["seq_src"]
+            self.stamp["stamp_ns"] = self.cmd["stamp_ns"]
+            self.stamp_block.publish(self.stamp.bytes)
 
     def _trip(self, cycle: int, v: Violation) -> None:
         self.driver.freeze()

@@ -158,8 +158,23 @@ MSG_SLOT = _padded(
 )
 MSGBOX = _padded(np.dtype([("head", "<u8"), ("slots", MSG_SLOT, (MSGBOX_SLOTS,))]))
 
-EXCHANGE = np.dtype(  # data exchange status: freshness of the data from the other node
-    [("updates", "<u8"), ("last_update_ns", "<i8"), ("dropped", "<u8"), ("fresh", "u1")]
+EXCHANGE = np.dtype(  # data exchange status, per robot: the data from the other node (ddm)
+    [
+        ("updates", "<u8"),  # fresh records admitted and written to Local Data
+        ("last_update_ns", "<i8"),
+        ("dropped", "<u8"),  # records refused, all reasons
+        ("fresh", "u1"),
+        ("sent", "<u8"),  # records sent to the other node
+        ("malformed", "<u8"),  # refused by decode (size, magic, version, kind, checksum)
+        ("duplicate", "<u8"),
+        ("out_of_order", "<u8"),
+        ("stale", "<u8"),
+        ("estop_in", "u1"),  # an e-stop came in from the other node
+        ("estop_source", NAME),  # ... from this node
+        ("link_lost", "u1"),
+        ("latency_us", "<f4", (3,)),  # command: SSC Local Data write -> here (p50, p99, max)
+        ("latency_n", "<u8"),
+    ]
 )
 COUNTER = np.dtype([("count", "<u8"), ("stamp_ns", "<i8")])
 HOME = np.dtype(  # home switches and the encoder latches taken on their edges
@@ -246,8 +261,31 @@ FEEDBACK = np.dtype(
         ("q_rad", "<f8", (DOF,)),
         ("qd_rad_s", "<f8", (DOF,)),
         ("tau_nm", "<f8", (DOF,)),  # joint torques [N m]
-        ("wrench", "<f8", (6,)),  # end-effector force [N] (xyz) and torque [N m] (xyz)
+        ("wrench", "<f8", (6,)),  # wrist sensor: force [N] and torque [N m], sensor frame
         ("estop", "u1"),
+        ("step", "<u8"),  # the boards' sample number (the plant's step on the simulated chassis)
+    ]
+)
+PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (worker)
+    [
+        ("stamp_ns", "<i8"),
+        ("cycle", "<u8"),
+        ("t_s", "<f8"),  # task time on the boards' sample clock [s]
+        ("segment", "u1"),  # 1-based index of the running segment (0: before, 255: after)
+        ("segment_t_s", "<f8"),
+        ("moving", "u1"),  # 1: this robot is the segment's robot; 0: it holds its pose
+        ("scheme", "u1"),  # 0 hold, 1 joint, 2 position, 3 force
+        ("contact", "u1"),  # force segments: contact felt
+        ("done", "u1"),  # 1: every segment finished
+        ("tcp_xyz_m", "<f8", (3,)),  # TCP position, world [m]
+        ("tcp_rot_xyz", "<f8", (3,)),  # TCP rotation vector, world [rad]
+        ("goal_xyz_m", "<f8", (3,)),
+        ("goal_rot_xyz", "<f8", (3,)),
+        ("ref_xyz_m", "<f8", (3,)),  # the reference the law tracked this cycle
+        ("wrench_task", "<f8", (6,)),  # applied wrench, task axes [N, N m]
+        ("wrench_goal", "<f8", (6,)),
+        ("selection", "u1", (6,)),
+        ("q_goal_rad", "<f8", (DOF,)),
     ]
 )
 
@@ -255,7 +293,7 @@ FEEDBACK = np.dtype(
 BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
     "manager": (MANAGER, "one"),
     "proc": (PROC_STATUS, "proc"),
-    "exchange": (EXCHANGE, "one"),
+    "exchange": (EXCHANGE, "robot"),
     "starving_sent": (COUNTER, "one"),
     "starving_delivered": (COUNTER, "one"),
     "command_stamp": (COUNTER, "one"),
@@ -266,6 +304,7 @@ BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
     "calibration": (CALIBRATION, "robot"),
     "control": (CONTROL, "robot"),
     "guard": (GUARD, "robot"),
+    "plan": (PLAN, "robot"),
 }
 
 SELF = "<self>"
@@ -287,6 +326,7 @@ WRITERS: dict[str, dict[str, str]] = {
     "calibration": {"esc": "calibration"},
     "control": {"esc": "pid"},
     "guard": {"esc": "sender"},
+    "plan": {"ssc": "worker"},
 }
 
 

@@ -12,6 +12,7 @@ every IPC object the node created.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -349,6 +350,9 @@ class Manager:
                     f"worker {child.name} (pid {child.pid}) missed "
                     f"{age} heartbeats (limit {limit}) at cycle {self.cycle}",
                 )
+        for j, snap in enumerate(snaps):
+            if snap is not None and snap["estop_request"]:
+                raise NodeFault("estop", self._estop_text(self.children[j].name))
         last = [snaps[j] for j in self.last_stage]
         if all(s is not None and s["heartbeat_cycle"] == self.cycle for s in last):
             span = max(s["done_ns"] for s in last if s is not None) - self._due_ns
@@ -357,6 +361,17 @@ class Manager:
                 self.deadline_misses += 1
         else:
             self.incomplete_cycles += 1
+
+    def _estop_text(self, name: str) -> str:
+        """Why a worker asked for an e-stop: the node it came from, when a ddm says."""
+        assert self.ld is not None
+        for r in range(len(self.spec.robots)):
+            with contextlib.suppress(Exception):
+                ex = self.ld.block("exchange", r).read()
+                if ex["estop_in"]:
+                    src = bytes(ex["estop_source"]).decode(errors="replace")
+                    return f"e-stop from {src} (through {name})"
+        return f"e-stop requested by {name}"
 
     def _drain_messages(self) -> None:
         for w, box in zip(self.spec.workers, self.boxes, strict=True):

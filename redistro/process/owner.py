@@ -41,6 +41,8 @@ def run_nodes(
     budget_s: float | None = None,
     on_wait: Callable[[], None] | None = None,
     keep: frozenset[int] = frozenset(),
+    later: list[NodeSpec] | None = None,
+    later_ready: Callable[[], bool] | None = None,
 ) -> list[dict[str, Any]]:
     """Run nodes side by side to their ends; return each manager's result.
 
@@ -50,28 +52,37 @@ def run_nodes(
     (start-up and shutdown time come on top); None: until they end (or their
     ``cycles`` run out). on_wait: called about five times a second while
     waiting. keep: pids of other children (the plant) not to reap here.
+    later, later_ready: nodes started only once ``later_ready()`` is true (the
+    SSC waits for every ESC's first feedback: the start-up datum); if that
+    does not happen within their start-up timeout, every node is stopped.
     """
     signals.become_subreaper()
     nodes: list[_Node] = []
+    all_specs = specs + list(later or [])
+
+    def start(spec: NodeSpec) -> None:
+        spec.owner_pid = os.getpid()
+        spec_path = session.directory / f"{spec.node}.spec.json"
+        spec.result_path = str(session.directory / f"{spec.node}.result.json")
+        spec.save(spec_path)
+        proc = spawn(
+            ["manager", "--spec", str(spec_path)],
+            pass_fds=(session.lock_fd,),
+            env=session.child_env(),
+        )
+        proc.returncode = 0  # reaped below, not by Popen
+        nodes.append(_Node(spec, proc.pid, os.pidfd_open(proc.pid)))
+
     try:
         for spec in specs:
-            spec.owner_pid = os.getpid()
-            spec_path = session.directory / f"{spec.node}.spec.json"
-            spec.result_path = str(session.directory / f"{spec.node}.result.json")
-            spec.save(spec_path)
-            proc = spawn(
-                ["manager", "--spec", str(spec_path)],
-                pass_fds=(session.lock_fd,),
-                env=session.child_env(),
-            )
-            proc.returncode = 0  # reaped below, not by Popen
-            nodes.append(_Node(spec, proc.pid, os.pidfd_open(proc.pid)))
-        _wait_nodes(nodes, budget_s, on_wait)
+            start(spec)
+        pending = _Later(list(later or []), later_ready, start)
+        _wait_nodes(nodes, budget_s, on_wait, pending)
     finally:
         for n in nodes:
             os.close(n.pidfd)
         stragglers = reap_descendants(
-            max((s.shutdown_timeout_s for s in specs), default=3.0), keep=keep
+            max((s.shutdown_timeout_s for s in all_specs), default=3.0), keep=keep
         )
     results = []
     for n in nodes:
@@ -87,6 +98,41 @@ def run_nodes(
             result.update(result="abnormal", reason=f"interrupted by {n.interrupted}")
         results.append(result)
     return results
+
+
+class _Later:
+    """Nodes waiting for a start-up datum."""
+
+    def __init__(
+        self,
+        specs: list[NodeSpec],
+        ready: Callable[[], bool] | None,
+        start: Callable[[NodeSpec], None],
+    ) -> None:
+        self.specs = specs
+        self.ready = ready
+        self.start = start
+        self.since = time.monotonic()
+        self.timeout_s = max((s.startup_timeout_s for s in specs), default=0.0)
+        self.failed = ""
+
+    def poll(self, now: float) -> bool:
+        """Start the waiting nodes when ready; False when they waited too long."""
+        if not self.specs:
+            return True
+        if self.ready is None or self.ready():
+            specs, self.specs = self.specs, []
+            for spec in specs:
+                self.start(spec)
+            return True
+        if now - self.since > self.timeout_s:
+            names = ", ".join(s.node for s in self.specs)
+            self.failed = (
+                f"{names} not started: the start-up datum did not come within {self.timeout_s:g} s"
+            )
+            self.specs = []
+            return False
+        return True
 
 
 class _Node:
@@ -117,7 +163,10 @@ class _Node:
 
 
 def _wait_nodes(
-    nodes: list[_Node], budget_s: float | None, on_wait: Callable[[], None] | None
+    nodes: list[_Node],
+    budget_s: float | None,
+    on_wait: Callable[[], None] | None,
+    pending: _Later | None = None,
 ) -> None:
     start = time.monotonic()
     specs = [n.spec for n in nodes]
@@ -129,8 +178,12 @@ def _wait_nodes(
     else:
         deadline = None
     while any(n.status is None for n in nodes):
-        info = signals.wait(OWNER_WAIT, 0.2)
+        info = signals.wait(OWNER_WAIT, 0.05 if pending and pending.specs else 0.2)
         now = time.monotonic()
+        if pending is not None and not pending.poll(now):
+            log.error("%s", pending.failed)
+            for n in nodes:
+                n.stop(pending.failed, now)
         for n in nodes:
             if n.status is None:
                 pid, status = os.waitpid(n.pid, os.WNOHANG)

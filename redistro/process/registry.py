@@ -15,11 +15,15 @@ ROLES: dict[str, str] = {
     "calibration": "redistro.esc.calibration:Calibration",
     "pid": "redistro.esc.pid:Pid",
     "sender": "redistro.esc.sender:Sender",
+    "ddm": "redistro.ddm.worker:Ddm",
+    "worker": "redistro.ssc.worker:SscWorker",
+    "logger": "redistro.ssc.logger:SscLogger",
 }
 
 # node kind -> its manager class ("bench" nodes use the base Manager)
 MANAGERS: dict[str, str] = {
     "esc": "redistro.esc.manager:EscManager",
+    "ssc": "redistro.ssc.manager:SscManager",
 }
 
 

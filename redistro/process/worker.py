@@ -39,6 +39,8 @@ class Worker:
         self.msgbox: MessageBox = ld.msgbox(index)
         self.due_ns = 0  # when the running cycle's tick was due (CLOCK_MONOTONIC)
         self.period_ns = int(ld.static["period_ns"])
+        # set to ask the manager for an e-stop (published with the next heartbeat)
+        self.estop_request = False
 
     # -- hooks for subclasses --
 
@@ -198,7 +200,7 @@ class _Runner:
                 self.stage_timeouts += 1
             else:
                 self._step(worker, cycle, due_ns)
-            self._sign(mine, row, cycle, wake_ns)
+            self._sign(mine, row, cycle, wake_ns, worker.estop_request)
             for j in succs:
                 go[j].release()
 
@@ -239,9 +241,10 @@ class _Runner:
         self.compute.add(time.monotonic_ns() - t0)
         self.cycles += 1
 
-    def _sign(self, mine: Record, row: Any, cycle: int, wake_ns: int) -> None:
+    def _sign(self, mine: Record, row: Any, cycle: int, wake_ns: int, estop: bool) -> None:
         """Sign the heartbeat (the cycle done) and publish this process's counters."""
         mine["heartbeat_cycle"] = cycle
+        mine["estop_request"] = 1 if estop else 0
         mine["wake_ns"] = wake_ns
         mine["done_ns"] = time.monotonic_ns()
         mine["cycles"] = self.cycles
@@ -294,7 +297,7 @@ class _Runner:
                     continue
                 cycle = tick["cycle"]
                 self._step(worker, cycle, due_ns)
-                self._sign(mine, row, cycle, wake_ns)
+                self._sign(mine, row, cycle, wake_ns, worker.estop_request)
         finally:
             timer.stop()
 

@@ -1,0 +1,223 @@
+"""The Distributed Data Manager: one per node, on its own timer (paper: 1 kHz).
+
+It is the only door between nodes. Each tick it drains what the transport
+received, decodes and admits every record (a malformed, duplicate,
+out-of-order or stale record is counted in the exchange block and dropped),
+writes the fresh ones into Local Data, and sends what this node produced
+since the last tick:
+
+- in an ESC: commands in (``command[0]``; the starving index is paid back),
+  feedback out (each new sample of the acquisition);
+- in the SSC: feedback in (``feedback[i]`` per robot), commands out (each
+  new command the worker wrote, one record per robot).
+
+Every record carries the node's e-stop: a manager that ended on a fault has
+its ddm say so in every record from then on, and once more at Cleanup. A
+record that comes in with the e-stop set makes the ddm ask its own manager
+for an e-stop (one robot's fault stops the group).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+import zlib
+from typing import Any
+
+import numpy as np
+
+from redistro.config import Config, load_config
+from redistro.ddm import record as wire
+from redistro.ddm.transport import Transport, transport_class
+from redistro.errors import TransportError, WireError
+from redistro.ipc.session import Manifest
+from redistro.localdata.block import Record
+from redistro.localdata.layout import COMMAND, COUNTER, EXCHANGE, FEEDBACK, MANAGER
+from redistro.process.stats import Samples
+from redistro.process.worker import Worker
+
+
+def esc_port(cfg: Config, session_id: str, robot: str) -> int:
+    """Where the ESC of ``robot`` listens: from config, else derived from the session id."""
+    port = cfg.ddm.esc_ports.get(robot, 0)
+    return port or 41000 + zlib.crc32(f"{session_id}/{robot}".encode()) % 19000
+
+
+def open_transport(cfg: Config, session_id: str, node: str, kind: str, robots: list[str]) -> Any:
+    """The transport ``ddm.transport`` names, set up for this node's side."""
+    cls = transport_class(cfg.ddm.transport)
+    index = list(cfg.robots)
+    if cfg.ddm.transport == "reflective":
+        peers = []
+        for p in cfg.ddm.peers:
+            host, _, port = p.rpartition(":")
+            peers.append((host, int(port)))
+        return cls(
+            session_id,
+            node,
+            group=cfg.ddm.group,
+            port=cfg.ddm.port,
+            peers=peers,
+            manifest=Manifest.for_session(session_id),
+        )
+    if kind == "esc":
+        return cls(listen=(cfg.ddm.listen_host, esc_port(cfg, session_id, robots[0])))
+    timeout = min(cfg.ddm.connect_timeout_s, 0.8 * cfg.session.startup_timeout_s)
+    return cls(
+        peers={
+            index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, session_id, r))
+            for r in robots
+        },
+        connect_timeout_s=timeout,
+    )
+
+
+class Ddm(Worker):
+    def initialize(self) -> None:
+        self.cfg = load_config(self.params.get("config"), list(self.params.get("overrides", [])))
+        self.kind = self.spec.kind
+        self.robots = list(self.spec.robots)
+        self.gid = {r: list(self.cfg.robots).index(r) for r in self.robots}  # group-wide ids
+        self.local = {g: i for i, g in enumerate(self.gid[r] for r in self.robots)}
+        self.source = self.spec.node
+        ld = self.ld
+        self.manager_block = ld.block("manager")
+        self.mgr = Record(MANAGER)
+        n = len(self.robots)
+        self.exchange_blocks = [ld.writer("exchange", i, role="ddm") for i in range(n)]
+        self.ex = [Record(EXCHANGE) for _ in range(n)]
+        if self.kind == "esc":
+            self.in_kind, self.out_kind = wire.KIND_COMMAND, wire.KIND_FEEDBACK
+            self.in_blocks = [ld.writer("command", 0, role="ddm")]
+            self.out_blocks = [ld.block("feedback", 0)]
+            self.out_recs = [Record(FEEDBACK)]
+            self.sent_block = ld.block("starving_sent")
+            self.delivered_block = ld.writer("starving_delivered", role="ddm")
+            self.sent_rec = Record(COUNTER)
+            self.delivered_rec = Record(COUNTER)
+        else:
+            self.in_kind, self.out_kind = wire.KIND_FEEDBACK, wire.KIND_COMMAND
+            self.in_blocks = [ld.writer("feedback", i, role="ddm") for i in range(n)]
+            self.out_blocks = [ld.block("command", i) for i in range(n)]
+            self.out_recs = [Record(COMMAND) for _ in range(n)]
+        self.last_out = [0] * n  # seq_src of the last record sent, per robot
+        self.seq = [0] * n
+        self.admission = wire.Admission()
+        self.latency = Samples()
+        self.estop_sent = False
+        self.lost = False
+        self.transport: Transport = open_transport(
+            self.cfg, self.spec.session_id, self.spec.node, self.kind, self.robots
+        )
+
+    # -- one tick --
+
+    def step(self, cycle: int) -> None:
+        if self.lost:
+            return  # the managers see the data go stale (starving)
+        self.manager_block.read_into(self.mgr.bytes)
+        estop = bool(self.mgr["estop"])
+        try:
+            self._receive()
+            self._send(estop)
+        except TransportError as exc:
+            # no retry: a lost link is a fault; the data stop and the
+            # managers' starving checks end the session within their limits
+            self.lost = True
+            for ex in self.ex:
+                ex["link_lost"] = 1
+                ex["fresh"] = 0
+            self.post(f"{exc}; no more exchange", logging.ERROR)
+        self._publish()
+
+    def _receive(self) -> None:
+        for raw in self.transport.receive():
+            try:
+                d = wire.decode(raw)
+            except WireError:
+                for ex in self.ex:
+                    ex["malformed"] += 1
+                    ex["dropped"] += 1
+                continue
+            i = self.local.get(d.robot)
+            if d.kind != self.in_kind or i is None:
+                continue  # another node's traffic on a broadcast medium
+            ex = self.ex[i]
+            before = dict(self.admission.dropped)
+            if not self.admission.admit(d):
+                for why, count in self.admission.dropped.items():
+                    if count != before[why]:
+                        ex[why] += 1
+                ex["dropped"] += 1
+                continue
+            now = time.monotonic_ns()
+            if d.estop and not ex["estop_in"]:
+                ex["estop_in"] = 1
+                ex.array["estop_source"] = d.source.rstrip("\0").encode()[:16]
+                self.post(f"e-stop from {d.source.rstrip(chr(0))}", logging.ERROR)
+                self.estop_request = True
+            self.in_blocks[i].publish(d.payload)
+            ex["updates"] += 1
+            ex["last_update_ns"] = now
+            ex["fresh"] = 1
+            if self.kind == "esc":
+                # a fresh command pays back every command the sender sent on
+                # the strength of the old one
+                self.sent_block.read_into(self.sent_rec.bytes)
+                self.delivered_rec["count"] = self.sent_rec["count"]
+                self.delivered_rec["stamp_ns"] = now
+                self.delivered_block.publish(self.delivered_rec.bytes)
+                stamp = int(d.payload["stamp_ns"])
+                if 0 < stamp <= now:
+                    self.latency.add(now - stamp)
+
+    def _send(self, estop: bool) -> None:
+        for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
+            block.read_into(rec.bytes)
+            produced = int(rec["seq_src"])
+            if produced == 0 and not estop:
+                continue  # nothing produced yet
+            if produced == self.last_out[i] and (not estop or self.estop_sent):
+                continue
+            self._send_one(i, rec, estop)
+            self.last_out[i] = produced
+        if estop:
+            self.estop_sent = True
+
+    def _send_one(self, i: int, rec: Record, estop: bool) -> None:
+        self.seq[i] += 1
+        robot = self.gid[self.robots[i]]
+        data = wire.encode(
+            self.out_kind,
+            robot,
+            self.source,
+            self.seq[i],
+            time.monotonic_ns(),
+            bytes(rec.bytes),
+            estop=estop,
+        )
+        self.transport.send(data, robot)
+        self.ex[i]["sent"] += 1
+
+    def _publish(self) -> None:
+        for block, ex in zip(self.exchange_blocks, self.ex, strict=True):
+            block.publish(ex.bytes)
+
+    def cleanup(self) -> None:
+        with contextlib.suppress(Exception):
+            self.manager_block.read_into(self.mgr.bytes)
+            if self.mgr["estop"] and not self.lost:
+                # the node ended on a fault: tell every peer, once more
+                for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
+                    block.read_into(rec.bytes)
+                    self._send_one(i, rec, True)
+        lat = self.latency.summary_us()
+        for ex in self.ex:
+            ex.array["latency_us"] = np.array([lat["p50"], lat["p99"], lat["max"]])
+            ex["latency_n"] = self.latency.count
+            ex["fresh"] = 0
+        with contextlib.suppress(Exception):
+            self._publish()
+        with contextlib.suppress(Exception):
+            self.transport.close()

@@ -1,0 +1,1 @@
+"""The Strategy-Stage Controller: task planning, trajectories, control laws, coordination."""

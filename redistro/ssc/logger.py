@@ -1,0 +1,142 @@
+"""The SSC logger (paper priority 15): after the worker, every cycle, it takes
+the plan of each robot and keeps the figures of each segment: its duration,
+the final pose error against the goal, and on force segments the force
+error after the first contact (mean and RMS). It also follows the peg's tip:
+how deep it went inside the hole. At Cleanup it writes them to
+``ssc-segments.json`` in the run folder (the manager puts them in its result).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from redistro.config import load_config
+from redistro.config.task import load_task
+from redistro.control.cartesian import pose_error, rotvec_to_matrix
+from redistro.localdata.block import Record
+from redistro.localdata.layout import PLAN
+from redistro.process.worker import Worker
+from redistro.ssc.plan import segment_plans
+from redistro.ssc.worker import AFTER
+
+
+@dataclass
+class SegmentFigures:
+    name: str
+    robot: str
+    scheme: str
+    samples: int = 0
+    duration_s: float = 0.0
+    final: dict[str, float] = field(default_factory=dict)
+    contact_t_s: float | None = None
+    force_n: int = 0
+    force_sum: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
+    force_sq: float = 0.0
+    force_max: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "name": self.name,
+            "robot": self.robot,
+            "scheme": self.scheme,
+            "duration_s": round(self.duration_s, 4),
+            "final_pose_error": self.final or None,
+        }
+        if self.scheme == "force":
+            if self.force_n:
+                mean = self.force_sum / self.force_n
+                out["first_contact_s"] = round(self.contact_t_s or 0.0, 4)
+                out["force_mean_error_n"] = round(float(np.linalg.norm(mean)), 4)
+                out["force_rms_error_n"] = round(float(np.sqrt(self.force_sq / self.force_n)), 4)
+                out["force_max_error_n"] = round(self.force_max, 4)
+                out["force_samples"] = self.force_n
+            else:
+                out["first_contact_s"] = None
+                out["force_mean_error_n"] = None
+                out["force_rms_error_n"] = None
+        return out
+
+
+class SscLogger(Worker):
+    def initialize(self) -> None:
+        cfg = load_config(self.params.get("config"), list(self.params.get("overrides", [])))
+        task = load_task(self.params["task"], cfg)
+        self.plans = segment_plans(task, cfg)
+        self.robots = list(self.spec.robots)
+        self.blocks = [self.ld.block("plan", i) for i in range(len(self.robots))]
+        self.recs = [Record(PLAN) for _ in self.robots]
+        self.figures = [SegmentFigures(p.name, p.robot, p.scheme) for p in self.plans]
+        hole = cfg.plant.hole
+        self.hole = np.asarray(hole.xyz_m, dtype=np.float64)
+        self.hole_depth = hole.depth_m
+        self.hole_half = (cfg.plant.peg.side_m + hole.clearance_m) / 2
+        pegs = [r for r in self.robots if cfg.robots[r].peg]
+        self.peg_index = self.robots.index(pegs[0]) if pegs else -1
+        self.depth = 0.0
+        self.depth_t: float | None = None
+        run_dir = str(self.params.get("run_dir", ""))
+        self.out_path = os.path.join(run_dir, "ssc-segments.json") if run_dir else ""
+        self.cycles = 0
+
+    def step(self, cycle: int) -> None:
+        for block, rec in zip(self.blocks, self.recs, strict=True):
+            block.read_into(rec.bytes)
+        self.cycles += 1
+        if self.peg_index >= 0:
+            pl = self.recs[self.peg_index].array
+            if int(pl["segment"]) != 0:
+                tip = pl["tcp_xyz_m"]
+                inside = bool(np.all(np.abs(tip[:2] - self.hole[:2]) <= self.hole_half + 1e-4))
+                d = float(self.hole[2] - tip[2])
+                if inside and d > self.depth:
+                    self.depth = d
+                    self.depth_t = float(pl["t_s"])
+        for rec in self.recs:
+            pl = rec.array
+            k = int(pl["segment"])
+            if not pl["moving"] or k in (0, AFTER) or k > len(self.figures):
+                continue
+            fig = self.figures[k - 1]
+            plan = self.plans[k - 1]
+            fig.samples += 1
+            fig.duration_s = float(pl["segment_t_s"])
+            # the goal pose of a joint segment is the TCP pose at the joint goal
+            e = pose_error(
+                pl["tcp_xyz_m"],
+                rotvec_to_matrix(pl["tcp_rot_xyz"]),
+                pl["goal_xyz_m"],
+                rotvec_to_matrix(pl["goal_rot_xyz"]),
+            )
+            fig.final = {
+                "position_m": round(float(np.linalg.norm(e[:3])), 6),
+                "orientation_rad": round(float(np.linalg.norm(e[3:])), 6),
+            }
+            if plan.scheme == "force" and pl["contact"]:
+                if fig.contact_t_s is None:
+                    fig.contact_t_s = float(pl["segment_t_s"])
+                err = ((plan.force - pl["wrench_task"]) * plan.selection)[:3]
+                fig.force_n += 1
+                fig.force_sum += err
+                n2 = float(err @ err)
+                fig.force_sq += n2
+                fig.force_max = max(fig.force_max, float(np.sqrt(n2)))
+
+    def cleanup(self) -> None:
+        if not self.out_path:
+            return
+        doc = {
+            "cycles": self.cycles,
+            "segments": [f.as_dict() for f in self.figures],
+            "insertion_depth_m": round(self.depth, 6),
+            "insertion_depth_t_s": self.depth_t,
+            "hole_depth_m": self.hole_depth,
+        }
+        tmp = self.out_path + ".tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(doc, f, indent=1)
+        os.replace(tmp, self.out_path)

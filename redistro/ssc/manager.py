@@ -1,0 +1,98 @@
+"""The SSC Manager: the strategy node's timer and watchdog.
+
+It has no hardware: its safety duties are the e-stop (set on any fault; its
+ddm carries it to every ESC) and the freshness of the robots' feedback:
+a robot whose feedback stops coming for ``ddm.starving_limit_cycles`` SSC
+cycles (or never comes within ``ddm.connect_timeout_s``) ends the session
+``starving``. It ends the session ``ok`` once the worker's plan is done and
+the finished status has gone out for a few cycles.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from redistro.config import load_config
+from redistro.errors import NodeFault
+from redistro.esc.manager import _exchange_dict
+from redistro.localdata.block import Block, Record
+from redistro.localdata.layout import EXCHANGE, PLAN
+from redistro.process.manager import Manager
+from redistro.process.spec import NodeSpec
+
+FINISH_CYCLES = 20  # cycles the finished status goes out before the node ends
+
+
+class SscManager(Manager):
+    def __init__(self, spec: NodeSpec, spec_path: str) -> None:
+        super().__init__(spec, spec_path)
+        self.plan_blocks: list[Block] = []
+        self.ex_blocks: list[Block] = []
+
+    def initialize(self) -> None:
+        params = self.spec.workers[0].params
+        cfg = load_config(params.get("config"), list(params.get("overrides", [])))
+        self.limit = cfg.ddm.starving_limit_cycles
+        self.wait_first_s = cfg.ddm.connect_timeout_s
+        self.run_dir = str(params.get("run_dir", ""))
+        ld = self.ld
+        assert ld is not None
+        n = len(self.spec.robots)
+        self.plan_blocks = [ld.block("plan", i) for i in range(n)]
+        self.ex_blocks = [ld.block("exchange", i) for i in range(n)]
+        self.plans = [Record(PLAN) for _ in range(n)]
+        self.exs = [Record(EXCHANGE) for _ in range(n)]
+        self.last_updates = [0] * n
+        self.last_change = [0] * n
+        self.done_cycles = 0
+        self.starving_max = 0
+        self._message(
+            "manager", logging.INFO, f"waiting for feedback from {', '.join(self.spec.robots)}"
+        )
+
+    def on_tick(self, cycle: int) -> bool:
+        for i, robot in enumerate(self.spec.robots):
+            self.ex_blocks[i].read_into(self.exs[i].bytes)
+            updates = int(self.exs[i]["updates"])
+            if updates != self.last_updates[i]:
+                self.last_updates[i] = updates
+                self.last_change[i] = cycle
+                continue
+            if updates == 0:
+                if cycle > self.wait_first_s * self.spec.rate_hz:
+                    raise NodeFault(
+                        "starving", f"no feedback from {robot} within {self.wait_first_s} s"
+                    )
+                continue
+            age = cycle - self.last_change[i]
+            self.starving_max = max(self.starving_max, age)
+            if age > self.limit:
+                raise NodeFault(
+                    "starving",
+                    f"no fresh feedback from {robot} for {age} cycles "
+                    f"(limit {self.limit}) at cycle {cycle}",
+                )
+        for block, rec in zip(self.plan_blocks, self.plans, strict=True):
+            block.read_into(rec.bytes)
+        if all(int(rec["done"]) for rec in self.plans):
+            self.done_cycles += 1
+        return self.done_cycles > FINISH_CYCLES
+
+    def cleanup(self) -> None:
+        extra: dict[str, Any] = {"robots": list(self.spec.robots)}
+        if self.ex_blocks:
+            extra["ddm"] = {
+                r: _exchange_dict(b.read())
+                for r, b in zip(self.spec.robots, self.ex_blocks, strict=True)
+            }
+            extra["starving_cycles_max"] = self.starving_max
+        if self.run_dir:
+            path = Path(self.run_dir) / "ssc-segments.json"
+            try:
+                extra.update(json.loads(path.read_text()))
+            except (OSError, ValueError) as exc:
+                self._message("manager", logging.WARNING, f"segment figures unreadable: {exc}")
+        self.result.update(extra)

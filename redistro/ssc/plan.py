@@ -1,0 +1,111 @@
+"""What the SSC needs from a task: per segment, a robot, a scheme and its goal in numbers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from redistro.config.model import Config
+from redistro.config.task import MoveSegment, Task
+from redistro.process.spec import NodeSpec, WorkerSpec
+
+SCHEMES = {"hold": 0, "joint": 1, "position": 2, "force": 3}
+# Within an SSC cycle: the worker computes the commands, then the logger records them.
+SSC_WORKERS = (("worker", 0), ("logger", 1), ("ddm", -1))
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    name: str
+    robot: str
+    scheme: str
+    duration_s: float
+    move_s: float
+    q_goal: np.ndarray[Any, Any]  # joint goal [rad] (joint scheme)
+    pose: np.ndarray[Any, Any]  # TCP goal: position [m] + rotation vector [rad], world
+    force: np.ndarray[Any, Any]  # goal wrench the tool applies, task axes
+    selection: np.ndarray[Any, Any]
+    frame: str
+    pose_within_m: float
+    rot_within_rad: float
+    force_within_n: float
+    hold_s: float
+
+
+def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
+    """The task's segments with goals resolved (relative poses made absolute)."""
+    hole = np.asarray(cfg.plant.hole.xyz_m, dtype=np.float64)
+    return [_plan(s, hole) for s in task.segments]
+
+
+def _plan(s: MoveSegment, hole: np.ndarray[Any, Any]) -> SegmentPlan:
+    g = s.goal
+    pose = np.zeros(6)
+    if g.pos_xyz_rot_xyz:
+        pose = np.asarray(g.pos_xyz_rot_xyz, dtype=np.float64).copy()
+        if g.relative_to == "hole":
+            pose[:3] += hole
+    return SegmentPlan(
+        name=s.name,
+        robot=s.robot,
+        scheme=s.scheme,
+        duration_s=s.duration_s,
+        move_s=g.move_s or 0.75 * s.duration_s,
+        q_goal=np.asarray(g.q_rad or [0.0] * 7, dtype=np.float64),
+        pose=pose,
+        force=np.asarray(g.force_xyz_torque_xyz, dtype=np.float64),
+        selection=np.asarray(g.selection_vector, dtype=np.float64),
+        frame=g.frame,
+        pose_within_m=s.end.pose_within_m,
+        rot_within_rad=s.end.rot_within_rad,
+        force_within_n=s.end.force_within_n,
+        hold_s=s.end.hold_s,
+    )
+
+
+def ssc_spec(
+    cfg: Config,
+    task: Task,
+    session_id: str,
+    *,
+    config_path: str | None,
+    overrides: list[str],
+    run_dir: str,
+    messages_path: str = "",
+) -> NodeSpec:
+    params: dict[str, Any] = {
+        "config": config_path,
+        "overrides": list(overrides),
+        "task": task.source,
+        "run_dir": run_dir,
+    }
+    prio = cfg.scheduling.priorities
+    workers = [
+        WorkerSpec(
+            name=role,
+            role=role,
+            stage=stage,
+            priority=prio.get(role, 16),
+            params=params,
+            rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
+        )
+        for role, stage in SSC_WORKERS
+    ]
+    return NodeSpec(
+        session_id=session_id,
+        node="ssc",
+        kind="ssc",
+        rate_hz=cfg.ssc.rate_hz,
+        heartbeat_limit_cycles=cfg.ssc.heartbeat_limit_cycles,
+        workers=workers,
+        robots=list(task.robots),
+        startup_timeout_s=cfg.session.startup_timeout_s,
+        shutdown_timeout_s=cfg.session.shutdown_timeout_s,
+        sched_policy=cfg.scheduling.policy,
+        lock_memory=cfg.scheduling.lock_memory,
+        manager_priority=prio.get("manager", 20),
+        cpus=list(cfg.ssc.cpus),
+        messages_path=messages_path,
+    )
