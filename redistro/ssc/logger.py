@@ -32,7 +32,7 @@ class SegmentFigures:
     scheme: str
     samples: int = 0
     duration_s: float = 0.0
-    final: dict[str, float] = field(default_factory=dict)
+    final: dict[str, Any] = field(default_factory=dict)
     contact_t_s: float | None = None
     force_n: int = 0
     force_sum: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
@@ -115,6 +115,8 @@ class SscLogger(Worker):
             fig.final = {
                 "position_m": round(float(np.linalg.norm(e[:3])), 6),
                 "orientation_rad": round(float(np.linalg.norm(e[3:])), 6),
+                "position_xyz_m": [round(float(v), 6) for v in e[:3]],
+                "orientation_xyz_rad": [round(float(v), 6) for v in e[3:]],
             }
             if plan.scheme == "force" and pl["contact"]:
                 if fig.contact_t_s is None:

@@ -57,6 +57,7 @@ class RobotState:
     start_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
     start_p: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
     start_R: np.ndarray[Any, Any] = field(default_factory=lambda: np.eye(3))
+    short_move: bool = False  # the goal is where the segment starts (within 2 mm)
     goal_p: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
     goal_rot: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
 
@@ -205,7 +206,17 @@ class SscWorker(Worker):
                     plan.selection if plan.scheme == "force" else np.zeros(6),
                     "tool" if plan.frame == "tool" else "world",
                 )
+                carried = st.hybrid.integral.copy() if st.hybrid is not None else None
                 st.hybrid = start_state(st.cmd, kin)
+                if carried is not None:
+                    # the same robot stays under Cartesian control: keep what
+                    # the integral learned (a fresh one would let the pose sag
+                    # back to its uncompensated error at every segment start)
+                    st.hybrid.integral = carried
+                st.short_move = bool(
+                    np.linalg.norm(st.cmd.goal_p - kin.p) < 0.002
+                    and np.linalg.norm(matrix_to_rotvec(st.cmd.goal_R @ kin.R.T)) < 0.01
+                )
             else:
                 st.hybrid = None
                 goal = st.model.kinematics(plan.q_goal)
@@ -315,7 +326,7 @@ class SscWorker(Worker):
             st.start_q,
             seg_t,
             dt,
-            integrate=seg_t >= plan.move_s,
+            integrate=st.short_move or seg_t >= plan.move_s,
         )
         pl["tcp_xyz_m"] = kin.p
         pl["tcp_rot_xyz"] = matrix_to_rotvec(kin.R)

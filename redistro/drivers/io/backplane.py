@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from redistro.drivers.io.registers import BANKS, BoardType
-from redistro.errors import IOFault
+from redistro.errors import IOFault, TornReadTimeout
 
 
 class Backplane(ABC):
@@ -141,10 +141,22 @@ class ShmPort(BoardPort):
             a: np.zeros((), BANKS[t][1]) for a, t in zip(bank.addresses, bank.types, strict=True)
         }
         self._rec_bytes = {a: _bytes(r) for a, r in self._recs.items()}
+        self._scratch = {a: np.zeros((), r.dtype) for a, r in self._recs.items()}
+        self._scratch_bytes = {a: _bytes(r) for a, r in self._scratch.items()}
         self._published: dict[int, tuple[np.ndarray[Any, Any], memoryview]] = {}
+        self.torn_outputs = 0  # steps that kept a board's previous outputs
 
     def outputs(self, address: int) -> np.ndarray[Any, Any]:
-        self._out[address].read_into(self._rec_bytes[address])
+        """The latest consistent outputs. A writer held off inside its write
+        (preempted on a loaded host) leaves no consistent copy for a while:
+        the board then keeps its previous outputs for this step, as a real
+        board keeps its registers until the next complete write."""
+        try:
+            self._out[address].read_into(self._scratch_bytes[address])
+        except TornReadTimeout:
+            self.torn_outputs += 1
+            return self._recs[address]
+        self._rec_bytes[address][:] = self._scratch_bytes[address]
         return self._recs[address]
 
     def publish(self, address: int, record: np.ndarray[Any, Any]) -> None:
