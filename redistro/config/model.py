@@ -168,13 +168,13 @@ class ImpedanceConfig:
     """
 
     k: list[float] = field(
-        default_factory=lambda: _six(300, 300, 300, 3, 3, 3), metadata={"len": 6, "ge": 0}
+        default_factory=lambda: _six(300, 300, 300, 8, 8, 8), metadata={"len": 6, "ge": 0}
     )
     d: list[float] = field(
-        default_factory=lambda: _six(10, 10, 10, 0.03, 0.03, 0.03), metadata={"len": 6, "ge": 0}
+        default_factory=lambda: _six(10, 10, 10, 0.05, 0.05, 0.05), metadata={"len": 6, "ge": 0}
     )
     ki: list[float] = field(
-        default_factory=lambda: _six(300, 300, 300, 10, 10, 10), metadata={"len": 6, "ge": 0}
+        default_factory=lambda: _six(300, 300, 300, 20, 20, 20), metadata={"len": 6, "ge": 0}
     )
     i_max: list[float] = field(
         default_factory=lambda: _six(10, 10, 10, 2, 2, 2), metadata={"len": 6, "ge": 0}
