@@ -39,6 +39,25 @@ def esc_segments(task: Task, robot: str, hw: RobotHardware) -> list[dict[str, An
     ]
 
 
+def worker_specs(
+    cfg: Config, roles: tuple[tuple[str, int], ...], params: dict[str, Any]
+) -> list[WorkerSpec]:
+    """One WorkerSpec per (role, stage), at the role's configured priority; an
+    off-cycle worker (negative stage: the ddm) runs on its own timer at ddm.rate_hz."""
+    prio = cfg.scheduling.priorities
+    return [
+        WorkerSpec(
+            name=role,
+            role=role,
+            stage=stage,
+            priority=prio.get(role, 16),
+            params=params,
+            rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
+        )
+        for role, stage in roles
+    ]
+
+
 def task_seconds(task: Task) -> float:
     """How long the task's motion lasts [s] (for time budgets and progress)."""
     if task.kind == "self_calibration":
@@ -72,17 +91,7 @@ def esc_spec(
     if strategy:
         params["commands"] = "ssc"
     prio = cfg.scheduling.priorities
-    workers = [
-        WorkerSpec(
-            name=role,
-            role=role,
-            stage=stage,
-            priority=prio.get(role, 16),
-            params=params,
-            rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
-        )
-        for role, stage in (ESC_STRATEGY_WORKERS if strategy else ESC_WORKERS)
-    ]
+    workers = worker_specs(cfg, ESC_STRATEGY_WORKERS if strategy else ESC_WORKERS, params)
     return NodeSpec(
         session_id=session_id,
         node=f"esc.{robot}",

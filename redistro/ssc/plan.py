@@ -9,7 +9,8 @@ import numpy as np
 
 from redistro.config.model import Config
 from redistro.config.task import MoveSegment, Task
-from redistro.process.spec import NodeSpec, WorkerSpec
+from redistro.esc.plan import worker_specs
+from redistro.process.spec import NodeSpec
 
 SCHEMES = {"hold": 0, "joint": 1, "position": 2, "force": 3}
 # Within an SSC cycle: the worker computes the commands, then the logger records them.
@@ -82,17 +83,7 @@ def ssc_spec(
         "run_dir": run_dir,
     }
     prio = cfg.scheduling.priorities
-    workers = [
-        WorkerSpec(
-            name=role,
-            role=role,
-            stage=stage,
-            priority=prio.get(role, 16),
-            params=params,
-            rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
-        )
-        for role, stage in SSC_WORKERS
-    ]
+    workers = worker_specs(cfg, SSC_WORKERS, params)
     return NodeSpec(
         session_id=session_id,
         node="ssc",

@@ -7,6 +7,7 @@ import pytest
 
 from redistro.control.cartesian import (
     ForceParams,
+    HybridState,
     ImpedanceGains,
     TaskFrameCommand,
     applied_wrench_task,
@@ -17,7 +18,7 @@ from redistro.control.cartesian import (
     slerp,
     start_state,
 )
-from redistro.control.dynamics import ArmModel
+from redistro.control.dynamics import ArmModel, Kinematics
 from redistro.robotmodel import Peg
 
 Q0 = np.array([0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0])
@@ -26,6 +27,37 @@ Q0 = np.array([0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0])
 @pytest.fixture(scope="module")
 def arm() -> ArmModel:
     return ArmModel(Peg(0.02, 0.1, 0.1), [0.0, -0.45, 0.0])
+
+
+def _step(
+    st: HybridState,
+    cmd: TaskFrameCommand,
+    kin: Kinematics,
+    g: np.ndarray,
+    p_ref: np.ndarray,
+    wrench: np.ndarray | None = None,
+    t_s: float = 0.0,
+    fp: ForceParams | None = None,
+) -> np.ndarray:
+    """One update at rest at Q0, reference orientation = the current one."""
+    tau, _ = hybrid_update(
+        _gains(),
+        fp or ForceParams(),
+        st,
+        cmd,
+        kin,
+        Q0,
+        np.zeros(7),
+        g,
+        p_ref,
+        kin.R,
+        np.zeros(6),
+        np.zeros(6) if wrench is None else wrench,
+        Q0,
+        t_s,
+        0.005,
+    )
+    return tau
 
 
 def _gains() -> ImpedanceGains:
@@ -75,44 +107,11 @@ def test_impedance_on_target_is_gravity_only_and_pulls_toward_the_goal(arm: ArmM
     cmd = TaskFrameCommand(np.concatenate([kin.p, matrix_to_rotvec(kin.R)]))
     g = arm.gravity(Q0)
     st = start_state(cmd, kin)
-    args = (np.zeros(6), Q0, 0.0, 0.005)
-    tau, _ = hybrid_update(
-        _gains(),
-        ForceParams(),
-        st,
-        cmd,
-        kin,
-        Q0,
-        np.zeros(7),
-        g,
-        kin.p,
-        kin.R,
-        args[0],
-        np.zeros(6),
-        args[1],
-        args[2],
-        args[3],
-    )
+    tau = _step(st, cmd, kin, g, kin.p)
     assert np.allclose(tau, g)
     # a reference 1 cm above: the torque is J^T of an upward force of 3 N
     up = kin.p + np.array([0, 0, 0.01])
-    tau, _ = hybrid_update(
-        _gains(),
-        ForceParams(),
-        st,
-        cmd,
-        kin,
-        Q0,
-        np.zeros(7),
-        g,
-        up,
-        kin.R,
-        np.zeros(6),
-        np.zeros(6),
-        Q0,
-        0.0,
-        0.005,
-    )
+    tau = _step(st, cmd, kin, g, up)
     assert np.allclose(tau - g, kin.J[:3].T @ np.array([0, 0, 3.0]), atol=1e-9)
 
 
@@ -129,23 +128,7 @@ def test_a_force_axis_moves_its_reference_until_contact_then_feeds_the_goal(
     st = start_state(cmd, kin)
     g = arm.gravity(Q0)
     for _ in range(100):  # free space: the reference goes down at v_max
-        hybrid_update(
-            _gains(),
-            fp,
-            st,
-            cmd,
-            kin,
-            Q0,
-            np.zeros(7),
-            g,
-            kin.p,
-            kin.R,
-            np.zeros(6),
-            np.zeros(6),
-            Q0,
-            0.0,
-            0.005,
-        )
+        _step(st, cmd, kin, g, kin.p, fp=fp)
     assert np.isclose(st.xi[2], -0.01 * 0.5) and not st.contact and st.ramp == 0.0
     assert np.allclose(st.xi[:2], 0.0)  # position axes do not move
     # contact: the environment pushes up 10 N on the tool (sensor axes)
@@ -154,21 +137,5 @@ def test_a_force_axis_moves_its_reference_until_contact_then_feeds_the_goal(
     applied = applied_wrench_task(ext_sensor, kin, np.eye(3))
     assert np.allclose(applied[:3], [0, 0, -10.0])
     for _ in range(30):
-        hybrid_update(
-            _gains(),
-            fp,
-            st,
-            cmd,
-            kin,
-            Q0,
-            np.zeros(7),
-            g,
-            kin.p,
-            kin.R,
-            np.zeros(6),
-            ext_sensor,
-            Q0,
-            1.0,
-            0.005,
-        )
+        _step(st, cmd, kin, g, kin.p, ext_sensor, 1.0, fp)
     assert st.contact and st.contact_t_s == 1.0 and st.ramp == 1.0
