@@ -101,6 +101,26 @@ def _parser() -> argparse.ArgumentParser:
     se.add_argument("task", help="task file, e.g. tasks/self_calibration.yaml")
     se.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
 
+    no = sub.add_parser(
+        "node", help="one node of a strategy task, alone (nodes may run on different hosts)"
+    )
+    nsub = no.add_subparsers(dest="node_kind", required=True, parser_class=_Parser)
+    ne = nsub.add_parser(
+        "esc", help="the ESC of one robot, beside a running plant", parents=[common]
+    )
+    ne.add_argument("robot", help="the robot, e.g. r2")
+    ne.add_argument("task", help="strategy task file, e.g. tasks/peg_insertion.yaml")
+    ne.add_argument("--plant", required=True, help="session id of the running plant")
+    ns = nsub.add_parser("ssc", help="the SSC of the robot group", parents=[common])
+    ns.add_argument("task", help="strategy task file, e.g. tasks/peg_insertion.yaml")
+    for q in (ne, ns):
+        q.add_argument(
+            "--link",
+            default="redistro",
+            help="id the group's nodes meet on (ports not set in config derive from it)",
+        )
+        q.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
+
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
     return p
 
@@ -144,6 +164,21 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         config, overrides = _config_args(args)
         return run_session(
             cfg, args.task, config_path=config, overrides=overrides, out_dir=args.out
+        )
+    if args.command == "node":
+        from redistro.node import run_node
+
+        config, overrides = _config_args(args)
+        return run_node(
+            cfg,
+            args.node_kind,
+            args.task,
+            robot=getattr(args, "robot", ""),
+            plant_session=getattr(args, "plant", ""),
+            link=args.link,
+            config_path=config,
+            overrides=overrides,
+            out_dir=args.out,
         )
     if args.command == "bench" and args.bench == "cycle":
         return _bench_cycle(args, cfg)
@@ -297,6 +332,7 @@ def _plant(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
     from redistro.config.hardware import load_hardware
+    from redistro.decision import plant_overrides
     from redistro.ipc import session
     from redistro.plant.launch import PlantProcess
 
@@ -309,7 +345,9 @@ def _plant(args: argparse.Namespace, cfg: Any) -> int:
     with session.Session.create() as s:
         print(f"session {s.id}", flush=True)
         run_dir = Path(cfg.session.runs_dir) / s.id
-        plant = PlantProcess.start(s, run_dir, config=config, overrides=overrides, gui=args.gui)
+        plant = PlantProcess.start(
+            s, run_dir, config=config, overrides=plant_overrides(cfg, overrides), gui=args.gui
+        )
         try:
             end = time.monotonic() + args.seconds if args.seconds else None
             while plant.proc.poll() is None and (end is None or time.monotonic() < end):

@@ -234,9 +234,10 @@ class DdmConfig:
     connect_timeout_s: how long a node waits for its peer's first record.
     listen_host: where an ESC's ddm listens (socket transport).
     esc_hosts, esc_ports: per robot, where the SSC finds that ESC's ddm;
-        port 0: derived from the session id (one host only).
+        port 0: derived from the session id, or from the link id of nodes
+        started alone (``redistro node --link``).
     group, port: the reflective network's multicast group and UDP port
-        (0: derived from the session id); peers: host:port of nodes on other
+        (0: derived like the ESC ports); peers: host:port of nodes on other
         hosts that also get every write.
     """
 

@@ -41,6 +41,7 @@ class ReflectiveTransport(Transport):
         session_id: str,
         node: str,
         *,
+        link: str = "",
         group: str = DEFAULT_GROUP,
         port: int = 0,
         peers: list[tuple[str, int]] | None = None,
@@ -48,7 +49,7 @@ class ReflectiveTransport(Transport):
     ) -> None:
         self.node = node
         self.source = node.encode()[:16].ljust(16, b"\0")
-        self.group = (group, port or group_port(session_id))
+        self.group = (group, port or group_port(link or session_id))
         self.peers = list(peers or [])
         self.card = Card.create(card_key(session_id, node), KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)

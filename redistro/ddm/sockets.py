@@ -2,8 +2,11 @@
 
 An ESC ddm *listens* (``listen=(host, port)``) and takes one peer, the SSC
 ddm (a new connection replaces the old one: the SSC may reconnect); the SSC
-ddm *connects* to one ESC per robot (``peers={robot: (host, port)}``).
-Records are fixed size, so the stream is cut into whole records by length.
+ddm *connects* to one ESC per robot (``peers={robot: (host, port)}``),
+without blocking: the connections are made in ``receive`` (each ESC may
+start after the SSC, on another host), retried every 50 ms until
+``connect_timeout_s``; a record for a robot not yet connected is dropped
+and counted. Records are fixed size, so the stream is cut into whole records by length.
 Sockets are non-blocking after connect, with TCP_NODELAY; a record that
 finds the send buffer full is dropped and counted (the peer is not reading).
 """
@@ -11,8 +14,12 @@ finds the send buffer full is dropped and counted (the peer is not reading).
 from __future__ import annotations
 
 import contextlib
+import errno
+import os
+import select
 import socket
 import time
+from dataclasses import dataclass
 
 from redistro.ddm.record import SIZE
 from redistro.ddm.transport import Transport
@@ -30,6 +37,20 @@ class _Link:
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self.sock.close()
+
+
+RETRY_S = 0.05
+
+
+@dataclass
+class _Pending:
+    """A connection to a peer not made yet."""
+
+    addr: tuple[str, int]
+    name: str
+    sock: socket.socket | None = None
+    next_try: float = 0.0
+    error: str = "no answer"
 
 
 class SocketTransport(Transport):
@@ -53,10 +74,18 @@ class SocketTransport(Transport):
             srv.listen(4)
             srv.setblocking(False)
             self.server = srv
-        for robot, addr in (peers or {}).items():
-            self.links[robot] = _Link(
-                self._connect(addr, connect_timeout_s), f"{addr[0]}:{addr[1]}"
-            )
+        self.pending: dict[int, _Pending] = {}
+        self.dropped_unconnected = 0
+        self.deadline = time.monotonic() + connect_timeout_s
+        for robot, (host, port) in (peers or {}).items():
+            name = f"{host}:{port}"
+            try:
+                info = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_STREAM)
+            except OSError as exc:
+                raise TransportError(f"cannot connect to {name}: {exc.strerror or exc}") from None
+            addr = info[0][4]
+            self.pending[robot] = _Pending((str(addr[0]), int(addr[1])), name)
+        self._progress()
 
     @property
     def address(self) -> tuple[str, int]:
@@ -65,20 +94,40 @@ class SocketTransport(Transport):
         host, port = self.server.getsockname()[:2]
         return str(host), int(port)
 
-    @staticmethod
-    def _connect(addr: tuple[str, int], timeout_s: float) -> socket.socket:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                return socket.create_connection(
-                    addr, timeout=max(0.05, deadline - time.monotonic())
-                )
-            except OSError as exc:
-                if time.monotonic() > deadline:
-                    raise TransportError(
-                        f"cannot connect to {addr[0]}:{addr[1]}: {exc.strerror or exc}"
-                    ) from None
-                time.sleep(0.05)  # the peer's ddm may not listen yet (retry to the deadline)
+    def connected(self) -> bool:
+        """Every peer connected (a listening transport: its peer has connected)."""
+        if self.server is not None:
+            self._accept()
+            return self.peer is not None
+        self._progress()
+        return not self.pending
+
+    def _progress(self) -> None:
+        """Advance the connections not made yet; past the deadline, fail."""
+        now = time.monotonic()
+        for robot, p in list(self.pending.items()):
+            if p.sock is None and now >= p.next_try:
+                sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                sock.setblocking(False)
+                err = sock.connect_ex(p.addr)
+                if err in (0, errno.EINPROGRESS, errno.EALREADY, errno.EWOULDBLOCK):
+                    p.sock = sock
+                else:
+                    sock.close()
+                    p.error, p.next_try = os.strerror(err), now + RETRY_S
+            if p.sock is not None:
+                _, writable, _ = select.select([], [p.sock], [], 0)
+                if writable:
+                    err = p.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+                    if err == 0:
+                        self.links[robot] = _Link(p.sock, p.name)
+                        del self.pending[robot]
+                        continue
+                    p.sock.close()
+                    p.sock = None
+                    p.error, p.next_try = os.strerror(err), now + RETRY_S
+            if now > self.deadline:
+                raise TransportError(f"cannot connect to {p.name}: {p.error}")
 
     def _accept(self) -> None:
         assert self.server is not None
@@ -94,7 +143,9 @@ class SocketTransport(Transport):
     def send(self, record: bytes, robot: int) -> None:
         link = self.peer if self.server is not None else self.links.get(robot)
         if link is None:
-            return  # no peer yet (the server side before the SSC connects)
+            if self.server is None:
+                self.dropped_unconnected += 1
+            return  # no peer yet (the SSC not connected, or this robot's ESC not yet)
         try:
             sent = link.sock.send(record)
         except BlockingIOError:
@@ -110,6 +161,8 @@ class SocketTransport(Transport):
             self._accept()
             links = [self.peer] if self.peer is not None else []
         else:
+            if self.pending:
+                self._progress()
             links = list(self.links.values())
         out: list[bytes] = []
         for link in links:
@@ -133,6 +186,10 @@ class SocketTransport(Transport):
     def close(self) -> None:
         for link in self.links.values():
             link.close()
+        for p in self.pending.values():
+            if p.sock is not None:
+                with contextlib.suppress(OSError):
+                    p.sock.close()
         if self.peer is not None:
             self.peer.close()
         if self.server is not None:

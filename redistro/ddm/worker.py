@@ -34,18 +34,30 @@ from redistro.errors import TransportError, WireError
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, COUNTER, EXCHANGE, FEEDBACK, MANAGER
+from redistro.process.spec import NodeSpec
 from redistro.process.stats import Samples
 from redistro.process.worker import Worker
 
 
-def esc_port(cfg: Config, session_id: str, robot: str) -> int:
-    """Where the ESC of ``robot`` listens: from config, else derived from the session id."""
+def esc_port(cfg: Config, link: str, robot: str) -> int:
+    """Where the ESC of ``robot`` listens: from config, else derived from the link id."""
     port = cfg.ddm.esc_ports.get(robot, 0)
-    return port or 41000 + zlib.crc32(f"{session_id}/{robot}".encode()) % 19000
+    return port or 41000 + zlib.crc32(f"{link}/{robot}".encode()) % 19000
 
 
-def open_transport(cfg: Config, session_id: str, node: str, kind: str, robots: list[str]) -> Any:
-    """The transport ``ddm.transport`` names, set up for this node's side."""
+def link_id(spec: NodeSpec) -> str:
+    """What the nodes of one robot group meet on (derived ports): the session
+    id in a session; the ``link`` param of nodes started alone."""
+    params = spec.workers[0].params if spec.workers else {}
+    return str(params.get("link") or spec.session_id)
+
+
+def open_transport(
+    cfg: Config, session_id: str, link: str, node: str, kind: str, robots: list[str]
+) -> Any:
+    """The transport ``ddm.transport`` names, set up for this node's side.
+    session_id names this node's own objects (its memory card); link derives
+    the ports the nodes meet on."""
     cls = transport_class(cfg.ddm.transport)
     index = list(cfg.robots)
     if cfg.ddm.transport == "reflective":
@@ -56,17 +68,18 @@ def open_transport(cfg: Config, session_id: str, node: str, kind: str, robots: l
         return cls(
             session_id,
             node,
+            link=link,
             group=cfg.ddm.group,
             port=cfg.ddm.port,
             peers=peers,
             manifest=Manifest.for_session(session_id),
         )
     if kind == "esc":
-        return cls(listen=(cfg.ddm.listen_host, esc_port(cfg, session_id, robots[0])))
-    timeout = min(cfg.ddm.connect_timeout_s, 0.8 * cfg.session.startup_timeout_s)
+        return cls(listen=(cfg.ddm.listen_host, esc_port(cfg, link, robots[0])))
+    timeout = cfg.ddm.connect_timeout_s  # connects while running: an ESC may start later
     return cls(
         peers={
-            index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, session_id, r))
+            index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, link, r))
             for r in robots
         },
         connect_timeout_s=timeout,
@@ -107,8 +120,14 @@ class Ddm(Worker):
         self.latency = Samples()
         self.estop_sent = False
         self.lost = False
+        self.dirty = True  # exchange records not yet published
         self.transport: Transport = open_transport(
-            self.cfg, self.spec.session_id, self.spec.node, self.kind, self.robots
+            self.cfg,
+            self.spec.session_id,
+            link_id(self.spec),
+            self.spec.node,
+            self.kind,
+            self.robots,
         )
 
     # -- one tick --
@@ -129,10 +148,13 @@ class Ddm(Worker):
                 ex["link_lost"] = 1
                 ex["fresh"] = 0
             self.post(f"{exc}; no more exchange", logging.ERROR)
-        self._publish()
+            self.dirty = True
+        if self.dirty:  # most ticks (1 kHz beside 200 Hz nodes) carry nothing
+            self._publish()
 
     def _receive(self) -> None:
         for raw in self.transport.receive():
+            self.dirty = True
             try:
                 d = wire.decode(raw)
             except WireError:
@@ -199,10 +221,12 @@ class Ddm(Worker):
         )
         self.transport.send(data, robot)
         self.ex[i]["sent"] += 1
+        self.dirty = True
 
     def _publish(self) -> None:
         for block, ex in zip(self.exchange_blocks, self.ex, strict=True):
             block.publish(ex.bytes)
+        self.dirty = False
 
     def cleanup(self) -> None:
         with contextlib.suppress(Exception):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from redistro.esc.common import EscContext
+from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
 from redistro.localdata.layout import FEEDBACK, HOME, SETPOINT
 from redistro.process.worker import Worker
@@ -20,7 +20,7 @@ from redistro.process.worker import Worker
 class Acquisition(Worker):
     def initialize(self) -> None:
         ctx = EscContext.load(self.params)
-        self.driver = ctx.driver(self.spec.session_id)
+        self.driver = ctx.driver(plant_session(self.spec))
         self.driver.open(owner=False)  # the manager froze the robot before we existed
         ld = self.ld
         self.feedback_block = ld.writer("feedback", 0, role="acquisition")

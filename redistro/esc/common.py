@@ -9,6 +9,7 @@ from redistro.config import Config, load_config
 from redistro.config.hardware import RobotHardware, load_hardware
 from redistro.drivers.io.backplane import open_backplane
 from redistro.drivers.robot import RobotDriver
+from redistro.process.spec import NodeSpec
 
 
 @dataclass
@@ -25,7 +26,8 @@ class EscContext:
         return cls(cfg, robot, load_hardware(cfg)[robot])
 
     def driver(self, session_id: str) -> RobotDriver:
-        """A robot-level driver over its own backplane connection (not yet opened)."""
+        """A robot-level driver over its own backplane connection (not yet opened)
+        to the plant of ``session_id``."""
         c = self.cfg.plant.can
         bp = open_backplane(
             self.cfg.plant.backplane,
@@ -36,3 +38,10 @@ class EscContext:
             port=c.port,
         )
         return RobotDriver(self.hw, bp, self.cfg.plant.physics_hz)
+
+
+def plant_session(spec: NodeSpec) -> str:
+    """The session whose plant the node drives: its own, or the one named in
+    the params (a node started alone beside a plant of another session)."""
+    params = spec.workers[0].params if spec.workers else {}
+    return str(params.get("plant_session") or spec.session_id)

@@ -22,7 +22,7 @@ import numpy as np
 from redistro.drivers import positions
 from redistro.drivers.robot import RobotDriver
 from redistro.errors import NodeFault
-from redistro.esc.common import EscContext
+from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Block, Record
 from redistro.localdata.layout import COMMAND, COUNTER, GUARD, SETPOINT, SessionStatus
 from redistro.process.manager import Manager
@@ -70,7 +70,7 @@ class EscManager(Manager):
         self.setpoint_block = self.blocks["setpoint"]
         self.guard = Record(GUARD)
         self.sp = Record(SETPOINT)
-        driver = self.ctx.driver(self.spec.session_id)
+        driver = self.ctx.driver(plant_session(self.spec))
         driver.open()  # checks the chassis, then freezes: brakes on, DAC zero
         self.driver = driver
         self._freeze("start")

@@ -76,7 +76,12 @@ def esc_spec(
     overrides: list[str],
     positions_file: str,
     messages_path: str = "",
+    link: str = "",
+    plant_session: str = "",
 ) -> NodeSpec:
+    """link, plant_session: for a node started alone (``redistro node``): the
+    id its DDM meets the other nodes on, and the session whose plant it drives
+    (default: its own session for both)."""
     settle = task.calibration.settle_s if task.kind == "self_calibration" else task.settle_s
     params: dict[str, Any] = {
         "robot": robot,
@@ -86,6 +91,8 @@ def esc_spec(
         "calibrates": task.kind == "self_calibration",
         "segments": esc_segments(task, robot, hw),
         "settle_s": settle,
+        "link": link,
+        "plant_session": plant_session,
     }
     strategy = task.kind == "strategy"
     if strategy:

@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from redistro.esc.common import EscContext
+from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
 from redistro.localdata.layout import (
     COMMAND,
@@ -121,7 +121,7 @@ class Sender(Worker):
         self.tau_max = np.asarray(lim.tau_max_nm, dtype=np.float64)
         self.force_max = lim.force_max_n
         self.moment_max = lim.moment_max_nm
-        self.driver = ctx.driver(self.spec.session_id)
+        self.driver = ctx.driver(plant_session(self.spec))
         self.driver.open(owner=False)  # the manager froze the robot before we existed
         ld = self.ld
         self.guard_block = ld.writer("guard", 0, role="sender")

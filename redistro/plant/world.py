@@ -223,13 +223,12 @@ class World:
 
     def joint_states(self, arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q [rad], qd [rad/s], applied joint torque [N m] (motor or brake)."""
-        states = [
-            JointState(*s)
-            for s in self.pb.getJointStates(arm.body, arm.joints, physicsClientId=self.client)
-        ]
-        q = np.array([s.position for s in states])
-        qd = np.array([s.velocity for s in states])
-        tau = np.array([s.applied_torque for s in states])
+        states = self.pb.getJointStates(arm.body, arm.joints, physicsClientId=self.client)
+        # JointState's order: position, velocity, reaction, applied torque
+        # (indexed, not unpacked: the plant does this every step)
+        q = np.array([s[0] for s in states])
+        qd = np.array([s[1] for s in states])
+        tau = np.array([s[3] for s in states])
         return q, qd, tau
 
     def sensor_frame(self, arm: Arm) -> tuple[np.ndarray, np.ndarray]:
@@ -266,20 +265,24 @@ class World:
         their moment about the sensor origin (N m)."""
         if origin is None:
             origin, _ = self.sensor_frame(arm)
-        f_total = np.zeros(3)
-        m_total = np.zeros(3)
-        for c in self.pb.getContactPoints(
+        contacts = self.pb.getContactPoints(
             bodyA=arm.body, linkIndexA=arm.tool_link, physicsClientId=self.client
-        ):
-            cp = ContactPoint(*c)
-            # the normal force acts on A along the normal on B; the friction
-            # directions are reported for B (measured: see the wrist test)
-            f = cp.normal_force * np.asarray(cp.normal_on_b)
-            f -= cp.friction1 * np.asarray(cp.friction_dir1)
-            f -= cp.friction2 * np.asarray(cp.friction_dir2)
-            f_total += f
-            m_total += _cross(np.asarray(cp.position_on_a) - origin, f)
-        return np.concatenate([f_total, m_total])
+        )
+        if not contacts:
+            return np.zeros(6)
+        cps = [ContactPoint(*c) for c in contacts]
+        # the normal force acts on A along the normal on B; the friction
+        # directions are reported for B (measured: see the wrist test)
+        normal = np.array([c.normal_force for c in cps])[:, None]
+        fric1 = np.array([c.friction1 for c in cps])[:, None]
+        fric2 = np.array([c.friction2 for c in cps])[:, None]
+        f = (
+            normal * np.array([c.normal_on_b for c in cps])
+            - fric1 * np.array([c.friction_dir1 for c in cps])
+            - fric2 * np.array([c.friction_dir2 for c in cps])
+        )
+        r = np.array([c.position_on_a for c in cps]) - origin
+        return np.concatenate([f.sum(axis=0), np.cross(r, f).sum(axis=0)])
 
     # -- actuation --
 

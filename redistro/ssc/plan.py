@@ -75,12 +75,15 @@ def ssc_spec(
     overrides: list[str],
     run_dir: str,
     messages_path: str = "",
+    link: str = "",
 ) -> NodeSpec:
+    """link: the id the DDMs meet on, for a node started alone (default: the session id)."""
     params: dict[str, Any] = {
         "config": config_path,
         "overrides": list(overrides),
         "task": task.source,
         "run_dir": run_dir,
+        "link": link,
     }
     prio = cfg.scheduling.priorities
     workers = worker_specs(cfg, SSC_WORKERS, params)

@@ -31,23 +31,6 @@ HOLE_DEPTH = load_config(ROOT / "config/redistro.yaml").plant.hole.depth_m
 LIMIT = load_config(ROOT / "config/redistro.yaml").ddm.starving_limit_cycles
 
 
-@pytest.fixture(scope="module")
-def calibrated(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A runs folder whose positions files are known (a short self-calibration)."""
-    runs = tmp_path_factory.mktemp("calibrated") / "runs"
-    done = run_cli(
-        "--set",
-        f"session.runs_dir={runs}",
-        "session",
-        "tasks/self_calibration_short.yaml",
-        "--out",
-        str(runs.parent / "cal"),
-        timeout=240,
-    )
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    return runs
-
-
 def _runs(calibrated: Path, tmp_path: Path) -> Path:
     """A private copy of the calibrated runs folder (positions and the arms' pose)."""
     runs = tmp_path / "runs"

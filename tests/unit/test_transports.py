@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Callable, Iterator
 
@@ -21,6 +22,10 @@ def _socket_pair() -> Pair:
     cls = transport_class("socket")
     esc = cls(listen=("127.0.0.1", 0))
     ssc = cls(peers={0: esc.address})
+    deadline = time.monotonic() + 5
+    while not (ssc.connected() and esc.connected()):  # type: ignore[attr-defined]
+        assert time.monotonic() < deadline, "no connection within 5 s"
+        time.sleep(0.001)  # polling a non-blocking connect, to a deadline
     return ssc, esc
 
 
@@ -119,5 +124,37 @@ def test_socket_link_loss_is_reported() -> None:
 
 def test_socket_connect_to_nobody_fails_clearly() -> None:
     cls = transport_class("socket")
-    with pytest.raises(TransportError, match=r"cannot connect to 127\.0\.0\.1:9"):
-        cls(peers={0: ("127.0.0.1", 9)}, connect_timeout_s=0.2)
+    t = cls(peers={0: ("127.0.0.1", 9)}, connect_timeout_s=0.2)
+    try:
+        t.send(_command(1), 0)  # not connected: dropped and counted, no error
+        assert t.dropped_unconnected == 1  # type: ignore[attr-defined]
+        with pytest.raises(TransportError, match=r"cannot connect to 127\.0\.0\.1:9: .*refused"):
+            deadline = time.monotonic() + 2
+            while time.monotonic() < deadline:
+                t.receive()
+                time.sleep(0.001)  # polling a non-blocking connect, to a deadline
+    finally:
+        t.close()
+
+
+def test_socket_connects_to_a_peer_that_starts_later() -> None:
+    cls = transport_class("socket")
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # a free port, nobody listening yet
+    ssc = cls(peers={0: ("127.0.0.1", port)}, connect_timeout_s=5)
+    esc = None
+    try:
+        assert not ssc.connected()  # type: ignore[attr-defined]
+        esc = cls(listen=("127.0.0.1", port))
+        deadline = time.monotonic() + 5
+        while not ssc.connected():  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline
+            time.sleep(0.001)  # polling a non-blocking connect, to a deadline
+        ssc.send(_command(1), 0)
+        assert len(_collect(esc, 1)) == 1
+    finally:
+        ssc.close()
+        if esc is not None:
+            esc.close()

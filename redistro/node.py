@@ -1,0 +1,154 @@
+"""``redistro node``: one node of a strategy task, started alone.
+
+The nodes of a robot group need not share a host: an ESC runs beside the
+plant (it drives the plant's boards), the SSC anywhere its DDM reaches the
+ESCs' DDMs (socket transport: ``ddm.esc_hosts``/``ddm.esc_ports``;
+reflective: ``ddm.peers``). Nodes started alone meet on a *link id*
+(``--link``): the ports no config names are derived from it, as a session
+derives them from its session id. Each node has its own session (its own
+Local Data, run folder and summary) and no global clock: the SSC's worker
+waits for every robot's first feedback (the start-up datum), the ESCs wait
+for the first command (frozen until then, ``starving`` if none comes within
+``ddm.connect_timeout_s``).
+
+    redistro plant                                     # prints its session id
+    redistro node esc r2 tasks/peg_insertion.yaml --plant SID --link L
+    redistro node esc r1 tasks/peg_insertion.yaml --plant SID --link L
+    redistro node ssc tasks/peg_insertion.yaml --link L
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from redistro.config.hardware import load_hardware
+from redistro.config.model import Config
+from redistro.config.task import load_task
+from redistro.decision import _Progress, budget_s, build_summary, positions_file
+from redistro.drivers import positions
+from redistro.errors import ConfigError, IPCError, LayoutError, RedistroError
+from redistro.esc.plan import esc_spec
+from redistro.ipc import session as ipc_session
+from redistro.process.owner import run_nodes, write_json
+from redistro.ssc.plan import ssc_spec
+
+DEFAULT_LINK = "redistro"
+
+
+def run_node(
+    cfg: Config,
+    kind: str,
+    task_path: str,
+    *,
+    robot: str = "",
+    plant_session: str = "",
+    link: str = DEFAULT_LINK,
+    config_path: str | None,
+    overrides: list[str],
+    out_dir: str | None = None,
+    say: Callable[[str], None] | None = None,
+) -> int:
+    """Run one node (``esc`` of ``robot`` beside the plant of ``plant_session``,
+    or ``ssc``) of a strategy task to its end; exit code 0 when it ends ok."""
+    say = say or (lambda text: print(text, flush=True))
+    task = load_task(task_path, cfg)
+    if task.kind != "strategy":
+        raise ConfigError(f"{task_path}: a node runs alone only in a strategy task (kind strategy)")
+    hardware = load_hardware(cfg)
+    if not link:
+        raise ConfigError("--link: expected a non-empty id")
+    if kind == "esc":
+        if robot not in task.robots:
+            raise ConfigError(
+                f"robot {robot!r}: not in the task's robots ({', '.join(task.robots)})"
+            )
+        if not plant_session:
+            raise ConfigError("--plant: the session id of a running plant is needed")
+        _check_plant(plant_session)
+        try:
+            positions.read(positions_file(cfg, robot), [robot])
+        except positions.PositionsUnknown as exc:
+            raise RedistroError(
+                f"motion refused: {exc}; run tasks/self_calibration.yaml first"
+            ) from None
+    for name in ipc_session.reap():
+        print(f"reaped {name} (left by a dead session)", file=sys.stderr)
+    started = time.time()
+    with ipc_session.Session.create() as s:
+        run_dir = Path(out_dir) if out_dir else Path(cfg.session.runs_dir) / s.id
+        run_dir.mkdir(parents=True, exist_ok=True)
+        messages = str(run_dir / "messages.log")
+        if kind == "esc":
+            spec = esc_spec(
+                cfg,
+                task,
+                robot,
+                hardware[robot],
+                s.id,
+                config_path=config_path,
+                overrides=overrides,
+                positions_file=str(positions_file(cfg, robot)),
+                messages_path=messages,
+                link=link,
+                plant_session=plant_session,
+            )
+            where = f"plant of session {plant_session}"
+        else:
+            spec = ssc_spec(
+                cfg,
+                task,
+                s.id,
+                config_path=config_path,
+                overrides=overrides,
+                run_dir=str(run_dir),
+                messages_path=messages,
+                link=link,
+            )
+            where = f"robots {', '.join(task.robots)}"
+        say(f"session {s.id}")
+        say(
+            f"node {spec.node} of task {task.task} ({where}); link {link!r}; "
+            f"ddm {cfg.ddm.transport} at {cfg.ddm.rate_hz:g} Hz; run folder {run_dir}"
+        )
+        progress = _Progress(s.id, [spec], say)
+        progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
+        try:
+            # the node waits for its peers (datum, first command) within its
+            # connect timeout; then the task runs on the boards' clock
+            results = run_nodes(
+                [spec], s, budget_s=budget_s(task) + cfg.ddm.connect_timeout_s, on_wait=progress
+            )
+        finally:
+            progress.close()
+    summary = build_summary(task, results, {}, started, time.time(), run_dir)
+    summary["node"] = spec.node
+    summary["link"] = link
+    summary.pop("plant", None)  # the plant is another process (maybe another host)
+    if kind == "esc":
+        summary["plant_session"] = plant_session
+        for key in ("segments", "insertion_depth_m", "hole_depth_m", "inserted"):
+            summary.pop(key, None)  # the SSC's figures
+        src = positions_file(cfg, robot)
+        if src.exists():
+            (run_dir / f"positions.{robot}.json").write_bytes(src.read_bytes())
+    write_json(run_dir / "summary.json", summary)
+    for r in results:
+        say(f"{r.get('node')}: {r.get('result')} {r.get('reason', '')}".rstrip())
+    say(f"result: {summary['result']}" + (f" ({summary['reason']})" if summary["reason"] else ""))
+    say(f"wrote {run_dir / 'summary.json'}")
+    return 0 if summary["result"] == "ok" else 1
+
+
+def _check_plant(session_id: str) -> None:
+    from redistro.drivers.io.bank import RegisterBank
+
+    try:
+        bank = RegisterBank.attach(session_id)
+    except (IPCError, LayoutError, OSError, ValueError) as exc:
+        raise ConfigError(
+            f"--plant {session_id}: no running plant of that session ({exc})"
+        ) from None
+    bank.close()
