@@ -24,18 +24,23 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 install: $(VENV)/.installed
 install-test: $(VENV)/.installed-test
 
-# Debian packages the tests need: rt-tests gives cyclictest, the timer baseline.
+# Debian packages the tests need: rt-tests gives cyclictest, the timer
+# baseline; iproute2 gives ip, for the two-namespace node test (run as root).
 system-deps:
-	@if ! command -v cyclictest >/dev/null 2>&1; then \
+	@PKGS=; \
+	command -v cyclictest >/dev/null 2>&1 || PKGS="$$PKGS rt-tests"; \
+	command -v ip >/dev/null 2>&1 || PKGS="$$PKGS iproute2"; \
+	if [ -n "$$PKGS" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
-	  echo "installing rt-tests (cyclictest) with apt-get"; \
+	  echo "installing$$PKGS with apt-get"; \
 	  $$SUDO apt-get update -qq && \
-	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq rt-tests >/dev/null; \
+	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$PKGS >/dev/null; \
 	fi
 
-# The main job (until the peg-insertion session exists): self-calibration of both arms.
+# The main job: the peg insertion (a self-calibration runs first when the
+# joint positions are unknown, as on a fresh machine).
 run: install
-	$(BIN)/redistro session tasks/self_calibration.yaml
+	$(BIN)/redistro session tasks/peg_insertion.yaml
 
 test: install-test system-deps
 	$(BIN)/ruff check .

@@ -161,7 +161,11 @@ class ImpedanceConfig:
     host can hold a node off for 20-35 ms; with these gains the peg insertion
     stays stable with 30 ms of constant delay in simulation.
 
-    k: stiffness [N/m, N m/rad]; d: damping [N s/m, N m s/rad]; ki: integral
+    k: stiffness [N/m, N m/rad]; d: damping [N s/m, N m s/rad] (the
+    translational part only when zeta is 0); zeta: damping ratio of the
+    translation along each direction of the arm's own inertia (0: the fixed
+    d instead; the TCP's inertia differs tenfold between directions, and a
+    fixed d left the heavy one ringing at 1-2 Hz with zeta 0.15); ki: integral
     gain [N/(m s), N m/(rad s)]; i_max: bound on the integral force [N, N m];
     k_null: posture stiffness in the Jacobian's null space [N m/rad] (7);
     d_joint: joint damping [N m s/rad] (7).
@@ -179,6 +183,7 @@ class ImpedanceConfig:
     i_max: list[float] = field(
         default_factory=lambda: _six(10, 10, 10, 2, 2, 2), metadata={"len": 6, "ge": 0}
     )
+    zeta: float = field(default=0.5, metadata={"ge": 0, "le": 2})
     k_null: list[float] = field(
         default_factory=lambda: _seven(10, 10, 10, 10, 1, 1, 0.5), metadata={"len": 7, "ge": 0}
     )
@@ -191,13 +196,16 @@ class ImpedanceConfig:
 class ForceControlConfig:
     """Force-controlled axes: admittance k_adm [m/(N s)] and k_adm_rot
     [rad/(N m s)] move the reference; v_max [m/s] and w_max [rad/s] bound its
-    speed (the approach speed in free space); contact_n: force that means
-    contact [N]; ramp_s: time to feed the goal wrench in after contact [s]."""
+    speed (the approach speed in free space), a_max [m/s^2] and alpha_max
+    [rad/s^2] its acceleration; contact_n: force that means contact [N];
+    ramp_s: time to feed the goal wrench in after contact [s]."""
 
     k_adm: float = field(default=0.002, metadata={"gt": 0, "le": 1})
     k_adm_rot: float = field(default=0.05, metadata={"gt": 0, "le": 10})
     v_max: float = field(default=0.01, metadata={"gt": 0, "le": 0.2})
     w_max: float = field(default=0.05, metadata={"gt": 0, "le": 1})
+    a_max: float = field(default=0.02, metadata={"gt": 0, "le": 10})
+    alpha_max: float = field(default=0.1, metadata={"gt": 0, "le": 100})
     contact_n: float = field(default=3.0, metadata={"gt": 0, "le": 100})
     ramp_s: float = field(default=0.1, metadata={"gt": 0, "le": 10})
 

@@ -29,7 +29,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from redistro.control.dynamics import Kinematics
+from redistro.control.dynamics import Kinematics, TaskInertia
 
 F64 = np.ndarray[Any, np.dtype[np.float64]]
 
@@ -127,18 +127,24 @@ class ImpedanceGains:
     i_max: F64
     k_null: F64
     d_joint: F64
+    zeta: float = 0.0
 
 
 @dataclass(frozen=True)
 class ForceParams:
     """k_adm: admittance [m/(N s)] and [rad/(N m s)]; v_max [m/s], w_max [rad/s]:
-    bounds on the reference's speed on force axes; contact_n: force that
-    means contact [N]; ramp_s: time to feed the goal wrench in after contact."""
+    bounds on the reference's speed on force axes; a_max [m/s^2], alpha_max
+    [rad/s^2]: bounds on its acceleration (a reference that jumps to full
+    speed jolts the arm sideways, and the peg misses a hole with 0.5 mm of
+    clearance); contact_n: force that means contact [N]; ramp_s: time to
+    feed the goal wrench in after contact."""
 
     k_adm: float = 0.002
     k_adm_rot: float = 0.05
     v_max: float = 0.01
     w_max: float = 0.05
+    a_max: float = 0.02
+    alpha_max: float = 0.1
     contact_n: float = 3.0
     ramp_s: float = 0.1
 
@@ -149,6 +155,8 @@ class HybridState:
 
     R_task: F64 = field(default_factory=lambda: np.eye(3))  # world from task axes
     xi: F64 = field(default_factory=lambda: np.zeros(6))  # force axes' reference offset (task)
+    xi_v: F64 = field(default_factory=lambda: np.zeros(6))  # its rate of change (task axes)
+    a_ref: F64 = field(default_factory=lambda: np.zeros(6))
     integral: F64 = field(default_factory=lambda: np.zeros(6))
     contact: bool = False
     contact_t_s: float = 0.0  # time in the segment when contact was first felt
@@ -179,6 +187,23 @@ def applied_wrench_task(wrench_sensor: F64, kin: Kinematics, R_task: F64) -> F64
     return np.concatenate([R_task.T @ applied[:3], R_task.T @ applied[3:]])
 
 
+def damping_matrix(lam: F64, k: F64, zeta: float) -> F64:
+    """Translational damping with the damping ratio ``zeta`` along every
+    direction of the arm's own inertia ``lam`` (3x3, [kg]) under the
+    stiffness ``k`` (3, [N/m]): D = 2 zeta L^1/2 (L^-1/2 K L^-1/2)^1/2 L^1/2,
+    L^1/2 the symmetric square root of lam. A fixed D cannot do this: the
+    TCP's inertia differs tenfold between directions, and a D that damps the
+    heavy direction well goes unstable under loop delay in the light one."""
+    w, v = np.linalg.eigh(lam)
+    w = np.maximum(w, 1e-9)
+    half = (v * np.sqrt(w)) @ v.T
+    inv_half = (v / np.sqrt(w)) @ v.T
+    a_w, a_v = np.linalg.eigh(inv_half @ np.diag(k) @ inv_half)
+    a_half = (a_v * np.sqrt(np.maximum(a_w, 0.0))) @ a_v.T
+    out: F64 = 2.0 * zeta * (half @ a_half @ half)
+    return out
+
+
 def hybrid_update(
     gains: ImpedanceGains,
     force: ForceParams,
@@ -196,12 +221,21 @@ def hybrid_update(
     t_s: float,
     dt_s: float,
     integrate: bool = True,
+    a_ref: F64 | None = None,
+    inertia: TaskInertia | None = None,
 ) -> tuple[F64, F64]:
     """Joint torques [N m] for one cycle, and the applied wrench in task axes.
 
     p_ref, R_ref, v_ref: the position-controlled reference at this time
     (world; v_ref = linear and angular velocity); integrate: let the integral
-    act (off while the reference moves: tracking lag must not wind it up).
+    act (off while the reference moves: tracking lag must not wind it up);
+    a_ref: the position reference's acceleration (world, linear and angular);
+    inertia: the arm's task-space inertia at q (``ArmModel.task_inertia``):
+    with it the law adds the inertia feedforward of the reference's
+    acceleration, damps the translation with the ratio ``gains.zeta`` (when
+    not 0) and projects the posture torque with the dynamically consistent
+    projector; without it, none of these, the fixed damping ``gains.d`` and
+    the pseudo-inverse projector.
     Updates ``state``.
     """
     s = np.asarray(cmd.selection_vector, dtype=np.float64)
@@ -215,15 +249,19 @@ def hybrid_update(
         if state.contact:
             state.ramp = min(1.0, state.ramp + dt_s / max(force.ramp_s, 1e-9))
         err = goal_w - applied
-        step = np.concatenate(
+        want = np.concatenate(
             [
                 np.clip(force.k_adm * err[:3], -force.v_max, force.v_max),
                 np.clip(force.k_adm_rot * err[3:], -force.w_max, force.w_max),
             ]
         )
+        dv = np.array([force.a_max] * 3 + [force.alpha_max] * 3) * dt_s
+        before_v = state.xi_v.copy()
+        state.xi_v = s * (state.xi_v + np.clip(want - state.xi_v, -dv, dv))
+        state.a_ref = (state.xi_v - before_v) / max(dt_s, 1e-9)
         # the reference offset is kept in the task frame, relative to the pose
         # reference: on a force axis the tool goes where the force says
-        state.xi += s * step * dt_s
+        state.xi += state.xi_v * dt_s
     # reference pose: position axes from the trajectory, force axes offset by xi
     p_task = Rt.T @ p_ref
     p_task = np.where(s[:3] > 0, p_task + state.xi[:3], p_task)
@@ -238,12 +276,26 @@ def hybrid_update(
     i_lim = np.divide(gains.i_max, gains.ki, out=np.zeros(6), where=gains.ki > 0)
     if integrate:
         state.integral = np.clip(state.integral + e * dt_s * pos_mask, -i_lim, i_lim)
-    F = gains.k * e + gains.d * (v_goal - v) + gains.ki * state.integral
+    dv = v_goal - v
+    damping = gains.d * dv
+    if inertia is not None and gains.zeta > 0:
+        damping[:3] = damping_matrix(inertia.lam_lin, gains.k[:3], gains.zeta) @ dv[:3]
+    F = gains.k * e + damping + gains.ki * state.integral
     F += _rot6(Rt, s * state.ramp * goal_w)
+    if inertia is not None:
+        # inertia feedforward: the force that gives the reference's own
+        # acceleration (trajectory on position axes, admittance on force
+        # axes) through the arm's task-space inertia; without it the arm's
+        # coupling turns a descent along z into a sideways error
+        a_task = _rot6(Rt.T, a_ref) * (1.0 - s) if a_ref is not None else np.zeros(6)
+        F += inertia.lam @ _rot6(Rt, a_task + s * state.a_ref)
     J = kin.J
     # null space of J^T: posture stiffness without disturbing the TCP
-    JJt = J @ J.T + 1e-4 * np.eye(6)
-    pinvT = np.linalg.solve(JJt, J)  # (J^+)^T = (J J^T)^-1 J
-    N = np.eye(7) - J.T @ pinvT
+    if inertia is not None:
+        N = inertia.null
+    else:
+        JJt = J @ J.T + 1e-4 * np.eye(6)
+        pinvT = np.linalg.solve(JJt, J)  # (J^+)^T = (J J^T)^-1 J
+        N = np.eye(7) - J.T @ pinvT
     tau: F64 = J.T @ F + gravity_nm + N @ (gains.k_null * (q_null - q)) - gains.d_joint * qd
     return tau, applied

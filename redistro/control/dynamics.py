@@ -29,6 +29,22 @@ class Kinematics:
     sensor_p: F64
 
 
+@dataclass(frozen=True)
+class TaskInertia:
+    """The arm's inertia as the TCP feels it, at one joint position.
+
+    lam: Lambda = (J M^-1 J^T)^-1, 6x6 [kg, kg m^2]; lam_lin: the
+    translational inertia with the rotation free, (J_lin M^-1 J_lin^T)^-1,
+    3x3 [kg]; null: the dynamically consistent null-space projector
+    I - J^T (M^-1 J^T Lambda)^T (7x7): posture torques through it do not
+    move the TCP.
+    """
+
+    lam: F64
+    lam_lin: F64
+    null: F64
+
+
 class ArmModel:
     """Gravity torques and TCP kinematics of one arm (its tool included).
 
@@ -58,6 +74,20 @@ class ArmModel:
         """g(q): joint torques [N m] that hold the arm still against gravity."""
         out: F64 = self._pin.computeGeneralizedGravity(self.model, self.data, q).copy()
         return out
+
+    def task_inertia(self, q: F64, J: F64) -> TaskInertia:
+        """The TCP's task-space inertia at q (regularized near singularities)
+        and the dynamically consistent null-space projector."""
+        upper = self._pin.crba(self.model, self.data, q)
+        M = np.triu(upper) + np.triu(upper, 1).T  # crba fills the upper triangle
+        MinvJt = np.linalg.solve(M, J.T)
+        A = J @ MinvJt
+        lam = np.asarray(np.linalg.inv(A + 1e-6 * np.eye(6)), dtype=np.float64)
+        lam_lin = np.asarray(np.linalg.inv(A[:3, :3] + 1e-6 * np.eye(3)), dtype=np.float64)
+        # N = I - J^T Jbar^T, Jbar = M^-1 J^T Lambda: a torque N t0 gives the
+        # TCP no acceleration at all (J M^-1 N t0 = 0)
+        null = np.eye(J.shape[1]) - J.T @ (lam @ MinvJt.T)
+        return TaskInertia(lam=lam, lam_lin=lam_lin, null=null)
 
     def kinematics(self, q: F64) -> Kinematics:
         """TCP pose and Jacobian at ``q`` (world frame)."""

@@ -67,6 +67,7 @@ class SocketTransport(Transport):
         self.links: dict[int, _Link] = {}  # robot -> link (client side)
         self.peer: _Link | None = None  # the one peer (server side)
         self.dropped_full = 0
+        self.lost: str | None = None  # why a link was lost (raised by the next receive)
         if listen is not None:
             srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -157,6 +158,12 @@ class SocketTransport(Transport):
             raise TransportError(f"link to {link.name}: short send ({sent} of {len(record)})")
 
     def receive(self) -> list[bytes]:
+        """Every whole record that arrived. A link that failed or was closed
+        still delivers what came before the end (the last record a peer sends
+        before it closes is often its e-stop); the loss is raised by the next
+        call."""
+        if self.lost is not None:
+            raise TransportError(self.lost)
         if self.server is not None:
             self._accept()
             links = [self.peer] if self.peer is not None else []
@@ -172,15 +179,17 @@ class SocketTransport(Transport):
                 except BlockingIOError:
                     break
                 except OSError as exc:
-                    raise TransportError(
-                        f"link to {link.name} lost: {exc.strerror or exc}"
-                    ) from None
+                    self.lost = f"link to {link.name} lost: {exc.strerror or exc}"
+                    break
                 if not chunk:
-                    raise TransportError(f"link to {link.name} lost: closed by the peer")
+                    self.lost = f"link to {link.name} lost: closed by the peer"
+                    break
                 link.buf += chunk
             n = len(link.buf) // SIZE
             out += [bytes(link.buf[i * SIZE : (i + 1) * SIZE]) for i in range(n)]
             del link.buf[: n * SIZE]
+        if self.lost is not None and not out:
+            raise TransportError(self.lost)
         return out
 
     def close(self) -> None:

@@ -83,6 +83,7 @@ class SscWorker(Worker):
             i_max=f64(imp.i_max),
             k_null=f64(imp.k_null),
             d_joint=f64(imp.d_joint),
+            zeta=imp.zeta,
         )
         fc = cfg.ssc.force
         self.force = ForceParams(
@@ -90,6 +91,8 @@ class SscWorker(Worker):
             k_adm_rot=fc.k_adm_rot,
             v_max=fc.v_max,
             w_max=fc.w_max,
+            a_max=fc.a_max,
+            alpha_max=fc.alpha_max,
             contact_n=fc.contact_n,
             ramp_s=fc.ramp_s,
         )
@@ -302,14 +305,17 @@ class SscWorker(Worker):
             return tau, q_ref
         assert st.cmd is not None and st.hybrid is not None
         kin = st.model.kinematics(q)
-        p_ref, v_ref, _ = quintic(st.start_p, st.cmd.goal_p, plan.move_s, seg_t)
+        p_ref, v_ref, a_lin = quintic(st.start_p, st.cmd.goal_p, plan.move_s, seg_t)
         s = min(max(seg_t / plan.move_s, 0.0), 1.0)
         blend = 10 * s**3 - 15 * s**4 + 6 * s**5
         R_ref = slerp(st.start_R, st.cmd.goal_R, blend)
         # angular reference speed: the rotation's axis times the blend's rate
         axis = matrix_to_rotvec(st.cmd.goal_R @ st.start_R.T)
         sd = (30 * s**2 - 60 * s**3 + 30 * s**4) / plan.move_s if s < 1.0 else 0.0
+        sdd = (60 * s - 180 * s**2 + 120 * s**3) / plan.move_s**2 if s < 1.0 else 0.0
         v6 = np.concatenate([v_ref, axis * sd])
+        a6 = np.concatenate([a_lin, axis * sdd])
+        inertia = st.model.task_inertia(q, kin.J)
         tau, applied = hybrid_update(
             self.gains,
             self.force,
@@ -326,7 +332,12 @@ class SscWorker(Worker):
             st.start_q,
             seg_t,
             dt,
-            integrate=st.short_move or seg_t >= plan.move_s,
+            # the integral learns in free space, once the reference stands
+            # still, and is held in force segments: in contact a wall takes
+            # whatever it pushes, and a wound-up integral jams the peg
+            integrate=plan.scheme == "position" and (st.short_move or seg_t >= plan.move_s),
+            a_ref=a6,
+            inertia=inertia,
         )
         pl["tcp_xyz_m"] = kin.p
         pl["tcp_rot_xyz"] = matrix_to_rotvec(kin.R)

@@ -21,9 +21,8 @@ from tests.helpers import (
     start_cli,
 )
 
-# Whole sessions with three nodes and three 1 kHz ddms: on a 2-vCPU host the
-# real-time load starves the (non-real-time) simulated plant for 100 ms at
-# times, and the sessions end on an I/O timeout; run with `make test-peg`.
+# Whole sessions with three nodes and three 1 kHz ddms (1-2 minutes each);
+# `make test-peg` runs only these.
 pytestmark = pytest.mark.peg
 
 SHORT = "tasks/peg_insertion_short.yaml"
@@ -50,7 +49,9 @@ def _check_peg(summary: dict[str, Any]) -> None:
     ins = segs["insertion"]
     assert ins["force_rms_error_n"] is not None and ins["force_rms_error_n"] <= 3.0, ins
     assert ins["force_mean_error_n"] is not None and ins["force_samples"] > 100
-    assert segs["pullback"]["force_rms_error_n"] is not None
+    # pulling straight out may touch no wall at all (then no figure: no contact)
+    pull = segs["pullback"]
+    assert pull["force_rms_error_n"] is None or pull["force_rms_error_n"] <= 3.0, pull
     for s in summary["segments"]:
         assert s["duration_s"] > 0 and s["final_pose_error"] is not None, s
     for node in ("esc.r1", "esc.r2"):

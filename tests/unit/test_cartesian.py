@@ -124,12 +124,18 @@ def test_a_force_axis_moves_its_reference_until_contact_then_feeds_the_goal(
         np.array([0, 0, -20.0, 0, 0, 0]),
         np.array([0, 0, 1.0, 0, 0, 0]),
     )
-    fp = ForceParams(k_adm=0.002, v_max=0.01, contact_n=3.0, ramp_s=0.1)
+    fp = ForceParams(k_adm=0.002, v_max=0.01, a_max=0.02, contact_n=3.0, ramp_s=0.1)
     st = start_state(cmd, kin)
     g = arm.gravity(Q0)
-    for _ in range(100):  # free space: the reference goes down at v_max
+    for _ in range(50):  # free space: the reference speeds up at a_max...
         _step(st, cmd, kin, g, kin.p, fp=fp)
-    assert np.isclose(st.xi[2], -0.01 * 0.5) and not st.contact and st.ramp == 0.0
+    assert np.isclose(st.xi_v[2], -0.02 * 0.25) and np.isclose(st.a_ref[2], -0.02)
+    assert np.isclose(st.xi[2], -0.5 * 0.02 * 0.25**2, rtol=0.05)
+    for _ in range(150):  # ...to v_max, then goes down at v_max
+        _step(st, cmd, kin, g, kin.p, fp=fp)
+    assert np.isclose(st.xi_v[2], -0.01) and st.a_ref[2] == 0.0
+    assert np.isclose(st.xi[2], -(0.0025 + 0.01 * 0.5), rtol=0.02)
+    assert not st.contact and st.ramp == 0.0
     assert np.allclose(st.xi[:2], 0.0)  # position axes do not move
     # contact: the environment pushes up 10 N on the tool (sensor axes)
     ext_world = np.array([0, 0, 10.0, 0, 0, 0])
@@ -139,3 +145,34 @@ def test_a_force_axis_moves_its_reference_until_contact_then_feeds_the_goal(
     for _ in range(30):
         _step(st, cmd, kin, g, kin.p, ext_sensor, 1.0, fp)
     assert st.contact and st.contact_t_s == 1.0 and st.ramp == 1.0
+
+
+def test_the_inertia_feedforward_gives_the_reference_acceleration(arm: ArmModel) -> None:
+    kin = arm.kinematics(Q0)
+    inertia = arm.task_inertia(Q0, kin.J)
+    lam = inertia.lam
+    assert np.allclose(lam, lam.T, atol=1e-9) and np.all(np.linalg.eigvalsh(lam) > 0)
+    cmd = TaskFrameCommand(np.concatenate([kin.p, matrix_to_rotvec(kin.R)]))
+    g = arm.gravity(Q0)
+    a6 = np.array([0.0, 0.3, -0.2, 0.0, 0.0, 0.1])
+    common = (_gains(), ForceParams(), start_state(cmd, kin), cmd, kin, Q0, np.zeros(7), g)
+    rest = (kin.p, kin.R, np.zeros(6), np.zeros(6), Q0, 0.0, 0.005)
+    tau, _ = hybrid_update(*common, *rest, a_ref=a6, inertia=inertia)
+    # at rest on target: gravity plus J^T Lambda a, and M^-1 of it accelerates the TCP by a
+    assert np.allclose(tau - g, kin.J.T @ lam @ a6, atol=1e-9)
+    import pinocchio as pin
+
+    upper = pin.crba(arm.model, arm.data, Q0)
+    M = np.triu(upper) + np.triu(upper, 1).T
+    assert np.allclose(kin.J @ np.linalg.solve(M, tau - g), a6, atol=1e-4)
+    # a posture torque through the projector does not accelerate the TCP
+    # (away from the home pose, where joints 1, 3, 5 and 7 line up)
+    q = np.array([0.3, 0.6, -0.2, -1.1, 0.4, 0.9, 0.2])
+    J = arm.kinematics(q).J
+    upper = pin.crba(arm.model, arm.data, q)
+    M = np.triu(upper) + np.triu(upper, 1).T
+    null = arm.task_inertia(q, J).null
+    t0 = np.array([1.0, -2.0, 0.5, 3.0, -1.0, 0.2, 0.7])
+    assert np.abs(null @ t0).max() > 0.1  # it passes some torque (the null space)...
+    assert np.abs(J @ np.linalg.solve(M, t0)).max() > 1.0  # unprojected, it would
+    assert np.allclose(J @ np.linalg.solve(M, null @ t0), 0.0, atol=1e-4)  # ...not to the TCP

@@ -122,6 +122,23 @@ def test_socket_link_loss_is_reported() -> None:
         esc.close()
 
 
+def test_records_sent_just_before_a_close_are_delivered_then_the_loss() -> None:
+    ssc, esc = _socket_pair()
+    try:
+        esc.send(_feedback(1), 0)
+        esc.send(_feedback(2), 0)
+        esc.close()  # the last records and the end arrive together
+        got: list[bytes] = []
+        deadline = time.monotonic() + 2
+        with pytest.raises(TransportError, match="closed by the peer"):
+            while time.monotonic() < deadline:
+                got += ssc.receive()
+                time.sleep(0.001)  # polling a non-blocking receive, to a deadline
+        assert [decode(r).seq for r in got] == [1, 2]
+    finally:
+        ssc.close()
+
+
 def test_socket_connect_to_nobody_fails_clearly() -> None:
     cls = transport_class("socket")
     t = cls(peers={0: ("127.0.0.1", 9)}, connect_timeout_s=0.2)
