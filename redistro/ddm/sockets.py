@@ -68,6 +68,7 @@ class SocketTransport(Transport):
         self.peer: _Link | None = None  # the one peer (server side)
         self.dropped_full = 0
         self.lost: str | None = None  # why a link was lost (raised by the next receive)
+        self.lost_robots: dict[int, str] = {}  # connecting side: robot -> why its link was lost
         if listen is not None:
             srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -144,50 +145,62 @@ class SocketTransport(Transport):
     def send(self, record: bytes, robot: int) -> None:
         link = self.peer if self.server is not None else self.links.get(robot)
         if link is None:
-            if self.server is None:
+            if self.server is None and robot not in self.lost_robots:
                 self.dropped_unconnected += 1
-            return  # no peer yet (the SSC not connected, or this robot's ESC not yet)
+            return  # no peer (the SSC not connected, this robot's ESC not yet, or lost)
         try:
             sent = link.sock.send(record)
         except BlockingIOError:
             self.dropped_full += 1
             return
-        except OSError as exc:
-            raise TransportError(f"link to {link.name} lost: {exc.strerror or exc}") from None
+        except OSError:
+            return  # the loss shows in the next receive (with what came before it)
         if sent != len(record):  # a partial record would desynchronise the stream
             raise TransportError(f"link to {link.name}: short send ({sent} of {len(record)})")
 
     def receive(self) -> list[bytes]:
         """Every whole record that arrived. A link that failed or was closed
         still delivers what came before the end (the last record a peer sends
-        before it closes is often its e-stop); the loss is raised by the next
-        call."""
+        before it closes is often its e-stop). The listening side has one
+        peer: its loss is raised (by the next call when records came with
+        it). The connecting side loses one robot's link at a time
+        (``lost_robots``) and goes on with the others; it raises when every
+        link is lost."""
         if self.lost is not None:
             raise TransportError(self.lost)
         if self.server is not None:
             self._accept()
-            links = [self.peer] if self.peer is not None else []
+            links = {0: self.peer} if self.peer is not None else {}
         else:
             if self.pending:
                 self._progress()
-            links = list(self.links.values())
+            links = dict(self.links)
         out: list[bytes] = []
-        for link in links:
+        for robot, link in links.items():
+            why = None
             while True:
                 try:
                     chunk = link.sock.recv(65536)
                 except BlockingIOError:
                     break
                 except OSError as exc:
-                    self.lost = f"link to {link.name} lost: {exc.strerror or exc}"
+                    why = f"link to {link.name} lost: {exc.strerror or exc}"
                     break
                 if not chunk:
-                    self.lost = f"link to {link.name} lost: closed by the peer"
+                    why = f"link to {link.name} lost: closed by the peer"
                     break
                 link.buf += chunk
             n = len(link.buf) // SIZE
             out += [bytes(link.buf[i * SIZE : (i + 1) * SIZE]) for i in range(n)]
             del link.buf[: n * SIZE]
+            if why is not None:
+                if self.server is not None:
+                    self.lost = why
+                else:
+                    self.links.pop(robot).close()
+                    self.lost_robots[robot] = why
+                    if not self.links and not self.pending:
+                        self.lost = "; ".join(self.lost_robots.values())
         if self.lost is not None and not out:
             raise TransportError(self.lost)
         return out

@@ -140,6 +140,7 @@ class Ddm(Worker):
         try:
             self._receive()
             self._send(estop)
+            self._check_links()
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the
             # managers' starving checks end the session within their limits
@@ -151,6 +152,19 @@ class Ddm(Worker):
             self.dirty = True
         if self.dirty:  # most ticks (1 kHz beside 200 Hz nodes) carry nothing
             self._publish()
+
+    def _check_links(self) -> None:
+        """Robots whose link alone was lost (the SSC's side): their data go
+        stale (the manager's starving check), the others' exchange goes on,
+        the group's e-stop included."""
+        for robot, why in getattr(self.transport, "lost_robots", {}).items():
+            i = self.local.get(robot)
+            if i is None or self.ex[i]["link_lost"]:
+                continue
+            self.ex[i]["link_lost"] = 1
+            self.ex[i]["fresh"] = 0
+            self.dirty = True
+            self.post(f"{why}; {self.robots[i]} no longer exchanged", logging.ERROR)
 
     def _receive(self) -> None:
         for raw in self.transport.receive():

@@ -47,7 +47,9 @@ def run_nodes(
     """Run nodes side by side to their ends; return each manager's result.
 
     The first node that ends with a fault stops the others (one robot's
-    fault stops the group). Ctrl-C/SIGTERM is passed on as an orderly end.
+    fault stops the group): at once, or, when every node has a DDM (which
+    carries the group's e-stop itself), after GROUP_STOP_GRACE_S.
+    Ctrl-C/SIGTERM is passed on as an orderly end.
     budget_s: how long the nodes' routine may last before they are stopped
     (start-up and shutdown time come on top); None: until they end (or their
     ``cycles`` run out). on_wait: called about five times a second while
@@ -162,6 +164,16 @@ class _Node:
             }
 
 
+# How long the other nodes get to end on the group's e-stop (their DDMs carry
+# it in a few milliseconds, their managers act within a cycle) before the
+# owner stops them itself. Nodes without DDMs are stopped at once.
+GROUP_STOP_GRACE_S = 0.25
+
+
+def _has_ddm(spec: NodeSpec) -> bool:
+    return any(w.role == "ddm" for w in spec.workers)
+
+
 def _wait_nodes(
     nodes: list[_Node],
     budget_s: float | None,
@@ -177,8 +189,10 @@ def _wait_nodes(
         deadline = start + margin + max(s.cycles / s.rate_hz for s in specs)
     else:
         deadline = None
+    group_stop: tuple[float, str] | None = None  # (when, why): the fallback stop
     while any(n.status is None for n in nodes):
-        info = signals.wait(OWNER_WAIT, 0.05 if pending and pending.specs else 0.2)
+        busy = (pending is not None and pending.specs) or group_stop is not None
+        info = signals.wait(OWNER_WAIT, 0.02 if busy else 0.2)
         now = time.monotonic()
         if pending is not None and not pending.poll(now):
             log.error("%s", pending.failed)
@@ -189,9 +203,15 @@ def _wait_nodes(
                 pid, status = os.waitpid(n.pid, os.WNOHANG)
                 if pid:
                     n.status = status
-                    if n.result().get("result") != "ok":
-                        for other in nodes:
-                            other.stop(f"a fault in {n.spec.node}", now)
+                    if n.result().get("result") != "ok" and group_stop is None:
+                        # the group's own e-stop (through the DDMs) ends the
+                        # other nodes within a few cycles; stopping them is
+                        # the fallback, after a grace
+                        grace = GROUP_STOP_GRACE_S if all(_has_ddm(o.spec) for o in nodes) else 0.0
+                        group_stop = (now + grace, f"a fault in {n.spec.node}")
+        if group_stop is not None and now >= group_stop[0]:
+            for n in nodes:
+                n.stop(group_stop[1], now)
         if info is not None and info.si_signo in signals.STOP_SIGNALS:
             for n in nodes:
                 n.stop(signal.Signals(info.si_signo).name, now)

@@ -139,6 +139,36 @@ def test_records_sent_just_before_a_close_are_delivered_then_the_loss() -> None:
         ssc.close()
 
 
+def test_one_lost_esc_link_leaves_the_other_robot_exchanging() -> None:
+    cls = transport_class("socket")
+    esc1, esc2 = cls(listen=("127.0.0.1", 0)), cls(listen=("127.0.0.1", 0))
+    ssc = cls(peers={0: esc1.address, 1: esc2.address})
+    try:
+        deadline = time.monotonic() + 5
+        while not (ssc.connected() and esc1.connected() and esc2.connected()):  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline
+            time.sleep(0.001)  # polling a non-blocking connect, to a deadline
+        esc1.close()  # r1's node ends
+        deadline = time.monotonic() + 2
+        while 0 not in ssc.lost_robots:  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline, "the lost link was not noticed"
+            ssc.receive()  # no exception: r2's link is alive
+            time.sleep(0.001)  # polling a non-blocking receive, to a deadline
+        assert "closed by the peer" in ssc.lost_robots[0]  # type: ignore[attr-defined]
+        ssc.send(_command(7), 1)  # the group's e-stop still reaches r2
+        ssc.send(_command(8), 0)  # dropped: r1's link is gone
+        assert [decode(r).seq for r in _collect(esc2, 1)] == [7]
+        esc2.close()
+        with pytest.raises(TransportError, match="lost: closed by the peer"):
+            deadline = time.monotonic() + 2
+            while time.monotonic() < deadline:
+                ssc.receive()
+                time.sleep(0.001)  # polling a non-blocking receive, to a deadline
+    finally:
+        ssc.close()
+        esc2.close()
+
+
 def test_socket_connect_to_nobody_fails_clearly() -> None:
     cls = transport_class("socket")
     t = cls(peers={0: ("127.0.0.1", 9)}, connect_timeout_s=0.2)
