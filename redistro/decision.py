@@ -331,7 +331,7 @@ def _run_task(
 
 # The slowest the simulated plant is expected to run beside a strategy
 # session's nodes [share of real time]: on two vCPUs their real-time load
-# leaves the plant 0.2-0.5 (0.35 over a whole peg insertion, 0.2 in contact).
+# leaves the plant 0.2-0.5 (0.35-0.50 over a whole peg insertion, 0.2 in contact).
 MIN_STRATEGY_RTF = 0.15
 
 
