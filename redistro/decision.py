@@ -68,7 +68,7 @@ def check_positions(cfg: Config, task: Task) -> None:
         raise RedistroError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
 
 
-class _Progress:
+class Progress:
     """Prints, about once a second, where each ESC is in its segments."""
 
     def __init__(self, session_id: str, specs: list[NodeSpec], out: Callable[[str], None]) -> None:
@@ -283,7 +283,7 @@ def _run_task(
                     )
                 else:
                     say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
-                progress = _Progress(s.id, specs + later, say)
+                progress = Progress(s.id, specs + later, say)
                 progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
                 try:
                     results = run_nodes(

@@ -27,8 +27,13 @@ from pathlib import Path
 from redistro.config.hardware import load_hardware
 from redistro.config.model import Config
 from redistro.config.task import load_task
-from redistro.decision import _Progress, budget_s, build_summary, positions_file
-from redistro.drivers import positions
+from redistro.decision import (
+    Progress,
+    budget_s,
+    build_summary,
+    positions_file,
+    unknown_positions,
+)
 from redistro.errors import ConfigError, IPCError, LayoutError, RedistroError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
@@ -68,12 +73,9 @@ def run_node(
         if not plant_session:
             raise ConfigError("--plant: the session id of a running plant is needed")
         _check_plant(plant_session)
-        try:
-            positions.read(positions_file(cfg, robot), [robot])
-        except positions.PositionsUnknown as exc:
-            raise RedistroError(
-                f"motion refused: {exc}; run tasks/self_calibration.yaml first"
-            ) from None
+        why = unknown_positions(cfg, task).get(robot)
+        if why:
+            raise RedistroError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     started = time.time()
@@ -113,7 +115,7 @@ def run_node(
             f"node {spec.node} of task {task.task} ({where}); link {link!r}; "
             f"ddm {cfg.ddm.transport} at {cfg.ddm.rate_hz:g} Hz; run folder {run_dir}"
         )
-        progress = _Progress(s.id, [spec], say)
+        progress = Progress(s.id, [spec], say)
         progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
         try:
             # the node waits for its peers (datum, first command) within its

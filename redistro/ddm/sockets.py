@@ -205,6 +205,9 @@ class SocketTransport(Transport):
             raise TransportError(self.lost)
         return out
 
+    def lost_links(self) -> dict[int, str]:
+        return self.lost_robots
+
     def close(self) -> None:
         for link in self.links.values():
             link.close()

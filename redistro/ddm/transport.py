@@ -25,6 +25,11 @@ class Transport(ABC):
     @abstractmethod
     def close(self) -> None: ...
 
+    def lost_links(self) -> dict[int, str]:
+        """Robots whose own link was lost while the others' still work
+        (robot -> why); a transport without per-robot links has none."""
+        return {}
+
     def __enter__(self) -> Transport:
         return self
 

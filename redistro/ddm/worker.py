@@ -157,7 +157,7 @@ class Ddm(Worker):
         """Robots whose link alone was lost (the SSC's side): their data go
         stale (the manager's starving check), the others' exchange goes on,
         the group's e-stop included."""
-        for robot, why in getattr(self.transport, "lost_robots", {}).items():
+        for robot, why in self.transport.lost_links().items():
             i = self.local.get(robot)
             if i is None or self.ex[i]["link_lost"]:
                 continue

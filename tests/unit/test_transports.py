@@ -150,11 +150,11 @@ def test_one_lost_esc_link_leaves_the_other_robot_exchanging() -> None:
             time.sleep(0.001)  # polling a non-blocking connect, to a deadline
         esc1.close()  # r1's node ends
         deadline = time.monotonic() + 2
-        while 0 not in ssc.lost_robots:  # type: ignore[attr-defined]
+        while 0 not in ssc.lost_links():
             assert time.monotonic() < deadline, "the lost link was not noticed"
             ssc.receive()  # no exception: r2's link is alive
             time.sleep(0.001)  # polling a non-blocking receive, to a deadline
-        assert "closed by the peer" in ssc.lost_robots[0]  # type: ignore[attr-defined]
+        assert "closed by the peer" in ssc.lost_links()[0]
         ssc.send(_command(7), 1)  # the group's e-stop still reaches r2
         ssc.send(_command(8), 0)  # dropped: r1's link is gone
         assert [decode(r).seq for r in _collect(esc2, 1)] == [7]
