@@ -121,6 +121,14 @@ def _parser() -> argparse.ArgumentParser:
         )
         q.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
 
+    fa = sub.add_parser(
+        "faults", help="break a running session on purpose, scenario by scenario", parents=[common]
+    )
+    fa.add_argument("--only", action="append", default=[], metavar="NAME", help="run only NAME")
+    fa.add_argument("--list", action="store_true", help="list the scenarios and stop")
+    fa.add_argument("--json", dest="json_path", default=None, help="write the table as JSON")
+    fa.add_argument("--seed", type=int, default=0, help="seed of the injection moments")
+
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
     return p
 
@@ -180,6 +188,14 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
             overrides=overrides,
             out_dir=args.out,
         )
+    if args.command == "faults":
+        from redistro.faults.cli import run_faults
+
+        config, overrides = _config_args(args)
+        cfg_args = (["--config", config] if config else []) + [
+            a for o in overrides for a in ("--set", o)
+        ]
+        return run_faults(cfg, args.only, args.json_path, args.seed, cfg_args, args.list)
     if args.command == "bench" and args.bench == "cycle":
         return _bench_cycle(args, cfg)
     if args.command == "bench" and args.bench == "ipc":

@@ -415,6 +415,8 @@ def build_summary(
                 for w in r.get("workers", [])
             ],
             "freeze_monotonic_ns": r.get("freeze_monotonic_ns", []),
+            "fault_monotonic_ns": r.get("fault_monotonic_ns"),
+            "fault_cycle": r.get("fault_cycle"),
             "messages": r.get("messages", []),
         }
     summary: dict[str, Any] = {
@@ -472,7 +474,17 @@ def build_summary(
         }
     summary["plant"] = {
         k: plant.get(k)
-        for k in ("state", "error", "steps", "rtf", "late_steps", "skipped_steps", "freezes")
+        for k in (
+            "state",
+            "error",
+            "steps",
+            "rtf",
+            "late_steps",
+            "skipped_steps",
+            "max_step_gap_ms",
+            "torn_outputs",
+            "freezes",
+        )
         if k in plant
     }
     return summary

@@ -74,6 +74,17 @@ def apply(
     return granted
 
 
+def leave_real_time() -> None:
+    """Back to the normal policy (a process whose cycles are over: its clean-up
+    must not hold the simulated plant off the CPUs; the robot is frozen by
+    then)."""
+    try:
+        if os.sched_getscheduler(0) in (os.SCHED_RR, os.SCHED_FIFO):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass  # not permitted: it stays where it is
+
+
 def _mlockall(granted: Granted) -> bool:
     libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
     # MCL_FUTURE under a small RLIMIT_MEMLOCK would make later allocations fail,

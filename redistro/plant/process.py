@@ -147,7 +147,9 @@ def _loop(
     status["state"] = PlantState.RUNNING
     boards = list(chassis.boards)
     late = skipped = 0
+    max_gap_ns = max_gap_at_ns = 0  # the longest the plant went without a step (a stall)
     t0 = time.monotonic_ns()
+    last_step_ns = t0
     next_ns = t0
     stop_set = set(signals.STOP_SIGNALS)
     steps_limit = int(seconds * physics_hz) if seconds > 0 else 0
@@ -179,6 +181,9 @@ def _loop(
         for a in boards:
             port.publish(a, chassis.inp[a])
         now = time.monotonic_ns()
+        if now - last_step_ns > max_gap_ns:
+            max_gap_ns, max_gap_at_ns = now - last_step_ns, last_step_ns
+        last_step_ns = now
         steps = chassis.step_count
         status["step"] = steps
         status["sim_time_ns"] = steps * dt_ns
@@ -210,6 +215,9 @@ def _loop(
         "rtf": round(chassis.step_count * dt_ns / 1e9 / wall, 4) if wall > 0 else 0.0,
         "late_steps": late,
         "skipped_steps": skipped,
+        "max_step_gap_ms": round(max_gap_ns / 1e6, 2),
+        "max_step_gap_monotonic_ns": max_gap_at_ns,
+        "torn_outputs": int(getattr(port, "torn_outputs", 0)),
         "physics_hz": physics_hz,
         "pid": os.getpid(),
         "freezes": freezes,

@@ -392,7 +392,12 @@ class Manager:
     def _fault(self, reason: str, message: str) -> None:
         if self.result["result"] != "ok":
             return  # the first fault is the cause; later ones are consequences
-        self.result.update(result=reason, reason=message, fault_monotonic_ns=time.monotonic_ns())
+        self.result.update(
+            result=reason,
+            reason=message,
+            fault_monotonic_ns=time.monotonic_ns(),
+            fault_cycle=self.cycle,
+        )
         # act first (e-stop for the workers, the ESC freezes its robot), then tell
         if self.block is not None:
             with self.block.write() as d:
@@ -416,6 +421,8 @@ class Manager:
             if self.block is not None:
                 with self.block.write() as d:
                     d["state"] = ProcState.CLEANUP
+            # the robot is frozen (before_end); what is left is bookkeeping
+            sched.leave_real_time()
             self._end_workers()
             try:
                 self.cleanup()

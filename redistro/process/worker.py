@@ -143,6 +143,7 @@ class _Runner:
                 worker.post(reason, logging.WARNING)
             with row.write() as d:
                 d["state"] = ProcState.CLEANUP
+            sched.leave_real_time()
             worker.cleanup()
             return 0
         finally:

@@ -1,0 +1,68 @@
+"""``redistro faults``: run the fault scenarios and print (and write) the table."""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+from typing import Any
+
+from redistro.config.model import Config
+from redistro.errors import ConfigError
+from redistro.faults.catalogue import CATALOGUE, Scenario, by_name
+
+
+def run_faults(
+    cfg: Config,
+    only: list[str],
+    json_path: str | None,
+    seed: int,
+    config_args: list[str],
+    list_only: bool = False,
+) -> int:
+    try:
+        chosen: list[Scenario] = [by_name(n) for n in only] if only else list(CATALOGUE)
+    except KeyError as exc:
+        names = ", ".join(s.name for s in CATALOGUE)
+        raise ConfigError(f"--only {exc.args[0]}: no such scenario (known: {names})") from None
+    if list_only:
+        for s in chosen:
+            print(f"{s.name:28s} expect {'/'.join(s.expect):24s} limit {s.limit}")
+        return 0
+    from redistro.faults.runner import ensure_calibrated, run_scenario
+
+    runs = Path(cfg.session.runs_dir).resolve()
+    ensure_calibrated(runs, config_args, print)
+    rng = random.Random(seed)
+    rows: list[dict[str, Any]] = []
+    for s in chosen:
+        print(f"{s.name}: {s.action} {s.node}/{s.proc}".rstrip("/"), flush=True)
+        row = run_scenario(s, runs, cfg, config_args, rng)
+        rows.append(row)
+        print("  " + _line(row), flush=True)
+    passed = sum(1 for r in rows if r["passed"])
+    print(f"{passed} of {len(rows)} scenarios passed")
+    if json_path:
+        Path(json_path).write_text(json.dumps({"scenarios": rows}, indent=1) + "\n")
+        print(f"wrote {json_path}")
+    return 0 if passed == len(rows) else 1
+
+
+def _line(r: dict[str, Any]) -> str:
+    parts = [
+        "PASS" if r["passed"] else "FAIL",
+        f"got {r['got']} (expected {'/'.join(r['expected'])})",
+    ]
+    if "detection_ms" in r:
+        parts.append(
+            f"detected by {r['detected_by']} in {r['detection_ms']:.1f} ms "
+            f"({r['detection_cycles']:.1f} cycles)"
+        )
+    if "freeze_ms" in r:
+        parts.append(f"frozen {r['freeze_ms']:.1f} ms after")
+    parts.append(f"left: {r['processes_left']} processes, {len(r['ipc_left'])} IPC objects")
+    if r.get("error"):
+        parts.append(f"error: {r['error']}")
+    if r.get("cause"):
+        parts.append(f"cause: {r['cause']}")
+    return "; ".join(parts)
