@@ -36,71 +36,29 @@ class Scenario:
 
 
 def _process_scenarios() -> list[Scenario]:
+    any_fault = ("abnormal", "starving", "estop")
     out: list[Scenario] = []
     for node, procs in (("esc.r2", ESC_PROCS), ("ssc", SSC_PROCS)):
         for proc in procs:
             if proc == "manager":
-                # the owner sees the manager's death; its workers follow it
-                # (parent-death signal), the other nodes stop on the fault
-                out.append(
-                    Scenario(
-                        f"kill-{node}-manager",
-                        node,
-                        proc,
-                        "kill",
-                        ("abnormal",),
-                        f"manager of {node} died",
-                        "death",
-                    )
-                )
-                out.append(
-                    Scenario(
-                        f"stop-{node}-manager",
-                        node,
-                        proc,
-                        "stop",
-                        ("abnormal", "starving", "estop"),
-                        "",
-                        "starving",
-                    )
-                )
+                # a dead or hung manager records nothing: the other nodes see
+                # its robot's data go stale (starving), or the owner its death
+                for action in ("kill", "stop"):
+                    name = f"{action}-{node}-manager"
+                    out.append(Scenario(name, node, proc, action, any_fault, "", "starving"))
                 continue
+            # a dead worker: its manager's pidfd, at once
             out.append(
-                Scenario(
-                    f"kill-{node}-{proc}",
-                    node,
-                    proc,
-                    "kill",
-                    ("abnormal",),
-                    f"worker {proc}",
-                    "death",
-                )
-            )
-            if node == "ssc" and proc == "ddm":
-                # a hung SSC ddm sends nothing: the ESCs starve first
-                out.append(
-                    Scenario(
-                        f"stop-{node}-{proc}",
-                        node,
-                        proc,
-                        "stop",
-                        ("starving", "abnormal"),
-                        "starving index",
-                        "starving",
-                    )
-                )
-            else:
-                out.append(
-                    Scenario(
-                        f"stop-{node}-{proc}",
-                        node,
-                        proc,
-                        "stop",
-                        ("abnormal", "starving", "estop"),
-                        "",
-                        "heartbeat",
-                    )
-                )
+                Scenario(f"kill-{node}-{proc}", node, proc, "kill", ("abnormal",),
+                         f"worker {proc}", "death")
+            )  # fmt: skip
+            # a hung worker: its heartbeat grows old (a hung ddm also starves
+            # the other nodes, later: 40 cycles)
+            out.append(
+                Scenario(f"stop-{node}-{proc}", node, proc, "stop", any_fault, "missed",
+                         "heartbeat")
+            )  # fmt: skip
+    # the plant: the acquisitions see its boards go silent (the I/O timeout)
     out.append(Scenario("kill-plant", "plant", "", "kill", ("abnormal",), "", "io"))
     out.append(Scenario("stop-plant", "plant", "", "stop", ("abnormal",), "", "io"))
     return out

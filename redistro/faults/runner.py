@@ -15,6 +15,7 @@ import contextlib
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -57,15 +58,18 @@ def _session_id(proc: subprocess.Popen[str], deadline: float) -> str:
     """The fault drill's session id, from the CLI's first lines."""
     assert proc.stdout is not None
     last = ""
+    seen: list[str] = []
     while time.monotonic() < deadline:
         line = proc.stdout.readline()
         if not line:
             break
+        seen.append(line.strip())
         if line.startswith("session "):
             last = line.split()[1]
         elif line.startswith("task fault_drill") and last:
             return last
-    raise RedistroError("the fault drill session did not start")
+    said = " | ".join(line for line in seen[-4:] if not line.startswith("["))
+    raise RedistroError(f"the fault drill session did not start: {said}")
 
 
 def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> bool:
@@ -103,6 +107,8 @@ def _target_pid(sid: str, sc: Scenario) -> int:
 
     ld = LocalData.attach(sid, sc.node)
     try:
+        if sc.proc == "manager":
+            return int(ld.block("manager").read()["pid"])
         names = ld.proc_names()
         return int(ld.block("proc", names.index(sc.proc)).read()["pid"])
     finally:
@@ -146,6 +152,7 @@ def run_scenario(
 ) -> dict[str, Any]:
     """Run ``sc`` once; the figures and verdicts as a dict (JSON-ready)."""
     out_dir = runs / "faults" / sc.name
+    shutil.rmtree(out_dir, ignore_errors=True)  # no summary of an earlier run
     row: dict[str, Any] = {"name": sc.name, "target": f"{sc.node}/{sc.proc}".rstrip("/")}
     row.update(action=sc.action, expected=list(sc.expect))
     proc = subprocess.Popen(
