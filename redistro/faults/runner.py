@@ -39,10 +39,18 @@ def _cli(runs: Path, config_args: list[str]) -> list[str]:
 
 def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
     """Known joint positions in ``runs`` (a self-calibration when they are not)."""
-    known = all((runs / "positions" / f"{r}.json").exists() for r in ("r1", "r2"))
-    if known:
+    unknown = []
+    for r in ("r1", "r2"):
+        try:
+            positions.read(runs / "positions" / f"{r}.json", [r])
+        except positions.PositionsUnknown as exc:
+            unknown.append(str(exc))
+    if not unknown:
         return
-    say("joint positions unknown: self-calibration first")
+    # the arms may stand anywhere after a crash, out of reach of the home
+    # switches' sweep: they start from their initial pose (as if put back)
+    (runs / "plant-pose.json").unlink(missing_ok=True)
+    say(f"joint positions unknown ({'; '.join(unknown)}): self-calibration first")
     done = subprocess.run(
         [*_cli(runs, config_args), "session", "tasks/self_calibration.yaml"],
         capture_output=True,
