@@ -22,7 +22,7 @@ from redistro.config.hardware import load_hardware
 from redistro.config.model import Config
 from redistro.config.task import Task, load_task
 from redistro.drivers import positions
-from redistro.errors import IPCError, LayoutError, RedistroError
+from redistro.errors import ConfigError, IPCError, LayoutError
 from redistro.esc.plan import esc_spec, task_seconds
 from redistro.ipc import session as ipc_session
 from redistro.process.manager import iso_time
@@ -65,7 +65,7 @@ def check_positions(cfg: Config, task: Task) -> None:
     if task.kind == "strategy" and task.calibrate_if_needed:
         return
     for why in unknown_positions(cfg, task).values():
-        raise RedistroError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
+        raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
 
 
 class Progress:
@@ -166,6 +166,10 @@ def run_session(
     task = load_task(task_path, cfg)
     load_hardware(cfg)
     check_positions(cfg, task)
+    from redistro.ssc.reach import unreachable_goals
+
+    for problem in unreachable_goals(cfg, task):
+        raise ConfigError(problem)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     if task.kind == "strategy" and task.calibrate_if_needed:
@@ -483,7 +487,9 @@ def build_summary(
             "skipped_steps",
             "max_step_gap_ms",
             "torn_outputs",
+            "bad_frames",
             "freezes",
+            "watchdog_trips",
         )
         if k in plant
     }

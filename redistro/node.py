@@ -34,7 +34,7 @@ from redistro.decision import (
     positions_file,
     unknown_positions,
 )
-from redistro.errors import ConfigError, IPCError, LayoutError, RedistroError
+from redistro.errors import ConfigError, IPCError, LayoutError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
 from redistro.process.owner import run_nodes, write_json
@@ -75,7 +75,7 @@ def run_node(
         _check_plant(plant_session)
         why = unknown_positions(cfg, task).get(robot)
         if why:
-            raise RedistroError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
+            raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     started = time.time()

@@ -97,6 +97,9 @@ class SafetyConfig:
     tau_max_nm: joint torque limits [N m], commanded and measured, shape (7,).
     force_max_n: limit on the wrist force's magnitude [N].
     moment_max_nm: limit on the wrist moment's magnitude [N m].
+    encoder_jump_rad_s: the acquisition's plausibility check: a counter that
+        moved more between two samples than this speed allows is a glitch
+        (an I/O fault), not motion [rad/s].
     """
 
     qd_max_rad_s: list[float] = field(
@@ -108,6 +111,7 @@ class SafetyConfig:
     )
     force_max_n: float = field(default=120.0, metadata={"gt": 0})
     moment_max_nm: float = field(default=15.0, metadata={"gt": 0})
+    encoder_jump_rad_s: float = field(default=20.0, metadata={"gt": 0})
 
 
 @dataclass(frozen=True)
@@ -339,6 +343,10 @@ class PlantConfig:
     physics_hz: physics steps per second, paced to the wall clock.
     io_timeout_ms: bound on every backplane send and receive; a board that has
         not answered (CAN) or not updated (shm) within it is an I/O fault.
+    output_watchdog_ms: the amplifiers' watchdog: a robot whose DAC boards
+        have not been written for this long (their watchdog register has not
+        moved) is put in its safe state by the chassis: every DAC channel at
+        zero, every brake on, until the controller writes again. 0: off.
     encoder_disturbance_rad: per robot, the error of the encoder counters at
         power-on (the arm was moved while powered off) [rad], shape (7,).
     ft_noise_n, ft_noise_nm: standard deviation of the wrist sensor noise.
@@ -353,6 +361,8 @@ class PlantConfig:
     # 500 ms: beside a whole robot group on a 2-vCPU VM the (non-real-time)
     # simulated plant was seen not to step for 250-330 ms at times
     io_timeout_ms: float = field(default=500.0, metadata={"gt": 0, "le": 10000})
+    # 100 ms: 20 cycles at 200 Hz; a sender is seen held off up to ~35 ms
+    output_watchdog_ms: float = field(default=100.0, metadata={"ge": 0, "le": 10000})
     hole: HoleConfig = field(default_factory=HoleConfig)
     peg: PegConfig = field(default_factory=PegConfig)
     encoder_disturbance_rad: dict[str, list[float]] = field(

@@ -129,6 +129,23 @@ class Ddm(Worker):
             self.kind,
             self.robots,
         )
+        self._arm_injections()
+
+    def _arm_injections(self) -> None:
+        """The fault harness's points in this ddm (none in a normal run)."""
+        from redistro.faults import inject
+
+        self.cmd_inj = (
+            inject.injection("ddm.command", self.spec.node) if self.kind == "esc" else None
+        )
+        self.cmd_rec = Record(COMMAND)
+        from redistro.faults.wire import POINTS, InjectedTransport
+
+        for point in POINTS:
+            inj = inject.injection(point, self.spec.node)
+            if inj is not None:
+                names = {g: r for r, g in self.gid.items()}
+                self.transport = InjectedTransport(self.transport, inj, names)
 
     # -- one tick --
 
@@ -193,7 +210,10 @@ class Ddm(Worker):
                 ex.array["estop_source"] = d.source.rstrip("\0").encode()[:16]
                 self.post(f"e-stop from {d.source.rstrip(chr(0))}", logging.ERROR)
                 self.estop_request = True
-            self.in_blocks[i].publish(d.payload)
+            payload = d.payload
+            if self.cmd_inj is not None and self.cmd_inj.live():
+                payload = self._corrupt_command(payload)
+            self.in_blocks[i].publish(payload)
             ex["updates"] += 1
             ex["last_update_ns"] = now
             ex["fresh"] = 1
@@ -207,6 +227,15 @@ class Ddm(Worker):
                 stamp = int(d.payload["stamp_ns"])
                 if 0 < stamp <= now:
                     self.latency.add(now - stamp)
+
+    def _corrupt_command(self, payload: Any) -> Any:
+        """The harness's bad command: ``arg`` (NaN, inf or a torque) on joint 1
+        of every command from the trigger on, the joint under control."""
+        assert self.cmd_inj is not None
+        bad = np.array(payload, copy=True)
+        bad["tau_nm"][0] = self.cmd_inj.arg
+        bad["joint_on"][0] = 1
+        return bad
 
     def _send(self, estop: bool) -> None:
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):

@@ -100,6 +100,8 @@ class RobotDriver:
         self._q_ref = np.zeros(DOF)
         self._have_ref = False
         self._prev: tuple[int, np.ndarray] | None = None
+        # speed above which a counter change is a glitch (0: not checked)
+        self.jump_limit_rad_s = 0.0
         self._qd = np.zeros(DOF)
 
     # -- set-up --
@@ -171,7 +173,10 @@ class RobotDriver:
             self._acc[:] = 0
             self._have_ref = True
         else:
-            self._acc += _wrap(raw - self._raw)
+            delta = _wrap(raw - self._raw)
+            if self.jump_limit_rad_s > 0 and self._prev is not None:
+                self._check_jump(delta, step - self._prev[0])
+            self._acc += delta
         self._raw = raw
         q = self._q_ref + self._acc / self.counts_per_rad
         # a latched count is within half the counter's range of the present one
@@ -219,6 +224,20 @@ class RobotDriver:
             latch_edge,
             latch_q,
         )
+
+    def _check_jump(self, delta: np.ndarray[Any, Any], steps: int) -> None:
+        """A counter change no motion could make in ``steps`` samples is a glitch."""
+        steps = max(1, steps)
+        limit = np.broadcast_to(
+            self.jump_limit_rad_s * self.counts_per_rad * steps / self.physics_hz + 2, delta.shape
+        )
+        bad = np.flatnonzero(np.abs(delta) > limit)
+        if bad.size:
+            j = int(bad[0])
+            raise IOFault(
+                f"{self.name} joint {j + 1}: encoder jump of {int(delta[j])} counts in "
+                f"{steps} sample(s) (any real motion: at most {float(limit[j]):.0f})"
+            )
 
     def shift_zero(self, offset_rad: np.ndarray[Any, Any]) -> None:
         """Take ``offset_rad`` out of every joint position from now on.

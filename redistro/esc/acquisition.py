@@ -22,6 +22,7 @@ class Acquisition(Worker):
         ctx = EscContext.load(self.params)
         self.driver = ctx.driver(plant_session(self.spec))
         self.driver.open(owner=False)  # the manager froze the robot before we existed
+        self.driver.jump_limit_rad_s = ctx.cfg.esc.safety.encoder_jump_rad_s
         ld = self.ld
         self.feedback_block = ld.writer("feedback", 0, role="acquisition")
         self.home_block = ld.writer("home", 0, role="acquisition")

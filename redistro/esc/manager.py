@@ -103,11 +103,17 @@ class EscManager(Manager):
         except Exception as exc:  # the plant may be gone: say so, never mask the exit
             self._message("manager", logging.ERROR, f"freeze ({why}) failed: {exc}")
 
-    def on_tick(self, cycle: int) -> bool:
+    def _check_guard(self) -> None:
         self.guard_block.read_into(self.guard.bytes)
         if self.guard["tripped"]:
             text = self.guard.array["trip_text"].item().decode(errors="replace")
             raise NodeFault("unsafe", text)
+
+    def on_wake(self) -> None:
+        self._check_guard()
+
+    def on_tick(self, cycle: int) -> bool:
+        self._check_guard()
         if self.from_ssc:
             return self._check_commands(cycle)
         self.setpoint_block.read_into(self.sp.bytes)

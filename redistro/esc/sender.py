@@ -58,7 +58,12 @@ TRACE = np.dtype(
 class Violation(Exception):
     def __init__(self, quantity: str, joint: int, value: float, limit: float, unit: str) -> None:
         where = "wrist" if joint < 0 else f"joint {joint + 1}"
-        super().__init__(f"{where} {quantity} {value:.4g} {unit} over the limit {limit:.4g} {unit}")
+        if unit:
+            super().__init__(
+                f"{where} {quantity} {value:.4g} {unit} over the limit {limit:.4g} {unit}"
+            )
+        else:  # a value that is no number at all
+            super().__init__(f"{where} {quantity} ({value})")
         self.quantity = quantity
         self.joint = joint
         self.value = value
@@ -87,7 +92,7 @@ def check(
             j = int(bad[0])
             raise Violation(f"measured {name} not finite", j, float(v[j]), 0.0, "")
     if not np.all(np.isfinite(wrench)):
-        raise Violation("wrist wrench not finite", -1, float("nan"), 0.0, "")
+        raise Violation("wrench not finite", -1, float("nan"), 0.0, "")
     over = np.flatnonzero(np.abs(qd) > qd_max)
     if over.size:
         j = int(over[0])
@@ -239,8 +244,10 @@ class Sender(Worker):
         g.array["released"] = 0
         g.array["tau_nm"] = 0.0
         self.guard_block.publish(g.bytes)
+        self.wake_manager = True  # the manager ends the session now, not next tick
         self.post(f"unsafe: {text}; robot frozen", logging.ERROR)
-        self._write_trace()
+        # the trace is written at Cleanup, off real-time priority: here it
+        # would hold the CPUs (and the simulated plant) right after a trip
 
     def _write_trace(self) -> None:
         """The last cycles before the trip, oldest first, as JSON columns."""
@@ -258,4 +265,6 @@ class Sender(Worker):
             self.post(f"trip trace not written: {exc}", logging.WARNING)
 
     def cleanup(self) -> None:
+        if self.tripped:
+            self._write_trace()
         self.driver.close()

@@ -1,12 +1,29 @@
 """The fault scenarios: what is broken, and what the controller must do about it.
 
-A process scenario breaks one process of a running strategy session
-(tasks/fault_drill.yaml: both ESCs, the SSC, the DDMs and the plant) at a
-random moment after r2 started moving: SIGKILL (a crash) or SIGSTOP (a hang).
-Expected: the session ends with one of ``expect`` results, the first fault's
-reason holds ``reason``, detected within ``limit`` (``"death"``: 2 cycles of
-the detecting node; ``"heartbeat"``: its heartbeat limit; ``"starving"``: the
-starving limit), every robot frozen, nothing left behind.
+Kinds:
+
+- ``process``: one process of a running strategy session
+  (tasks/fault_drill.yaml: both ESCs, the SSC, the DDMs and the plant) is
+  killed (SIGKILL, a crash) or stopped (SIGSTOP, a hang) at a random moment
+  after r2 started moving;
+- ``inject``: an injection point (:mod:`redistro.faults.inject`) inside the
+  same session fires at such a moment: a bad command, a bad sensor, a pushed
+  peg, a broken or noisy DDM link (``action`` is the point);
+- ``can-noise``: the drill over the CAN backplane, corrupt frames sent onto
+  the bus by the harness;
+- ``calibration``: a self-calibration with r2's home switches stuck;
+- ``start``: what the next start finds: a crashed session's leftovers, a
+  missing, corrupt or unclean positions file;
+- ``input``: a bad task file, config or command line;
+- ``hogs``: the whole peg insertion beside two processes spinning on both CPUs.
+
+Expected: the session ends with one of ``expect``, the first fault's reason
+holds ``reason``; detection within ``limit`` (``death``: 2 cycles of the
+detecting node; ``guard``: 2 cycles, the check before a command; ``heartbeat``:
+the heartbeat limit; ``starving``: the starving limit; ``io``: the I/O
+timeout; ``""``: no bound, physics decides), every robot frozen, nothing left.
+``count``: for a fault the controller must ride out, the counter (in the
+summary) that must show it refused the bad data.
 """
 
 from __future__ import annotations
@@ -16,27 +33,34 @@ from dataclasses import dataclass
 # node -> its processes (as named in its Local Data), the ones a scenario breaks
 ESC_PROCS = ("manager", "acquisition", "sender", "ddm")
 SSC_PROCS = ("manager", "worker", "logger", "ddm")
+ANY_FAULT = ("abnormal", "starving", "estop", "unsafe")
 
 
 @dataclass(frozen=True)
 class Scenario:
-    """name: unique, e.g. ``kill-esc.r2-sender``; node: ``esc.r2``, ``ssc`` or
-    ``plant``; proc: the process of that node (``""`` for the plant);
-    action: ``kill`` (SIGKILL) or ``stop`` (SIGSTOP); expect: accepted session
-    results; reason: a piece of the first fault's reason; limit: ``death``,
-    ``heartbeat``, ``starving`` or ``io`` (the I/O timeout)."""
+    """name: unique, e.g. ``kill-esc.r2-sender``; kind: see the module;
+    node/proc: where the fault acts (``esc.r2``, ``ssc``, ``plant``); action:
+    ``kill``/``stop``, the injection point, or the start/input case; expect:
+    accepted session results (``refused``: exit code 2 before any process);
+    reason: a piece of the first fault's reason; limit: the detection bound;
+    arg: the injection's argument; sets: config overrides of the session;
+    count: the counter that must be above zero."""
 
     name: str
+    kind: str
     node: str
     proc: str
     action: str
     expect: tuple[str, ...]
     reason: str
     limit: str
+    arg: float = 0.0
+    sets: tuple[str, ...] = ()
+    count: str = ""
+    what: str = ""  # one line: the fault, for the table
 
 
 def _process_scenarios() -> list[Scenario]:
-    any_fault = ("abnormal", "starving", "estop")
     out: list[Scenario] = []
     for node, procs in (("esc.r2", ESC_PROCS), ("ssc", SSC_PROCS)):
         for proc in procs:
@@ -44,27 +68,129 @@ def _process_scenarios() -> list[Scenario]:
                 # a dead or hung manager records nothing: the other nodes see
                 # its robot's data go stale (starving), or the owner its death
                 for action in ("kill", "stop"):
-                    name = f"{action}-{node}-manager"
-                    out.append(Scenario(name, node, proc, action, any_fault, "", "starving"))
+                    out.append(
+                        Scenario(f"{action}-{node}-manager", "process", node, proc, action,
+                                 ANY_FAULT, "", "starving",
+                                 what=f"{'SIGKILL' if action == 'kill' else 'SIGSTOP'} "
+                                      f"of the {node} manager")
+                    )  # fmt: skip
                 continue
             # a dead worker: its manager's pidfd, at once
             out.append(
-                Scenario(f"kill-{node}-{proc}", node, proc, "kill", ("abnormal",),
-                         f"worker {proc}", "death")
+                Scenario(f"kill-{node}-{proc}", "process", node, proc, "kill", ("abnormal",),
+                         f"worker {proc}", "death", what=f"SIGKILL of {node} {proc}")
             )  # fmt: skip
             # a hung worker: its heartbeat grows old (a hung ddm also starves
             # the other nodes, later: 40 cycles)
             out.append(
-                Scenario(f"stop-{node}-{proc}", node, proc, "stop", any_fault, "missed",
-                         "heartbeat")
+                Scenario(f"stop-{node}-{proc}", "process", node, proc, "stop", ANY_FAULT,
+                         "missed", "heartbeat", what=f"SIGSTOP of {node} {proc}")
             )  # fmt: skip
     # the plant: the acquisitions see its boards go silent (the I/O timeout)
-    out.append(Scenario("kill-plant", "plant", "", "kill", ("abnormal",), "", "io"))
-    out.append(Scenario("stop-plant", "plant", "", "stop", ("abnormal",), "", "io"))
+    out.append(Scenario("kill-plant", "process", "plant", "", "kill", ("abnormal",), "", "io",
+                        what="SIGKILL of the plant"))  # fmt: skip
+    out.append(Scenario("stop-plant", "process", "plant", "", "stop", ("abnormal",), "", "io",
+                        what="SIGSTOP of the plant"))  # fmt: skip
     return out
 
 
-CATALOGUE: tuple[Scenario, ...] = tuple(_process_scenarios())
+def _inject_scenarios() -> list[Scenario]:
+    nan, inf = float("nan"), float("inf")
+    u = ("unsafe",)
+
+    def s(
+        name: str,
+        node: str,
+        point: str,
+        expect: tuple[str, ...],
+        reason: str,
+        limit: str,
+        what: str,
+        arg: float = 0.0,
+        sets: tuple[str, ...] = (),
+        count: str = "",
+    ) -> Scenario:
+        proc = "ddm" if point.startswith("ddm.") else ""
+        return Scenario(name, "inject", node, proc, point, expect, reason, limit, arg, sets,
+                        count, what)  # fmt: skip
+
+    return [
+        # limits checked before every command (the sender's guard)
+        s("command-nan", "esc.r2", "ddm.command", u, "not finite", "guard",
+          "NaN as r2's joint 1 torque command", nan),
+        s("command-inf", "esc.r2", "ddm.command", u, "not finite", "guard",
+          "+inf as r2's joint 1 torque command", inf),
+        s("torque-over-limit", "esc.r2", "ddm.command", u, "commanded torque", "guard",
+          "r2's joint 1 commanded 300 N m (limit 200)", 300.0),
+        s("velocity-over-limit", "esc.r2", "ddm.command", u, "velocity", "",
+          "r2's joint 1 driven by a constant 80 N m (within the torque limit)", 80.0),
+        s("wrist-force-over-limit", "plant", "plant.wrist-push", u, "force", "",
+          "the peg pushed down with 300 N (limit 120 N)", 300.0),
+        s("sensor-nan", "plant", "plant.sensor-nan", u, "not finite", "guard",
+          "r2's wrist sensor reads NaN (its calibration memory corrupted)"),
+        s("encoder-jump", "plant", "plant.encoder-jump", ("abnormal",), "encoder jump", "guard",
+          "r2's joint 2 counter glitches by 40 000 counts (0.61 rad)", 40000.0),
+        # the DDM links and records
+        s("link-close", "esc.r2", "ddm.link-close", ANY_FAULT, "", "starving",
+          "r2's DDM socket closed (the link cut)"),
+        s("reflective-drop", "esc.r2", "ddm.drop", ANY_FAULT, "", "starving",
+          "r2's reflective-memory updates dropped on the network",
+          sets=("ddm.transport=reflective",)),
+        s("records-delayed", "esc.r2", "ddm.delay", ANY_FAULT, "", "starving",
+          "r2's DDM records delayed 0.5 s (past the starving limit)", 0.5),
+        s("records-malformed", "ssc", "ddm.malformed", ("ok",), "", "",
+          "50 commands with a flipped byte beside the genuine ones", 50.0, count="malformed"),
+        s("records-replayed", "ssc", "ddm.replay", ("ok",), "", "",
+          "50 commands replayed (sent 100 records earlier) beside the genuine ones", 50.0,
+          count="out_of_order"),
+    ]  # fmt: skip
+
+
+def _other_scenarios() -> list[Scenario]:
+    refused = ("refused",)
+    out = [
+        Scenario("can-corrupt-frames", "can-noise", "plant", "", "noise", ("ok",), "", "",
+                 sets=("plant.backplane=can",), count="bad_frames",
+                 what="1 s of corrupt CAN frames (both directions) on the backplane bus"),
+        Scenario("home-stuck-on", "calibration", "plant", "", "plant.home-stuck-on",
+                 ("failed",), "no home switch", "",
+                 what="r2's home switches stuck on during self-calibration"),
+        Scenario("home-stuck-off", "calibration", "plant", "", "plant.home-stuck-off",
+                 ("failed",), "no home switch", "",
+                 what="r2's home switches stuck off during self-calibration"),
+        Scenario("stale-ipc", "start", "", "", "stale-ipc", ("ok",), "", "",
+                 what="every process of a session SIGKILLed, then a new session"),
+        Scenario("positions-missing", "start", "", "", "positions-missing", refused,
+                 "positions", "", what="r2's positions file deleted"),
+        Scenario("positions-corrupt", "start", "", "", "positions-corrupt", refused,
+                 "positions", "", what="r2's positions file not JSON"),
+        Scenario("positions-unclean", "start", "", "", "positions-unclean", refused,
+                 "positions", "", what="r2's positions file marked unclean (a crashed session)"),
+    ]  # fmt: skip
+    for case, what in INPUT_CASES.items():
+        out.append(Scenario(f"input-{case}", "input", "", "", case, refused, "", "", what=what))
+    out.append(
+        Scenario("cpu-hogs-peg", "hogs", "", "", "hogs", ("ok",), "", "",
+                 what="the whole peg insertion beside two processes spinning on both CPUs")
+    )  # fmt: skip
+    return out
+
+
+# invalid inputs: case -> what is wrong (the files are written by the runner)
+INPUT_CASES = {
+    "wrong-type": "a segment's duration_s is a string",
+    "unknown-key": "a segment has an unknown key",
+    "unreachable-goal": "a goal 3 m from the robot's base",
+    "zero-duration": "a segment's duration_s is 0",
+    "negative-duration": "a goal's move_s is negative",
+    "unknown-robot": "the task names robot r9",
+    "bad-config": "--set esc.rate_hz=-5",
+    "config-unknown-key": "a config file with an unknown section key",
+}
+
+CATALOGUE: tuple[Scenario, ...] = tuple(
+    _process_scenarios() + _inject_scenarios() + _other_scenarios()
+)
 
 
 def by_name(name: str) -> Scenario:

@@ -27,19 +27,22 @@ def run_faults(
         raise ConfigError(f"--only {exc.args[0]}: no such scenario (known: {names})") from None
     if list_only:
         for s in chosen:
-            print(f"{s.name:28s} expect {'/'.join(s.expect):24s} limit {s.limit}")
+            print(f"{s.name:26s} {s.kind:11s} expect {'/'.join(s.expect):30s} {s.what}")
         return 0
-    from redistro.faults.runner import ensure_calibrated, run_scenario
+    from redistro.faults.runner import Baseline, ensure_calibrated, run_scenario
 
     runs = Path(cfg.session.runs_dir).resolve()
     ensure_calibrated(runs, config_args, print)
+    baseline = Baseline(runs)
     rng = random.Random(seed)
     rows: list[dict[str, Any]] = []
     for s in chosen:
-        print(f"{s.name}: {s.action} {s.node}/{s.proc}".rstrip("/"), flush=True)
+        print(f"{s.name}: {s.what}", flush=True)
+        baseline.restore()
         row = run_scenario(s, runs, cfg, config_args, rng)
         rows.append(row)
         print("  " + _line(row), flush=True)
+    baseline.restore()
     passed = sum(1 for r in rows if r["passed"])
     print(f"{passed} of {len(rows)} scenarios passed")
     if json_path:
@@ -60,7 +63,11 @@ def _line(r: dict[str, Any]) -> str:
         )
     if "freeze_ms" in r:
         parts.append(f"frozen {r['freeze_ms']:.1f} ms after")
-    parts.append(f"left: {r['processes_left']} processes, {len(r['ipc_left'])} IPC objects")
+    if "estop_spread_ms" in r:
+        parts.append(f"every node stopped within {r['estop_spread_ms']:.1f} ms")
+    if r.get("count"):
+        parts.append(", ".join(f"{k} {v}" for k, v in r["count"].items()))
+    parts.append(f"left: {r.get('processes_left', 0)} processes, {len(r.get('ipc_left', []))} IPC")
     if r.get("error"):
         parts.append(f"error: {r['error']}")
     if r.get("cause"):

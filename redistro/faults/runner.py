@@ -62,8 +62,8 @@ def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
         raise RedistroError(f"self-calibration before the scenarios failed: {done.stdout[-500:]}")
 
 
-def _session_id(proc: subprocess.Popen[str], deadline: float) -> str:
-    """The fault drill's session id, from the CLI's first lines."""
+def _session_id(proc: subprocess.Popen[str], deadline: float, task: str = "fault_drill") -> str:
+    """The session id of ``task``, from the CLI's first lines."""
     assert proc.stdout is not None
     last = ""
     seen: list[str] = []
@@ -74,10 +74,10 @@ def _session_id(proc: subprocess.Popen[str], deadline: float) -> str:
         seen.append(line.strip())
         if line.startswith("session "):
             last = line.split()[1]
-        elif line.startswith("task fault_drill") and last:
+        elif line.startswith(f"task {task}") and last:
             return last
     said = " | ".join(line for line in seen[-4:] if not line.startswith("["))
-    raise RedistroError(f"the fault drill session did not start: {said}")
+    raise RedistroError(f"the {task} session did not start: {said}")
 
 
 def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> bool:
@@ -161,45 +161,127 @@ def run_scenario(
     """Run ``sc`` once; the figures and verdicts as a dict (JSON-ready)."""
     out_dir = runs / "faults" / sc.name
     shutil.rmtree(out_dir, ignore_errors=True)  # no summary of an earlier run
-    row: dict[str, Any] = {"name": sc.name, "target": f"{sc.node}/{sc.proc}".rstrip("/")}
+    out_dir.mkdir(parents=True)
+    row: dict[str, Any] = {"name": sc.name, "kind": sc.kind, "what": sc.what}
+    row["target"] = f"{sc.node}/{sc.proc}".strip("/")
     row.update(action=sc.action, expected=list(sc.expect))
+    if sc.kind == "input":
+        from redistro.faults.inputs import run_input
+
+        row.update(run_input(sc, out_dir, config_args))
+        return row
+    if sc.kind == "start" and sc.action != "stale-ipc":
+        row.update(_refused_start(sc, runs, out_dir, config_args))
+        return row
+    if sc.kind == "hogs":
+        row.update(_hogs(sc, runs, out_dir, config_args))
+        return row
+    if sc.kind == "stale-ipc" or sc.action == "stale-ipc":
+        row.update(_stale_ipc(sc, runs, out_dir, cfg, config_args, rng))
+        return row
+    row.update(_break_session(sc, runs, out_dir, cfg, config_args, rng))
+    return row
+
+
+def _session_args(sc: Scenario, runs: Path, config_args: list[str]) -> list[str]:
+    sets = [a for kv in sc.sets for a in ("--set", kv)]
+    return [*_cli(runs, [*config_args, *sets])]
+
+
+def _break_session(
+    sc: Scenario,
+    runs: Path,
+    out_dir: Path,
+    cfg: Config,
+    config_args: list[str],
+    rng: random.Random,
+) -> dict[str, Any]:
+    """Start the drill (or the self-calibration), break it, wait for its end, judge."""
+    row: dict[str, Any] = {}
+    env = os.environ.copy()
+    trigger = out_dir / "inject.trigger"
+    if sc.kind in ("inject", "calibration"):
+        from redistro.faults.inject import ENV, arm
+
+        env[ENV] = arm(sc.action, str(trigger), node=sc.node, robot="r2", arg=sc.arg)
+    calibration = sc.kind == "calibration"
+    if calibration:
+        trigger.touch()  # stuck from the start
+    task = "tasks/self_calibration.yaml" if calibration else TASK
     proc = subprocess.Popen(
-        [*_cli(runs, config_args), "session", TASK, "--out", str(out_dir)],
+        [*_session_args(sc, runs, config_args), "session", task, "--out", str(out_dir)],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
+        env=env,
     )
     deadline = time.monotonic() + SESSION_TIMEOUT_S
     inject_ns = 0
     sid = ""
     try:
-        sid = _session_id(proc, deadline)
-        delay = rng.uniform(0.5, 2.5)
-        row["injected_after_s"] = round(delay, 3)
-        if not _wait_moving(sid, delay, proc, deadline):
-            raise RedistroError("r2 never moved (the session ended or stalled first)")
-        pid = _target_pid(sid, sc)
-        inject_ns = time.monotonic_ns()
-        os.kill(pid, signal.SIGKILL if sc.action == "kill" else signal.SIGSTOP)
+        sid = _session_id(proc, deadline, "self_calibration" if calibration else "fault_drill")
+        if calibration:
+            inject_ns = time.monotonic_ns()
+        else:
+            delay = rng.uniform(0.5, 2.5)
+            row["injected_after_s"] = round(delay, 3)
+            if not _wait_moving(sid, delay, proc, deadline):
+                raise RedistroError("r2 never moved (the session ended or stalled first)")
+            inject_ns = _inject(sc, sid, trigger, cfg)
         proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
     except (RedistroError, subprocess.TimeoutExpired, OSError, ValueError) as exc:
         row["error"] = str(exc)
     finally:
-        if proc.poll() is None:
-            proc.terminate()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.communicate(timeout=60)
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        _end(proc)
+    fired = _fired_ns(trigger)
+    if fired:
+        inject_ns = fired
     row.update(_verdict(sc, sid, inject_ns, out_dir, runs, cfg))
     if "error" in row:
         row["passed"] = False
     return row
 
 
+def _end(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.communicate(timeout=60)
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+def _fired_ns(trigger: Path) -> int:
+    try:
+        return int(json.loads(Path(f"{trigger}.fired").read_text())["monotonic_ns"])
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def _inject(sc: Scenario, sid: str, trigger: Path, cfg: Config) -> int:
+    """Break the session now; the injection's time (CLOCK_MONOTONIC ns)."""
+    if sc.kind == "process":
+        pid = _target_pid(sid, sc)
+        now = time.monotonic_ns()
+        os.kill(pid, signal.SIGKILL if sc.action == "kill" else signal.SIGSTOP)
+        return now
+    if sc.kind == "inject":
+        now = time.monotonic_ns()
+        trigger.touch()
+        return now
+    if sc.kind == "can-noise":
+        from redistro.faults.can_noise import send_noise
+
+        now = time.monotonic_ns()
+        sent = send_noise(cfg, sid, seconds=1.0)
+        (trigger.parent / "noise.json").write_text(json.dumps({"frames": sent}))
+        return now
+    raise RedistroError(f"{sc.name}: nothing to inject for kind {sc.kind}")
+
+
 def _limit_cycles(sc: Scenario, cfg: Config, node: str) -> float | None:
-    if sc.limit == "death":
+    if sc.limit in ("death", "guard"):
         return 2
     rate = cfg.ssc.rate_hz if node == "ssc" else cfg.esc.rate_hz
     if sc.limit == "heartbeat":
@@ -247,12 +329,27 @@ def _verdict(
     for f in freezes:
         if f.get("monotonic_ns", 0) >= inject_ns > 0 and f["robot"] not in frozen:
             frozen[f["robot"]] = f["monotonic_ns"]
-    if sc.node != "plant":
+    if not (sc.kind == "process" and sc.node == "plant"):
         row["frozen"] = sorted(frozen)
         row["all_frozen"] = set(frozen) >= {"r1", "r2"}
         if frozen and detected_ns is not None:
+            # from the first detection to the last robot's brakes at the plant
             row["freeze_ms"] = round((max(frozen.values()) - detected_ns) / 1e6, 2)
+        # each robot's freeze after its own ESC's fault (the ESC's own reaction)
+        own = {
+            r: round((t - nodes[f"esc.{r}"]["fault_monotonic_ns"]) / 1e6, 2)
+            for r, t in frozen.items()
+            if nodes.get(f"esc.{r}", {}).get("fault_monotonic_ns")
+        }
+        if own:
+            row["freeze_after_own_fault_ms"] = own
     row["estop_every_node"] = bool(nodes) and all(n.get("result") != "ok" for n in nodes.values())
+    stops = [int(n["fault_monotonic_ns"]) for n in nodes.values() if n.get("fault_monotonic_ns")]
+    if len(stops) == len(nodes) > 1 and detected_ns is not None:
+        # from the first node's fault to the last node's e-stop
+        row["estop_spread_ms"] = round((max(stops) - min(stops)) / 1e6, 2)
+    watchdog = summary.get("plant", {}).get("watchdog_trips") or []
+    row["watchdog_trips"] = [t["robot"] for t in watchdog if t.get("monotonic_ns", 0) >= inject_ns]
     row["processes_left"] = len(_pids_of(sid)) if sid else 0
     row["ipc_left"] = _ipc_left(sid) if sid else []
     valid = []
@@ -263,12 +360,241 @@ def _verdict(
         except positions.PositionsUnknown as exc:
             row.setdefault("positions_problems", []).append(str(exc))
     row["positions_valid"] = valid == ["r1", "r2"]
+    if sc.count:
+        row["count"] = {sc.count: count_of(summary, sc.count)}
+    fault_expected = "ok" not in sc.expect
     row["passed"] = bool(
         got in sc.expect
         and sc.reason in row["cause"]
-        and row.get("detection_within_limit", sc.limit == "death" and sc.proc == "manager")
-        and (sc.node == "plant" or row.get("all_frozen"))
+        and (
+            not fault_expected
+            or not sc.limit
+            or row.get("detection_within_limit", sc.limit == "death" and sc.proc == "manager")
+        )
+        and (not fault_expected or (sc.node == "plant" and sc.kind == "process")
+             or row.get("all_frozen"))
+        and (not sc.count or row["count"][sc.count] > 0)
+        and row["processes_left"] == 0
+        and not row["ipc_left"]
+    )  # fmt: skip
+    return row
+
+
+def count_of(doc: Any, key: str) -> int:
+    """The sum of every integer under ``key`` anywhere in ``doc``."""
+    if isinstance(doc, dict):
+        total = 0
+        for k, v in doc.items():
+            if k == key and isinstance(v, int) and not isinstance(v, bool):
+                total += v
+            else:
+                total += count_of(v, key)
+        return total
+    if isinstance(doc, list):
+        return sum(count_of(v, key) for v in doc)
+    return 0
+
+
+# -- the saved state every scenario starts from --
+
+
+class Baseline:
+    """The positions files and the arms' pose, as they were before the first
+    scenario; put back before each (a scenario may leave the arm anywhere, its
+    positions unclean or a file broken on purpose)."""
+
+    def __init__(self, runs: Path) -> None:
+        self.runs = runs
+        self.files: dict[Path, bytes] = {}
+        for p in [*sorted((runs / "positions").glob("*.json")), runs / "plant-pose.json"]:
+            with contextlib.suppress(OSError):
+                self.files[p] = p.read_bytes()
+
+    def restore(self) -> None:
+        for p in (self.runs / "positions").glob("*.json"):
+            if p not in self.files:
+                p.unlink()
+        for p, data in self.files.items():
+            p.parent.mkdir(parents=True, exist_ok=True)
+            tmp = p.with_name(f".{p.name}.restore")
+            tmp.write_bytes(data)
+            os.replace(tmp, p)
+
+
+# -- what the next start finds --
+
+
+def _one_line_refusal(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
+    lines = [ln for ln in done.stderr.strip().splitlines() if ln.strip()]
+    return {
+        "got": "refused" if done.returncode == 2 else f"exit {done.returncode}",
+        "exit_code": done.returncode,
+        "cause": lines[-1] if lines else "",
+        "one_line": len(lines) == 1 and "Traceback" not in done.stderr,
+    }
+
+
+def _refused_start(
+    sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]
+) -> dict[str, Any]:
+    """A broken positions file, a task that may not calibrate on its own:
+    refused before any process starts."""
+    path = runs / "positions" / "r2.json"
+    if sc.action == "positions-missing":
+        path.unlink(missing_ok=True)
+    elif sc.action == "positions-corrupt":
+        path.write_text('{"format": 1, "q_rad": ')  # cut short, as by a full disk
+    elif sc.action == "positions-unclean":
+        pos = positions.read(path, ["r2"])
+        positions.write(path, pos.session, pos.q_rad, clean=False)
+    task = out_dir / "drill_no_calibration.yaml"
+    text = Path(TASK).read_text().replace("calibrate_if_needed: true", "calibrate_if_needed: false")
+    task.write_text(text)
+    before = set(os.listdir("/dev/shm"))
+    done = subprocess.run(
+        [*_session_args(sc, runs, config_args), "session", str(task), "--out", str(out_dir)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    row = _one_line_refusal(done)
+    row["ipc_left"] = sorted(set(os.listdir("/dev/shm")) - before)
+    row["processes_left"] = 0
+    row["plant_started"] = (out_dir / "plant.json").exists()
+    row["passed"] = bool(
+        row["got"] == "refused"
+        and row["one_line"]
+        and sc.reason in row["cause"]
+        and not row["ipc_left"]
+        and not row["plant_started"]
+    )
+    return row
+
+
+def _stale_ipc(
+    sc: Scenario,
+    runs: Path,
+    out_dir: Path,
+    cfg: Config,
+    config_args: list[str],
+    rng: random.Random,
+) -> dict[str, Any]:
+    """Kill every process of a running drill at once (a power cut of the
+    controller), then start another: it must reap the leftovers, find the
+    positions unclean, calibrate first and run the task."""
+    row: dict[str, Any] = {}
+    first = out_dir / "crashed"
+    proc = subprocess.Popen(
+        [*_session_args(sc, runs, config_args), "session", TASK, "--out", str(first)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + SESSION_TIMEOUT_S
+    sid = ""
+    try:
+        sid = _session_id(proc, deadline)
+        if not _wait_moving(sid, rng.uniform(0.5, 2.5), proc, deadline):
+            raise RedistroError("r2 never moved (the session ended or stalled first)")
+        victims = [proc.pid, *_pids_of(sid)]
+        for pid in victims:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.communicate(timeout=30)
+        wait_until = time.monotonic() + 10
+        while _pids_of(sid) and time.monotonic() < wait_until:
+            time.sleep(0.02)  # the kernel reaps the orphans (a condition, with a deadline)
+        row["killed"] = len(victims)
+        row["left_by_crash"] = _ipc_left(sid)
+    except (RedistroError, subprocess.TimeoutExpired, OSError, ValueError) as exc:
+        row["error"] = str(exc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    second = out_dir / "next"
+    done = subprocess.run(
+        [*_session_args(sc, runs, config_args), "session", TASK, "--out", str(second)],
+        capture_output=True,
+        text=True,
+        timeout=SESSION_TIMEOUT_S + 300,
+        check=False,
+    )
+    try:
+        summary = json.loads((second / "summary.json").read_text())
+    except (OSError, ValueError):
+        summary = {}
+    row["got"] = summary.get("result", f"exit {done.returncode}")
+    row["cause"] = summary.get("reason", "")
+    row["reaped"] = [ln for ln in done.stderr.splitlines() if ln.startswith("reaped ")]
+    row["calibrated_first"] = "self-calibration of" in done.stdout
+    sids = [x for x in (sid, sid_from(done.stdout)) if x]
+    row["processes_left"] = sum(len(_pids_of(x)) for x in sids)
+    row["ipc_left"] = [o for x in sids for o in _ipc_left(x)]
+    row["passed"] = bool(
+        "error" not in row
+        and row["left_by_crash"]
+        and row["reaped"]
+        and row["calibrated_first"]
+        and row["got"] in sc.expect
         and row["processes_left"] == 0
         and not row["ipc_left"]
     )
     return row
+
+
+def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> dict[str, Any]:
+    """The whole peg insertion beside two processes spinning at normal priority."""
+    spin = "import time\nwhile True:\n    pass\n"
+    hogs = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2)]
+    t0 = time.monotonic()
+    try:
+        done = subprocess.run(
+            [*_session_args(sc, runs, config_args), "session", "tasks/peg_insertion.yaml",
+             "--out", str(out_dir)],
+            capture_output=True,
+            text=True,
+            timeout=1800,
+            check=False,
+        )  # fmt: skip
+    finally:
+        cpu = 0.0
+        for h in hogs:
+            with contextlib.suppress(OSError, ValueError):
+                stat = Path(f"/proc/{h.pid}/stat").read_text().rsplit(")", 1)[1].split()
+                cpu += (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+            h.kill()
+            h.wait()
+    wall = time.monotonic() - t0
+    try:
+        summary = json.loads((out_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        summary = {}
+    sid = sid_from(done.stdout)
+    row: dict[str, Any] = {
+        "got": summary.get("result", f"exit {done.returncode}"),
+        "cause": summary.get("reason", ""),
+        "inserted": bool(summary.get("inserted")),
+        "wall_s": round(wall, 1),
+        # how busy the hogs kept the CPUs (2.0: both, the whole time)
+        "hog_cpus": round(cpu / wall, 2) if wall > 0 else 0.0,
+        "processes_left": len(_pids_of(sid)) if sid else 0,
+        "ipc_left": _ipc_left(sid) if sid else [],
+    }
+    row["passed"] = bool(
+        row["got"] in sc.expect
+        and row["inserted"]
+        and row["processes_left"] == 0
+        and not row["ipc_left"]
+    )
+    return row
+
+
+def sid_from(stdout: str) -> str:
+    """The session id a ``redistro session`` printed first ('' if none)."""
+    for line in stdout.splitlines():
+        if line.startswith("session "):
+            return line.split()[1]
+    return ""

@@ -79,7 +79,8 @@ def leave_real_time() -> None:
     must not hold the simulated plant off the CPUs; the robot is frozen by
     then)."""
     try:
-        if os.sched_getscheduler(0) in (os.SCHED_RR, os.SCHED_FIFO):
+        # the policy carries SCHED_RESET_ON_FORK when apply() set it
+        if os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK in (os.SCHED_RR, os.SCHED_FIFO):
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass  # not permitted: it stays where it is

@@ -19,9 +19,12 @@ SIG_END = signal.SIGRTMIN + 2
 SIG_ORPHAN = signal.SIGRTMIN + 3
 """Kernel -> child: the parent died (set with PR_SET_PDEATHSIG)."""
 
+SIG_WAKE = signal.SIGRTMIN + 4
+"""Worker -> manager: look at the workers' rows now (an e-stop request), not at the next tick."""
+
 STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 RUNTIME_SIGNALS = frozenset(
-    {SIG_SYNC, SIG_END, SIG_ORPHAN, signal.SIGALRM, signal.SIGCHLD} | STOP_SIGNALS
+    {SIG_SYNC, SIG_END, SIG_ORPHAN, SIG_WAKE, signal.SIGALRM, signal.SIGCHLD} | STOP_SIGNALS
 )
 
 _PR_SET_PDEATHSIG = 1

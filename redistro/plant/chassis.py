@@ -9,6 +9,7 @@ interface configs; device constants from the sensor/actuator configs.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -113,33 +114,79 @@ class Chassis:
                 )
             )
         self.step_count = 0
+        # the amplifiers' watchdog: per DAC board, (last value, when it moved)
+        self.watchdog_ns = round(cfg.plant.output_watchdog_ms * 1e6)
+        self._wd: dict[int, tuple[int, int]] = {}
+        self.watchdog_tripped = [False] * len(self.rigs)
+        self.watchdog_trips: list[dict[str, Any]] = []  # robot, monotonic_ns, step
         self._sw_latches: dict[tuple[int, int], int] = {}  # last software latch request seen
         self._home_latch: dict[int, np.ndarray] = {  # encoder address -> axes latching on home
             a: np.zeros(R.ENC_AXES, dtype=bool)
             for a, t in self.boards.items()
             if t == BoardType.ENCODER
         }
+        # the fault harness's point in the boards and devices (None normally)
+        from redistro.faults import inject
+
+        self.injection = inject.injection("plant.")
+        self._inj_rig = next(
+            (
+                i
+                for i, r in enumerate(self.rigs)
+                if self.injection and self.injection.concerns(r.name)
+            ),
+            0,
+        )
+        self._inj_done = False
+        self._last_home = [np.zeros(7, dtype=bool) for _ in self.rigs]
         for rig in self.rigs:  # brakes on at power-up: the arms hold until released
             world.set_brakes(rig.arm, np.ones(7, dtype=bool), rig.brake_torque_nm)
         self._sample()
 
     # -- controller -> boards --
 
-    def apply_outputs(self, outputs: dict[int, np.ndarray[Any, Any]]) -> None:
-        """Take each board's ``out`` bank and act on it."""
+    def _watchdog(self, i: int, rig: RobotRig, outputs: dict[int, Any], now_ns: int) -> bool:
+        """True while robot ``i``'s amplifiers are cut: its DAC boards' watchdog
+        registers (when armed, non-zero) have not moved for the watchdog time."""
+        if self.watchdog_ns <= 0:
+            return False
+        stale = armed = False
+        for g in rig.dac:
+            value = int(outputs[g.address]["watchdog"])
+            last = self._wd.get(g.address)
+            if last is None or last[0] != value:
+                self._wd[g.address] = last = (value, now_ns)
+            if value:
+                armed = True
+                stale = stale or now_ns - last[1] > self.watchdog_ns
+        tripped = armed and stale
+        if tripped and not self.watchdog_tripped[i] and len(self.watchdog_trips) < 1000:
+            self.watchdog_trips.append(
+                {"robot": rig.name, "step": self.step_count + 1, "monotonic_ns": now_ns}
+            )
+        self.watchdog_tripped[i] = tripped
+        return tripped
+
+    def apply_outputs(self, outputs: dict[int, np.ndarray[Any, Any]], now_ns: int = 0) -> None:
+        """Take each board's ``out`` bank and act on it (``now_ns``: CLOCK_MONOTONIC,
+        for the amplifiers' watchdog; 0 reads the clock)."""
+        now_ns = now_ns or time.monotonic_ns()
         for a, modes in self._home_latch.items():
             modes[:] = outputs[a]["latch_mode"] == R.LATCH_HOME_EDGES
-        for rig in self.rigs:
+        for i, rig in enumerate(self.rigs):
+            cut = self._watchdog(i, rig, outputs, now_ns)
             volts = np.zeros(7)
             for g in rig.dac:
                 code = outputs[g.address]["code"]
-                volts[g.joints] = R.dac_volts(code[g.idx])
+                if not cut:
+                    volts[g.joints] = R.dac_volts(code[g.idx])
                 self.inp[g.address]["readback"] = code
             # fail-safe brakes: engaged unless their release output is on
             brake = np.ones(7, dtype=bool)
             for g in rig.brake:
                 word = int(outputs[g.address]["outputs"])
-                brake[g.joints] = (word >> g.idx) & 1 == 0
+                if not cut:  # the watchdog's relay also drops the brakes' release
+                    brake[g.joints] = (word >> g.idx) & 1 == 0
                 self.inp[g.address]["outputs_readback"] = word & R.DIO_MASK
             for g in rig.enc:
                 out, inp = outputs[g.address], self.inp[g.address]
@@ -161,7 +208,23 @@ class Chassis:
 
     # -- physics --
 
+    def _injected(self) -> str:
+        """The live injected fault ('' when none)."""
+        inj = self.injection
+        if inj is None or not inj.live():
+            return ""
+        return inj.point.split(".", 1)[1]
+
     def step(self) -> None:
+        what = self._injected()
+        if what == "wrist-push":  # pressed down hard on the peg, every step
+            rig = self.rigs[self._inj_rig]
+            assert self.injection is not None
+            self.world.push(rig.arm, np.array([0.0, 0.0, -(self.injection.arg or 300.0)]))
+        elif what == "encoder-jump" and not self._inj_done:  # one counter glitch
+            self._inj_done = True
+            assert self.injection is not None
+            self.rigs[self._inj_rig].encoders.offset[1] += int(self.injection.arg or 5000)
         self.world.step()
         self.step_count += 1
         self._sample()
@@ -172,9 +235,14 @@ class Chassis:
             rig.q, rig.qd, rig.tau = self.world.joint_states(rig.arm)
             self.world.settle_brakes(rig.arm, rig.q, rig.qd)
             counts = rig.encoders.counts(rig.q)
-            before = rig.homes.state
-            home = rig.homes.update(rig.q)
+            home = rig.homes.update(rig.q).copy()
+            if self.injection is not None and rig is self.rigs[self._inj_rig]:
+                what = self._injected()
+                if what in ("home-stuck-on", "home-stuck-off"):  # every switch of the robot
+                    home[:] = what == "home-stuck-on"
+            before = self._last_home[self.rigs.index(rig)]
             edges = home != before
+            before[:] = home
             for g in rig.enc:
                 enc = self.inp[g.address]
                 enc["counter"][g.idx] = counts[g.joints]
@@ -204,5 +272,11 @@ class Chassis:
                 ft = self.inp[rig.hw.wrist.address]
                 ft["strain"] = rig.wrist.gauges(rig.wrench)
                 ft["sample"] += 1
+                if (
+                    self.injection is not None
+                    and rig is self.rigs[self._inj_rig]
+                    and self._injected() == "sensor-nan"
+                ):  # the receiver's calibration memory corrupted
+                    ft["calibration"][0, 0] = np.nan
         for rec in self.inp.values():
             rec["step"] = self.step_count

@@ -159,7 +159,7 @@ def _loop(
     all_braked = [bool(r.arm.braked.all()) for r in chassis.rigs]
     while True:
         outputs = {a: port.outputs(a) for a in boards}
-        chassis.apply_outputs(outputs)
+        chassis.apply_outputs(outputs, time.monotonic_ns())
         for i, rig in enumerate(chassis.rigs):
             braked = bool(rig.arm.braked.all())
             if braked != all_braked[i]:
@@ -218,9 +218,11 @@ def _loop(
         "max_step_gap_ms": round(max_gap_ns / 1e6, 2),
         "max_step_gap_monotonic_ns": max_gap_at_ns,
         "torn_outputs": int(getattr(port, "torn_outputs", 0)),
+        "bad_frames": int(getattr(port, "bad_frames", 0)),
         "physics_hz": physics_hz,
         "pid": os.getpid(),
         "freezes": freezes,
+        "watchdog_trips": chassis.watchdog_trips,
     }
 
 

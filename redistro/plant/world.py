@@ -327,6 +327,19 @@ class World:
         )
         arm.brake_held = arm.brake_held | stopped
 
+    def push(self, arm: Arm, force_world: np.ndarray) -> None:
+        """A force [N] (world frame) on the tool at the sensor's origin, for the
+        next step only (someone pushing the peg)."""
+        pos, _ = self.sensor_frame(arm)
+        self.pb.applyExternalForce(
+            arm.body,
+            arm.tool_link,
+            [float(v) for v in force_world],
+            [float(v) for v in pos],
+            self.pb.WORLD_FRAME,
+            physicsClientId=self.client,
+        )
+
     def set_torques(self, arm: Arm, tau_nm: np.ndarray) -> None:
         """Motor torques for the next step [N m]; a braked joint's motor is inhibited."""
         tau = np.where(arm.braked, 0.0, tau_nm)

@@ -30,13 +30,14 @@ from redistro.localdata import Block, LocalData, MessageBox, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, PROC_STATUS
 from redistro.process.spawn import spawn
-from redistro.process.spec import NodeSpec
+from redistro.process.spec import EXIT_FAILED, NodeSpec
 from redistro.process.stats import Samples
 
 log = logging.getLogger(__name__)
 
 ROUTINE_WAIT = (
-    frozenset({signal.SIGALRM, signal.SIGCHLD, signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
+    frozenset({signal.SIGALRM, signal.SIGCHLD, signals.SIG_ORPHAN, signals.SIG_WAKE})
+    | signals.STOP_SIGNALS
 )
 START_WAIT = frozenset({signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
 
@@ -124,6 +125,10 @@ class Manager:
         dispatched. Raise NodeFault to end the session with that reason;
         return True to end it orderly (the node's work is done)."""
         return False
+
+    def on_wake(self) -> None:
+        """A worker woke the manager between ticks (SIG_WAKE): raise NodeFault
+        for what it found (the ESC: its guard tripped)."""
 
     def on_fault(self, reason: str, message: str) -> None:
         """Runs first on any fault (the ESC freezes its robot here)."""
@@ -274,6 +279,11 @@ class Manager:
                 if sig == signal.SIGCHLD:
                     self._check_children()
                     continue
+                if sig == signals.SIG_WAKE:
+                    # a worker's e-stop or trip: act now, not at the next tick
+                    self._check_estop_requests()
+                    self.on_wake()
+                    continue
                 if sig != signal.SIGALRM:
                     raise NodeFault("abnormal", self._stop_text(sig))
                 now = time.monotonic_ns()
@@ -315,12 +325,21 @@ class Manager:
 
     def _check_children(self) -> None:
         """Reap any worker that exited; a worker exit during the session is a fault."""
-        for child in self.children:
+        for j, child in enumerate(self.children):
             if child.alive and child.reap():
+                status = child.status or 0
+                if os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_FAILED:
+                    # it said why in its box: that is the cause
+                    why = describe_status(status)
+                    for stamp_ns, level, text in self.boxes[j].drain():
+                        self._message(child.name, level, text, stamp_ns)
+                        if level >= logging.ERROR:
+                            why = text
+                    raise NodeFault("abnormal", f"worker {child.name} (pid {child.pid}) {why}")
                 raise NodeFault(
                     "abnormal",
                     f"worker {child.name} (pid {child.pid}) died: "
-                    f"{describe_status(child.status or 0)} at cycle {self.cycle}",
+                    f"{describe_status(status)} at cycle {self.cycle}",
                 )
 
     def _check_heartbeats(self) -> None:
@@ -350,9 +369,7 @@ class Manager:
                     f"worker {child.name} (pid {child.pid}) missed "
                     f"{age} heartbeats (limit {limit}) at cycle {self.cycle}",
                 )
-        for j, snap in enumerate(snaps):
-            if snap is not None and snap["estop_request"]:
-                raise NodeFault("estop", self._estop_text(self.children[j].name))
+        self._raise_estop(snaps)
         last = [snaps[j] for j in self.last_stage]
         if all(s is not None and s["heartbeat_cycle"] == self.cycle for s in last):
             span = max(s["done_ns"] for s in last if s is not None) - self._due_ns
@@ -361,6 +378,22 @@ class Manager:
                 self.deadline_misses += 1
         else:
             self.incomplete_cycles += 1
+
+    def _raise_estop(self, snaps: list[Record | None]) -> None:
+        for j, snap in enumerate(snaps):
+            if snap is not None and snap["estop_request"]:
+                raise NodeFault("estop", self._estop_text(self.children[j].name))
+
+    def _check_estop_requests(self) -> None:
+        """Between ticks: a worker asked for an e-stop and said so (SIG_WAKE)."""
+        snaps: list[Record | None] = []
+        for row, rec in zip(self.rows, self._row_recs, strict=True):
+            try:
+                row.read_into(rec.bytes)
+                snaps.append(rec)
+            except TornReadTimeout:
+                snaps.append(None)
+        self._raise_estop(snaps)
 
     def _estop_text(self, name: str) -> str:
         """Why a worker asked for an e-stop: the node it came from, when a ddm says."""

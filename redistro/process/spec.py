@@ -7,6 +7,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+# a worker that failed (an exception in its initialize or step) exits with
+# this code, its reason in its message box, no traceback
+EXIT_FAILED = 4
+
 
 @dataclass
 class WorkerSpec:

@@ -7,6 +7,7 @@ and manager watch live here.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -19,10 +20,15 @@ from redistro.ipc.sem import Semaphore
 from redistro.localdata import LocalData, MessageBox, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, PROC_STATUS
-from redistro.process.spec import NodeSpec, WorkerSpec
+from redistro.process.spec import EXIT_FAILED, NodeSpec, WorkerSpec
 from redistro.process.stats import Samples
 
 log = logging.getLogger(__name__)
+
+
+class WorkerFailed(Exception):
+    """A worker's own failure, already posted to its message box."""
+
 
 WAIT_SET = frozenset({signals.SIG_SYNC, signals.SIG_END, signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
 
@@ -41,6 +47,9 @@ class Worker:
         self.period_ns = int(ld.static["period_ns"])
         # set to ask the manager for an e-stop (published with the next heartbeat)
         self.estop_request = False
+        # set when the manager must look now (a guard trip): it gets SIG_WAKE
+        # after this cycle's heartbeat, once
+        self.wake_manager = False
 
     # -- hooks for subclasses --
 
@@ -73,6 +82,7 @@ class _Runner:
         self.lateness = Samples()
         self.compute = Samples()
         self.cpu_start_s = 0.0
+        self.estop_woken = False
 
     def run(self) -> int:
         spec, i = self.spec, self.index
@@ -117,7 +127,7 @@ class _Runner:
                 worker.initialize()
             except Exception as exc:
                 worker.post(f"initialization failed: {exc}", logging.ERROR)
-                raise
+                raise WorkerFailed(str(exc)) from exc
             granted = sched.apply(
                 me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory
             )
@@ -202,6 +212,7 @@ class _Runner:
             else:
                 self._step(worker, cycle, due_ns)
             self._sign(mine, row, cycle, wake_ns, worker.estop_request)
+            self._wake_for_estop(worker, manager_fd)
             for j in succs:
                 go[j].release()
 
@@ -238,9 +249,17 @@ class _Runner:
         except Exception as exc:
             # the manager sees the exit at once; the box says why
             worker.post(f"failed at cycle {cycle}: {exc}", logging.ERROR)
-            raise
+            raise WorkerFailed(str(exc)) from exc
         self.compute.add(time.monotonic_ns() - t0)
         self.cycles += 1
+
+    def _wake_for_estop(self, worker: Worker, manager_fd: int) -> None:
+        """A new e-stop request goes to the manager at once (it would see it at
+        its next tick anyway): the e-stop crosses a node in well under a cycle."""
+        if (worker.estop_request or worker.wake_manager) and not self.estop_woken:
+            self.estop_woken = True
+            with contextlib.suppress(OSError):
+                signals.send(manager_fd, signals.SIG_WAKE)
 
     def _sign(self, mine: Record, row: Any, cycle: int, wake_ns: int, estop: bool) -> None:
         """Sign the heartbeat (the cycle done) and publish this process's counters."""
@@ -299,6 +318,7 @@ class _Runner:
                 cycle = tick["cycle"]
                 self._step(worker, cycle, due_ns)
                 self._sign(mine, row, cycle, wake_ns, worker.estop_request)
+                self._wake_for_estop(worker, manager_fd)
         finally:
             timer.stop()
 
@@ -347,4 +367,7 @@ class _Runner:
 
 def run_worker(spec_path: str, index: int, manager_pid: int) -> int:
     spec = NodeSpec.load(spec_path)
-    return _Runner(spec, index, manager_pid).run()
+    try:
+        return _Runner(spec, index, manager_pid).run()
+    except WorkerFailed:
+        return EXIT_FAILED  # the reason is in the message box; the manager reports it

@@ -85,7 +85,7 @@ def test_self_calibration_at_1khz_then_the_next_session_needs_none(tmp_path: Pat
 
     # before any calibration, motion is refused: the positions are unknown
     refused = run_cli(*sets, "session", "tasks/park.yaml", "--out", str(tmp_path / "r0"))
-    assert refused.returncode == 1, refused.stderr
+    assert refused.returncode == 2, refused.stderr
     assert "motion refused" in refused.stderr and "missing" in refused.stderr
     assert not (tmp_path / "r0").exists()
 

@@ -1,48 +1,86 @@
-"""The fault harness against a real session (a few scenarios; `redistro faults`
-runs the whole catalogue)."""
+"""The fault harness against real sessions: every scenario of the catalogue.
+
+One `redistro faults --json` run breaks real sessions (plant, ESCs, SSC,
+DDMs) scenario by scenario; each test below checks one scenario's row. The
+run takes a while (about 15-25 minutes on two vCPUs, the CPU-hog peg
+insertion included), so it happens once per test session.
+"""
 
 from __future__ import annotations
 
 import shutil
+import subprocess
 from pathlib import Path
+from typing import Any
 
-from redistro.faults.catalogue import CATALOGUE
+import pytest
+
+from redistro.faults.catalogue import CATALOGUE, by_name
 from tests.helpers import load_json, run_cli
 
+pytestmark = pytest.mark.slow
 
-def test_the_harness_breaks_a_session_and_measures_the_outcome(
-    calibrated: Path, tmp_path: Path
-) -> None:
-    runs = tmp_path / "runs"
+
+@pytest.fixture(scope="module")
+def table(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    tmp = tmp_path_factory.mktemp("faults")
+    runs = tmp / "runs"
     shutil.copytree(calibrated, runs)
-    out = tmp_path / "faults.json"
+    out = tmp / "faults.json"
     done = run_cli(
-        "--set",
-        f"session.runs_dir={runs}",
-        "faults",
-        "--only",
-        "kill-esc.r2-sender",
-        "--only",
-        "stop-ssc-worker",
-        "--json",
-        str(out),
-        timeout=600,
-    )
+        "--set", f"session.runs_dir={runs}", "faults", "--json", str(out), "--seed", "1",
+        timeout=4800,
+    )  # fmt: skip
     rows = {r["name"]: r for r in load_json(out)["scenarios"]}
-    assert list(rows) == ["kill-esc.r2-sender", "stop-ssc-worker"], done.stdout
-    kill, stop = rows["kill-esc.r2-sender"], rows["stop-ssc-worker"]
-    # a dead worker: seen by its manager through its pidfd within 2 cycles
-    assert kill["got"] == "abnormal" and "worker sender" in kill["cause"], kill
-    assert kill["detected_by"] == "esc.r2" and kill["detection_cycles"] <= 2, kill
-    # a hung worker: seen when its heartbeat is the limit (25 cycles) old
-    assert stop["detected_by"] == "ssc" and "missed 25 heartbeats" in stop["cause"], stop
-    assert 24 <= stop["detection_cycles"] <= 27, stop
-    for row in rows.values():
-        assert row["all_frozen"] and row["estop_every_node"], row
-        assert row["processes_left"] == 0 and row["ipc_left"] == [], row
-        assert row["passed"], row
-    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert "2 of 2 scenarios passed" in done.stdout
+    return {"rows": rows, "done": done}
+
+
+def _row(table: dict[str, Any], name: str) -> dict[str, Any]:
+    done: subprocess.CompletedProcess[str] = table["done"]
+    assert name in table["rows"], done.stdout[-3000:] + done.stderr[-3000:]
+    row: dict[str, Any] = table["rows"][name]
+    return row
+
+
+@pytest.mark.parametrize("name", [s.name for s in CATALOGUE])
+def test_scenario(table: dict[str, Any], name: str) -> None:
+    sc = by_name(name)
+    row = _row(table, name)
+    # nothing is ever left behind
+    assert row.get("processes_left", 0) == 0 and row.get("ipc_left", []) == [], row
+    assert row["got"] in sc.expect, row
+    assert sc.reason in row.get("cause", ""), row
+    fault = "ok" not in sc.expect and "refused" not in sc.expect and "failed" not in sc.expect
+    if fault:
+        # detected within its bound; every robot frozen (a dead plant freezes nothing)
+        assert row["detected"], row
+        if sc.limit in ("death", "guard"):
+            assert row["detection_cycles"] <= 2, row
+        if sc.kind != "process" or sc.node != "plant":
+            assert row["all_frozen"] and row["estop_every_node"], row
+    if "refused" in sc.expect:
+        assert row["exit_code"] == 2 and row["one_line"] and not row["plant_started"], row
+    if sc.count:
+        assert row["count"][sc.count] > 0, row
+    assert row["passed"], row
+
+
+def test_the_table_and_the_exit_code(table: dict[str, Any]) -> None:
+    done: subprocess.CompletedProcess[str] = table["done"]
+    rows = table["rows"]
+    assert list(rows) == [s.name for s in CATALOGUE]
+    for row in rows.values():  # the fields the issue asks for, in every row
+        for key in ("name", "passed", "expected", "got", "cause", "processes_left", "ipc_left"):
+            assert key in row, (key, row)
+    n = len(CATALOGUE)
+    assert f"{n} of {n} scenarios passed" in done.stdout, done.stdout[-3000:]
+    assert done.returncode == 0
+
+
+def test_a_dead_esc_manager_leaves_its_robot_frozen(table: dict[str, Any]) -> None:
+    """The boards' watchdog: nobody writes r2's DAC any more, the chassis cuts it."""
+    row = _row(table, "kill-esc.r2-manager")
+    assert "r2" in row["frozen"] and "r2" in row["watchdog_trips"], row
 
 
 def test_an_unknown_scenario_is_refused_in_one_line() -> None:

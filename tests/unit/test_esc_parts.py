@@ -72,7 +72,7 @@ def test_safety_check_passes_within_limits() -> None:
         ({"qd": np.array([0, 0, 0, 0, 0, 0, np.nan])}, "measured velocity not finite", 6),
         ({"tau": np.array([0, 11.0, 0, 0, 0, 0, 0])}, "measured torque", 1),
         ({"wrench": np.array([40.0, 40.0, 0, 0, 0, 0])}, "force", -1),
-        ({"wrench": np.array([0, 0, 0, 0, 0, np.inf])}, "wrist wrench not finite", -1),
+        ({"wrench": np.array([0, 0, 0, 0, 0, np.inf])}, "wrench not finite", -1),
         ({"tau_cmd": np.array([np.nan, 0, 0, 0, 0, 0, 0])}, "commanded torque not finite", 0),
         ({"tau_cmd": np.array([0, 0, 0, 0, -12.0, 0, 0])}, "commanded torque", 4),
     ],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,11 @@ class DacDriver(ModuleDriver):
     def set_volts(self, channels: np.ndarray[Any, Any], volts: np.ndarray[Any, Any]) -> None:
         """Stage output voltages (rounded and saturated by the converter); ``flush`` sends."""
         self.out["code"][channels] = dac_code(volts)
+
+    def flush(self) -> None:
+        # a new watchdog value on every write (never 0, which disables it)
+        self.out["watchdog"] = (time.monotonic_ns() >> 10) & 0xFFFFFFFF or 1
+        super().flush()
 
     def zero(self) -> None:
         self.out["code"][:] = 0

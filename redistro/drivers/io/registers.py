@@ -83,7 +83,9 @@ ENCODER_OUT = np.dtype(
 )
 
 DAC_IN = np.dtype([*_IN_HEADER, ("readback", "<i2", DAC_CHANNELS)])
-DAC_OUT = np.dtype([("code", "<i2", DAC_CHANNELS)])
+# watchdog: written with a new non-zero value on every write of the bank; the
+# board's amplifiers stay enabled while it keeps moving (0: no watchdog)
+DAC_OUT = np.dtype([("code", "<i2", DAC_CHANNELS), ("watchdog", "<u4")])
 
 ADC_IN = np.dtype([*_IN_HEADER, ("code", "<i2", ADC_CHANNELS)])
 ADC_OUT = np.dtype([("reserved", "<u4")])

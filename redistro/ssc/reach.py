@@ -1,0 +1,90 @@
+"""Can each robot reach the task's Cartesian goals? Checked before anything starts.
+
+A goal is reachable when a damped least-squares inverse kinematics on the
+arm's own model (Pinocchio; tool and base as in the plant), inside the joint
+limits, brings the TCP within 2 mm and 0.02 rad of it from one of a few
+starting postures. A goal none of them reaches is refused with the segment
+named.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from redistro.config.model import Config
+from redistro.config.task import Task
+
+POS_TOL_M = 0.002
+ROT_TOL_RAD = 0.02
+ITERATIONS = 300
+
+
+def _ik_error(
+    model: Any, q: np.ndarray, p_goal: np.ndarray, R_goal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    from redistro.control.cartesian import matrix_to_rotvec
+
+    k = model.kinematics(q)
+    e_rot = k.R @ matrix_to_rotvec(k.R.T @ R_goal)
+    return np.concatenate([p_goal - k.p, e_rot]), k.J
+
+
+def reachable(model: Any, pose: np.ndarray, starts: list[np.ndarray]) -> tuple[bool, float]:
+    """(reached, the best position error [m]) for a TCP pose (position + rotation vector)."""
+    from redistro.control.cartesian import rotvec_to_matrix
+
+    p_goal = np.asarray(pose[:3], dtype=np.float64)
+    R_goal = rotvec_to_matrix(np.asarray(pose[3:], dtype=np.float64))
+    lo = np.asarray(model.model.lowerPositionLimit, dtype=np.float64)
+    hi = np.asarray(model.model.upperPositionLimit, dtype=np.float64)
+    best = np.inf
+    for q0 in starts:
+        q = np.clip(np.asarray(q0, dtype=np.float64), lo, hi)
+        for _ in range(ITERATIONS):
+            e, J = _ik_error(model, q, p_goal, R_goal)
+            pos, rot = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+            best = min(best, pos)
+            if pos < POS_TOL_M and rot < ROT_TOL_RAD:
+                return True, pos
+            step = J.T @ np.linalg.solve(J @ J.T + 1e-2 * np.eye(6), e)
+            n = float(np.linalg.norm(step))
+            if n > 0.3:
+                step *= 0.3 / n
+            q = np.clip(q + step, lo, hi)
+    return False, best
+
+
+def unreachable_goals(cfg: Config, task: Task) -> list[str]:
+    """One line per Cartesian goal no robot posture reaches (empty: all fine)."""
+    if task.kind != "strategy":
+        return []
+    from redistro.control.dynamics import ArmModel
+    from redistro.robotmodel import Peg
+    from redistro.ssc.plan import segment_plans
+
+    peg = cfg.plant.peg
+    models: dict[str, Any] = {}
+    out: list[str] = []
+    for i, plan in enumerate(segment_plans(task, cfg)):
+        if plan.scheme not in ("position", "force"):
+            continue
+        rc = cfg.robots[plan.robot]
+        model = models.get(plan.robot)
+        if model is None:
+            pg = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
+            model = models[plan.robot] = ArmModel(pg, rc.base_xyz_m)
+        starts = [
+            np.asarray(rc.initial_q_rad, dtype=np.float64),
+            np.array([0.0, 0.6, 0.0, -1.4, 0.0, 1.0, 0.0]),
+            np.array([0.0, 0.3, 0.0, -1.9, 0.0, 0.9, 0.0]),
+        ]
+        ok, err = reachable(model, plan.pose, starts)
+        if not ok:
+            xyz = ", ".join(f"{v:.3f}" for v in plan.pose[:3])
+            out.append(
+                f"{task.source}: segments[{i}].goal: {plan.robot} cannot reach the pose "
+                f"({xyz}) m: {err * 1e3:.0f} mm short at best"
+            )
+    return out
