@@ -118,7 +118,9 @@ class EscManager(Manager):
             return self._check_commands(cycle)
         self.setpoint_block.read_into(self.sp.bytes)
         if self.sp["failed"]:
-            raise NodeFault("abnormal", f"{self.robot}: the segments cannot go on (see messages)")
+            self._drain_messages()
+            why = self.last_error.get("calibration", "the segments cannot go on (see messages)")
+            raise NodeFault("abnormal", f"{self.robot}: {why}")
         return bool(self.sp["done"])
 
     def _check_commands(self, cycle: int) -> bool:

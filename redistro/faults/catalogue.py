@@ -9,8 +9,9 @@ Kinds:
 - ``inject``: an injection point (:mod:`redistro.faults.inject`) inside the
   same session fires at such a moment: a bad command, a bad sensor, a pushed
   peg, a broken or noisy DDM link (``action`` is the point);
-- ``can-noise``: the drill over the CAN backplane, corrupt frames sent onto
-  the bus by the harness;
+- ``can-noise``: corrupt frames sent onto the CAN backplane's bus by the
+  harness while the plant and r2's robot-level driver talk over it (whole
+  group sessions over CAN do not fit two vCPUs);
 - ``calibration``: a self-calibration with r2's home switches stuck;
 - ``start``: what the next start finds: a crashed session's leftovers, a
   missing, corrupt or unclean positions file;
@@ -150,13 +151,14 @@ def _other_scenarios() -> list[Scenario]:
     refused = ("refused",)
     out = [
         Scenario("can-corrupt-frames", "can-noise", "plant", "", "noise", ("ok",), "", "",
-                 sets=("plant.backplane=can",), count="bad_frames",
-                 what="1 s of corrupt CAN frames (both directions) on the backplane bus"),
+                 count="bad_frames",
+                 what="1 s of corrupt CAN frames (writes and replies) on the backplane bus, "
+                      "the plant and r2's driver on it"),
         Scenario("home-stuck-on", "calibration", "plant", "", "plant.home-stuck-on",
-                 ("failed",), "no home switch", "",
+                 ("abnormal",), "no home switch", "",
                  what="r2's home switches stuck on during self-calibration"),
         Scenario("home-stuck-off", "calibration", "plant", "", "plant.home-stuck-off",
-                 ("failed",), "no home switch", "",
+                 ("abnormal",), "no home switch", "",
                  what="r2's home switches stuck off during self-calibration"),
         Scenario("stale-ipc", "start", "", "", "stale-ipc", ("ok",), "", "",
                  what="every process of a session SIGKILLed, then a new session"),

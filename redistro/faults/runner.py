@@ -173,6 +173,11 @@ def run_scenario(
     if sc.kind == "start" and sc.action != "stale-ipc":
         row.update(_refused_start(sc, runs, out_dir, config_args))
         return row
+    if sc.kind == "can-noise":
+        from redistro.faults.can_noise import run_can_noise
+
+        row.update(run_can_noise(out_dir, config_args))
+        return row
     if sc.kind == "hogs":
         row.update(_hogs(sc, runs, out_dir, config_args))
         return row
@@ -269,13 +274,6 @@ def _inject(sc: Scenario, sid: str, trigger: Path, cfg: Config) -> int:
     if sc.kind == "inject":
         now = time.monotonic_ns()
         trigger.touch()
-        return now
-    if sc.kind == "can-noise":
-        from redistro.faults.can_noise import send_noise
-
-        now = time.monotonic_ns()
-        sent = send_noise(cfg, sid, seconds=1.0)
-        (trigger.parent / "noise.json").write_text(json.dumps({"frames": sent}))
         return now
     raise RedistroError(f"{sc.name}: nothing to inject for kind {sc.kind}")
 

@@ -106,6 +106,8 @@ class Manager:
         self.sems: list[Semaphore] = []
         self.rows: list[Block] = []
         self.boxes: list[MessageBox] = []
+        self.last_error: dict[str, str] = {}  # worker name -> its last ERROR message
+        self._failed: dict[int, str] = {}  # worker index -> why it failed (CRITICAL message)
         self._msg_file: Any = None
         self._routine_start = 0.0
         self._routine_end = 0.0
@@ -281,6 +283,7 @@ class Manager:
                     continue
                 if sig == signals.SIG_WAKE:
                     # a worker's e-stop or trip: act now, not at the next tick
+                    self._check_failed()
                     self._check_estop_requests()
                     self.on_wake()
                     continue
@@ -330,11 +333,8 @@ class Manager:
                 status = child.status or 0
                 if os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_FAILED:
                     # it said why in its box: that is the cause
-                    why = describe_status(status)
-                    for stamp_ns, level, text in self.boxes[j].drain():
-                        self._message(child.name, level, text, stamp_ns)
-                        if level >= logging.ERROR:
-                            why = text
+                    self._drain_messages()
+                    why = self._failed.get(j, describe_status(status))
                     raise NodeFault("abnormal", f"worker {child.name} (pid {child.pid}) {why}")
                 raise NodeFault(
                     "abnormal",
@@ -407,9 +407,20 @@ class Manager:
         return f"e-stop requested by {name}"
 
     def _drain_messages(self) -> None:
-        for w, box in zip(self.spec.workers, self.boxes, strict=True):
+        for j, (w, box) in enumerate(zip(self.spec.workers, self.boxes, strict=True)):
             for stamp_ns, level, text in box.drain():
                 self._message(w.name, level, text, stamp_ns)
+                if level >= logging.ERROR:
+                    self.last_error[w.name] = text
+                if level >= logging.CRITICAL:  # the worker failed: this is why
+                    self._failed.setdefault(j, text)
+
+    def _check_failed(self) -> None:
+        """A worker said it failed (a CRITICAL message): end the node now."""
+        self._drain_messages()
+        for j, text in self._failed.items():
+            child = self.children[j]
+            raise NodeFault("abnormal", f"worker {child.name} (pid {child.pid}) {text}")
 
     def _message(self, process: str, level: int, text: str, stamp_ns: int | None = None) -> None:
         line = f"[{self.spec.node}/{process}] {text}"

@@ -83,6 +83,7 @@ class _Runner:
         self.compute = Samples()
         self.cpu_start_s = 0.0
         self.estop_woken = False
+        self.manager_fd = -1
 
     def run(self) -> int:
         spec, i = self.spec, self.index
@@ -91,7 +92,7 @@ class _Runner:
         signals.set_parent_death_signal(signals.SIG_ORPHAN)
         if os.getppid() != self.manager_pid:
             return 3  # the manager died before we could watch it
-        manager_fd = os.pidfd_open(self.manager_pid)
+        manager_fd = self.manager_fd = os.pidfd_open(self.manager_pid)
         ld = LocalData.attach(spec.session_id, spec.node)
         self.period_ns = int(ld.static["period_ns"])
         sems: list[Semaphore] = []
@@ -126,7 +127,7 @@ class _Runner:
             try:
                 worker.initialize()
             except Exception as exc:
-                worker.post(f"initialization failed: {exc}", logging.ERROR)
+                worker.post(f"initialization failed: {exc}", logging.CRITICAL)
                 raise WorkerFailed(str(exc)) from exc
             granted = sched.apply(
                 me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory
@@ -247,8 +248,11 @@ class _Runner:
             self.stage_timeouts += 1
             return
         except Exception as exc:
-            # the manager sees the exit at once; the box says why
-            worker.post(f"failed at cycle {cycle}: {exc}", logging.ERROR)
+            # CRITICAL: this worker cannot go on; the manager, woken now, ends
+            # the node with this text as the cause (before our exit is seen)
+            worker.post(f"failed at cycle {cycle}: {exc}", logging.CRITICAL)
+            with contextlib.suppress(OSError):
+                signals.send(self.manager_fd, signals.SIG_WAKE)
             raise WorkerFailed(str(exc)) from exc
         self.compute.add(time.monotonic_ns() - t0)
         self.cycles += 1

@@ -32,6 +32,7 @@ FRAME = 64
 HEAD = struct.Struct("<HBBH")
 PAYLOAD = FRAME - HEAD.size
 WRITE, READ, REPLY = 0x100, 0x200, 0x300
+LATE_BATCH = 64  # frames a late plant still takes before its next step
 INVENTORY = 0x7F0  # controller -> chassis: who is there?
 INVENTORY_REPLY = 0x7F1  # chassis -> controller: (address u8, type u8) pairs
 
@@ -281,12 +282,18 @@ class CanPort(BoardPort):
             self._out[a].reshape(1).view(np.uint8)[:] = np.frombuffer(whole, np.uint8)
 
     def service(self, until_ns: int) -> None:
-        """Answer requests until ``until_ns``; even when the step is late, take
-        everything already queued (a late plant must not build a backlog)."""
+        """Answer requests until ``until_ns``; when the step is late, take what
+        is already queued, up to LATE_BATCH frames (a late plant must not build
+        a backlog, nor stop stepping under a flood of frames)."""
         import can
 
+        late = 0
         while True:
             remaining = (until_ns - time.monotonic_ns()) / 1e9
+            if remaining <= 0:
+                late += 1
+                if late > LATE_BATCH:
+                    return
             try:
                 msg = self.bus.recv(timeout=max(0.0, remaining))
             except can.CanError:
