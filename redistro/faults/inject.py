@@ -12,7 +12,9 @@ r2 started moving). A process that owns the point asks :func:`injection` once
 (None when this session carries no such point: nothing to pay in normal
 runs), then ``live()`` where the fault would act: it looks for the trigger at
 most every 2 ms and, the first time it sees it, writes ``<trigger>.fired``
-(``{"monotonic_ns": ..., "pid": ...}``): detection latencies count from there.
+(``{"monotonic_ns": ..., "pid": ...}``): detection latencies count from
+there (the plant writes it once the step that carries the fault is on the
+boards).
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ class Injection:
     trigger: str = ""
     arg: float = 0.0
     fired_ns: int = 0
+    defer_record: bool = False
+    recorded: bool = False
     _next_ns: int = field(default=0, repr=False)
 
     def live(self) -> bool:
@@ -47,14 +51,23 @@ class Injection:
         if not self.trigger or not os.path.exists(self.trigger):
             return False
         self.fired_ns = now
+        if not self.defer_record:
+            self.record(now)
+        return True
+
+    def record(self, when_ns: int) -> None:
+        """Write ``<trigger>.fired``: when the fault took effect. The plant
+        records after the step that put it on the boards (``defer_record``)."""
+        if self.recorded:
+            return
+        self.recorded = True
         tmp = f"{self.trigger}.fired.{os.getpid()}"
         try:
             with open(tmp, "w", encoding="utf-8") as f:
-                json.dump({"monotonic_ns": now, "pid": os.getpid(), "point": self.point}, f)
+                json.dump({"monotonic_ns": when_ns, "pid": os.getpid(), "point": self.point}, f)
             os.replace(tmp, f"{self.trigger}.fired")
         except OSError:
             pass  # the run folder went away: the fault still acts
-        return True
 
     def concerns(self, robot: str) -> bool:
         return not self.robot or robot == self.robot

@@ -129,6 +129,8 @@ class Chassis:
         from redistro.faults import inject
 
         self.injection = inject.injection("plant.")
+        if self.injection is not None:
+            self.injection.defer_record = True  # the loop records it once on the boards
         self._inj_rig = next(
             (
                 i

@@ -181,6 +181,9 @@ def _loop(
         for a in boards:
             port.publish(a, chassis.inp[a])
         now = time.monotonic_ns()
+        inj = chassis.injection
+        if inj is not None and inj.fired_ns and not inj.recorded:
+            inj.record(now)  # the fault is on the boards from this step
         if now - last_step_ns > max_gap_ns:
             max_gap_ns, max_gap_at_ns = now - last_step_ns, last_step_ns
         last_step_ns = now

@@ -244,3 +244,32 @@ def test_positions_file_presets_the_next_start(tmp_path: Path) -> None:
             fb, tr = rig.synced(r)
             err = np.abs(fb.q_rad - tr["q_rad"]) * d.counts_per_rad
             assert np.all(err <= 2.0), f"{r}: {err} counts after a preset from the file"
+
+
+def test_the_amplifiers_watchdog_brakes_an_arm_nobody_commands(tmp_path: Path) -> None:
+    """Outputs written once and then left alone (a dead controller): the
+    chassis cuts the DAC and engages the brakes after plant.output_watchdog_ms."""
+    with plant_rig("shm", tmp_path, ["plant.output_watchdog_ms=50"]) as rig:
+        d = rig.drivers["r1"]
+        d.send_torques(np.array([8.0, 0, 0, 0, 0, 0, 0]))
+        d.release_brakes([0])
+        d.send_torques(np.array([8.0, 0, 0, 0, 0, 0, 0]))
+        released_at = time.monotonic()
+        seen_released = False
+        deadline = released_at + 10.0
+        while time.monotonic() < deadline:
+            braked = rig.truth("r1")["braked"]
+            seen_released = seen_released or not braked[0]
+            if seen_released and braked.all():
+                break
+            time.sleep(0.002)  # polling the plant's truth with a deadline
+        assert seen_released, "the brake of joint 1 never came off"
+        assert rig.truth("r1")["braked"].all(), "the arm was never braked again"
+        # written again: the watchdog lets go
+        d.send_torques(np.zeros(7))
+        d.release_brakes([0])
+        rig.run_for(0.01, lambda: d.send_torques(np.zeros(7)))
+        assert not rig.truth("r1")["braked"][0]
+        d.freeze()
+    trips = rig.plant.result()["watchdog_trips"]
+    assert any(t["robot"] == "r1" for t in trips), trips

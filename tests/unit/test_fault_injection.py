@@ -1,0 +1,132 @@
+"""The harness's injection points and the faulty DDM transport (no processes)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from redistro.ddm import record as wire
+from redistro.ddm.transport import Transport
+from redistro.errors import TransportError, WireError
+from redistro.faults import inject
+from redistro.faults.wire import REPLAY_BACK, InjectedTransport
+
+
+class Loop(Transport):
+    """A transport that hands back what was sent (the contract's simplest peer)."""
+
+    def __init__(self) -> None:
+        self.queue: list[bytes] = []
+        self.closed = False
+
+    def send(self, record: bytes, robot: int) -> None:
+        self.queue.append(record)
+
+    def receive(self) -> list[bytes]:
+        out, self.queue = self.queue, []
+        return out
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def _record(seq: int) -> bytes:
+    return wire.encode(wire.KIND_COMMAND, 1, "ssc", seq, time.monotonic_ns() + seq, bytes(
+        wire.PAYLOADS[wire.KIND_COMMAND].itemsize))  # fmt: skip
+
+
+def _armed(tmp_path: Path, point: str, arg: float = 0.0) -> inject.Injection:
+    trigger = tmp_path / f"trigger-{point}"
+    inj = inject.Injection(point=point, robot="r2", trigger=str(trigger), arg=arg)
+    assert not inj.live()  # no trigger yet
+    trigger.touch()
+    inj._next_ns = 0  # look again now (it looks at most every 2 ms)
+    assert inj.live()
+    return inj
+
+
+def test_an_injection_is_armed_through_the_environment(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert inject.injection("plant.") is None  # nothing armed: nothing to pay
+    trigger = tmp_path / "t"
+    env = inject.arm("plant.encoder-jump", str(trigger), robot="r2", arg=5.0)
+    monkeypatch.setenv(inject.ENV, env)
+    assert inject.injection("ddm.drop") is None
+    inj = inject.injection("plant.")
+    assert inj is not None and inj.point == "plant.encoder-jump" and inj.arg == 5.0
+    assert inj.concerns("r2") and not inj.concerns("r1")
+    assert not inj.live()
+    trigger.touch()
+    inj._next_ns = 0
+    assert inj.live() and inj.fired_ns > 0
+    assert Path(f"{trigger}.fired").exists()  # when it fired, for the latencies
+
+
+def test_malformed_copies_are_refused_and_the_genuine_records_pass(tmp_path: Path) -> None:
+    inner = Loop()
+    t = InjectedTransport(inner, _armed(tmp_path, "ddm.malformed", 3), {1: "r2"})
+    for seq in range(1, 6):
+        t.send(_record(seq), 1)
+    got = inner.receive()
+    assert len(got) == 8  # 3 corrupt copies + 5 genuine records
+    refused = 0
+    for raw in got:
+        try:
+            wire.decode(raw)
+        except WireError:
+            refused += 1
+    assert refused == 3
+
+
+def test_replayed_records_are_dropped_by_admission(tmp_path: Path) -> None:
+    inner = Loop()
+    inj = inject.Injection(point="ddm.replay", trigger=str(tmp_path / "t"), arg=5)
+    t = InjectedTransport(inner, inj, {1: "r2"})
+    seq = 0
+    for _ in range(REPLAY_BACK):  # history before the trigger
+        seq += 1
+        t.send(_record(seq), 1)
+    (tmp_path / "t").touch()
+    inj._next_ns = 0
+    for _ in range(10):
+        seq += 1
+        t.send(_record(seq), 1)
+    admission = wire.Admission()
+    accepted = sum(admission.admit(wire.decode(raw)) for raw in inner.receive())
+    assert accepted == seq  # every genuine record, once
+    assert admission.dropped["out_of_order"] == 5
+
+
+def test_drop_delay_and_close(tmp_path: Path) -> None:
+    inner = Loop()
+    t = InjectedTransport(inner, _armed(tmp_path, "ddm.drop"), {1: "r2"})
+    t.send(_record(1), 1)
+    assert inner.receive() == []
+
+    inner = Loop()
+    t = InjectedTransport(inner, _armed(tmp_path, "ddm.delay", 0.05), {1: "r2"})
+    t.send(_record(1), 1)
+    assert inner.queue == []
+    deadline = time.monotonic() + 2.0
+    came: list[bytes] = []
+    while not came and time.monotonic() < deadline:
+        came += t.receive()  # the delayed record leaves once due (the loop hands it back)
+    assert len(came) == 1
+
+    inner = Loop()
+    t = InjectedTransport(inner, _armed(tmp_path, "ddm.link-close"), {1: "r2"})
+    with pytest.raises(TransportError):
+        t.send(_record(1), 1)
+    assert inner.closed
+    with pytest.raises(TransportError):
+        t.receive()
+
+
+def test_records_of_another_robot_are_left_alone(tmp_path: Path) -> None:
+    inner = Loop()
+    t = InjectedTransport(inner, _armed(tmp_path, "ddm.drop"), {0: "r1", 1: "r2"})
+    t.send(_record(1), 0)
+    assert len(inner.receive()) == 1
