@@ -128,6 +128,12 @@ def _parser() -> argparse.ArgumentParser:
     fa.add_argument("--list", action="store_true", help="list the scenarios and stop")
     fa.add_argument("--json", dest="json_path", default=None, help="write the table as JSON")
     fa.add_argument("--seed", type=int, default=0, help="seed of the injection moments")
+    fa.add_argument(
+        "--retries",
+        type=int,
+        default=0,
+        help="run a failed scenario again up to N times (the row keeps the failed attempts)",
+    )
 
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
     return p
@@ -195,7 +201,11 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         cfg_args = (["--config", config] if config else []) + [
             a for o in overrides for a in ("--set", o)
         ]
-        return run_faults(cfg, args.only, args.json_path, args.seed, cfg_args, args.list)
+        if args.retries < 0:
+            raise ConfigError(f"--retries: expected >= 0, got {args.retries}")
+        return run_faults(
+            cfg, args.only, args.json_path, args.seed, cfg_args, args.list, args.retries
+        )
     if args.command == "bench" and args.bench == "cycle":
         return _bench_cycle(args, cfg)
     if args.command == "bench" and args.bench == "ipc":

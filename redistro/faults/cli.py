@@ -19,6 +19,7 @@ def run_faults(
     seed: int,
     config_args: list[str],
     list_only: bool = False,
+    retries: int = 0,
 ) -> int:
     try:
         chosen: list[Scenario] = [by_name(n) for n in only] if only else list(CATALOGUE)
@@ -40,6 +41,15 @@ def run_faults(
         print(f"{s.name}: {s.what}", flush=True)
         baseline.restore()
         row = run_scenario(s, runs, cfg, config_args, rng)
+        earlier: list[dict[str, Any]] = []
+        while not row["passed"] and len(earlier) < retries:
+            print("  " + _line(row) + "; once more", flush=True)
+            earlier.append(row)
+            baseline.restore()
+            row = run_scenario(s, runs, cfg, config_args, rng)
+        row["attempts"] = len(earlier) + 1
+        if earlier:
+            row["failed_attempts"] = earlier
         rows.append(row)
         print("  " + _line(row), flush=True)
     baseline.restore()
