@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from redistro.faults.catalogue import Scenario
+from redistro.faults.runner import die_with_parent
 
 TASK = Path("tasks/fault_drill.yaml")
 CONFIG = Path("config/redistro.yaml")
@@ -55,6 +56,7 @@ def run_input(sc: Scenario, out_dir: Path, config_args: list[str]) -> dict[str, 
         text=True,
         timeout=120,
         check=False,
+        preexec_fn=die_with_parent,
     )  # fmt: skip
     lines = [ln for ln in done.stderr.strip().splitlines() if ln.strip()]
     row: dict[str, Any] = {

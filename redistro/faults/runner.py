@@ -33,6 +33,14 @@ ROBOT = 1  # r2, the robot that moves (index in the task's robots)
 SESSION_TIMEOUT_S = 240.0
 
 
+def die_with_parent() -> None:
+    """preexec_fn of every child the harness starts: SIGTERM when the harness
+    dies (a killed harness must not leave a session running beside the next)."""
+    from redistro.ipc import signals
+
+    signals.set_parent_death_signal(signal.SIGTERM)
+
+
 def _cli(runs: Path, config_args: list[str]) -> list[str]:
     return [sys.executable, "-m", "redistro.cli", "--set", f"session.runs_dir={runs}", *config_args]
 
@@ -57,6 +65,7 @@ def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
         text=True,
         timeout=600,
         check=False,
+        preexec_fn=die_with_parent,
     )
     if done.returncode != 0:
         raise RedistroError(f"self-calibration before the scenarios failed: {done.stdout[-500:]}")
@@ -219,6 +228,7 @@ def _break_session(
         stderr=subprocess.DEVNULL,
         text=True,
         env=env,
+        preexec_fn=die_with_parent,
     )
     deadline = time.monotonic() + SESSION_TIMEOUT_S
     inject_ns = 0
@@ -455,6 +465,7 @@ def _refused_start(
         text=True,
         timeout=120,
         check=False,
+        preexec_fn=die_with_parent,
     )
     row = _one_line_refusal(done)
     row["ipc_left"] = sorted(set(os.listdir("/dev/shm")) - before)
@@ -489,6 +500,7 @@ def _stale_ipc(
         stderr=subprocess.DEVNULL,
         text=True,
         start_new_session=True,
+        preexec_fn=die_with_parent,
     )
     deadline = time.monotonic() + SESSION_TIMEOUT_S
     sid = ""
@@ -519,6 +531,7 @@ def _stale_ipc(
         text=True,
         timeout=SESSION_TIMEOUT_S + 300,
         check=False,
+        preexec_fn=die_with_parent,
     )
     try:
         summary = json.loads((second / "summary.json").read_text())
@@ -546,7 +559,9 @@ def _stale_ipc(
 def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> dict[str, Any]:
     """The whole peg insertion beside two processes spinning at normal priority."""
     spin = "import time\nwhile True:\n    pass\n"
-    hogs = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2)]
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", spin], preexec_fn=die_with_parent) for _ in range(2)
+    ]
     t0 = time.monotonic()
     try:
         done = subprocess.run(
@@ -556,6 +571,7 @@ def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> di
             text=True,
             timeout=1800,
             check=False,
+            preexec_fn=die_with_parent,
         )  # fmt: skip
     finally:
         cpu = 0.0

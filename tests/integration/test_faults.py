@@ -20,7 +20,8 @@ import pytest
 from redistro.faults.catalogue import CATALOGUE, by_name
 from tests.helpers import load_json, run_cli
 
-pytestmark = pytest.mark.slow
+# the whole catalogue runs in the first test's set-up (the module's fixture)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(5400)]
 
 
 @pytest.fixture(scope="module")
