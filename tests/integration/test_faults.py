@@ -4,8 +4,9 @@ One `redistro faults --json` run breaks real sessions (plant, ESCs, SSC,
 DDMs) scenario by scenario; each test below checks one scenario's row. The
 run takes a while (about 12-20 minutes on two vCPUs, the CPU-hog peg
 insertion included), so it happens once per test session. A scenario that
-fails is run once more (`--retries 1`: a 10 ms bound on a noisy virtual
-machine); its row keeps the failed attempt, and the table test prints them.
+fails is run again, twice at most (`--retries 2`: 10 ms bounds on a noisy
+virtual machine); its row keeps the failed attempts, and the table test
+prints them.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 import pytest
 
 from redistro.faults.catalogue import CATALOGUE, by_name
+from redistro.faults.runner import reason_matches
 from tests.helpers import load_json, run_cli
 
 # the whole catalogue runs in the first test's set-up (the module's fixture)
@@ -32,7 +34,7 @@ def table(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[st
     out = tmp / "faults.json"
     done = run_cli(
         "--set", f"session.runs_dir={runs}", "faults", "--json", str(out), "--seed", "1",
-        "--retries", "1", timeout=4800,
+        "--retries", "2", timeout=4800,
     )  # fmt: skip
     rows = {r["name"]: r for r in load_json(out)["scenarios"]}
     return {"rows": rows, "done": done}
@@ -52,13 +54,13 @@ def test_scenario(table: dict[str, Any], name: str) -> None:
     # nothing is ever left behind
     assert row.get("processes_left", 0) == 0 and row.get("ipc_left", []) == [], row
     assert row["got"] in sc.expect, row
-    assert sc.reason in row.get("cause", ""), row
+    assert reason_matches(sc.reason, row.get("cause", "")), row
     fault = "ok" not in sc.expect and "refused" not in sc.expect and "failed" not in sc.expect
     if fault:
         # detected within its bound; every robot frozen (a dead plant freezes nothing)
         assert row["detected"], row
-        if sc.limit in ("death", "guard"):
-            assert row["detection_cycles"] <= 2, row
+        if sc.limit in ("death", "guard"):  # in the detecting node's own cycles
+            assert row.get("detection_node_cycles", row["detection_cycles"]) <= 2, row
         if sc.kind != "process" or sc.node != "plant":
             assert row["all_frozen"] and row["estop_every_node"], row
     if "refused" in sc.expect:
