@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from redistro.faults.catalogue import Scenario
-from redistro.faults.runner import die_with_parent
+from redistro.faults.runner import die_with_parent, one_line_refusal
 
 TASK = Path("tasks/fault_drill.yaml")
 CONFIG = Path("config/redistro.yaml")
@@ -58,17 +58,15 @@ def run_input(sc: Scenario, out_dir: Path, config_args: list[str]) -> dict[str, 
         check=False,
         preexec_fn=die_with_parent,
     )  # fmt: skip
-    lines = [ln for ln in done.stderr.strip().splitlines() if ln.strip()]
-    row: dict[str, Any] = {
-        "got": "refused" if done.returncode == 2 else f"exit {done.returncode}",
-        "exit_code": done.returncode,
-        "cause": lines[-1] if lines else "",
-        "one_line": len(lines) == 1 and "Traceback" not in done.stderr,
-        "names": names,
-        "ipc_left": sorted(set(os.listdir("/dev/shm")) - before),
-        "processes_left": 0,
-        "plant_started": (out_dir / "run" / "plant.json").exists(),
-    }
+    row: dict[str, Any] = one_line_refusal(done)
+    row.update(
+        {
+            "names": names,
+            "ipc_left": sorted(set(os.listdir("/dev/shm")) - before),
+            "processes_left": 0,
+            "plant_started": (out_dir / "run" / "plant.json").exists(),
+        }
+    )
     row["passed"] = bool(
         row["got"] == "refused"
         and row["one_line"]

@@ -486,7 +486,8 @@ class Baseline:
 # -- what the next start finds --
 
 
-def _one_line_refusal(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
+def one_line_refusal(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
+    """How a refused command line ended: exit code, its one line, no traceback."""
     lines = [ln for ln in done.stderr.strip().splitlines() if ln.strip()]
     return {
         "got": "refused" if done.returncode == 2 else f"exit {done.returncode}",
@@ -521,7 +522,7 @@ def _refused_start(
         check=False,
         preexec_fn=die_with_parent,
     )
-    row = _one_line_refusal(done)
+    row = one_line_refusal(done)
     row["ipc_left"] = sorted(set(os.listdir("/dev/shm")) - before)
     row["processes_left"] = 0
     row["plant_started"] = (out_dir / "plant.json").exists()
