@@ -136,6 +136,27 @@ def _parser() -> argparse.ArgumentParser:
     )
 
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
+
+    lg = sub.add_parser("log", help="read a run's session log back")
+    lsub = lg.add_subparsers(dest="log_command", required=True, parser_class=_Parser)
+    ls = lsub.add_parser(
+        "summary", help="task, result, segments, figures, faults as tables", parents=[common]
+    )
+    lp = lsub.add_parser(
+        "plot", help="PNG figures of joints, wrench, pose, timing", parents=[common]
+    )
+    lp.add_argument("--out", default=None, help="folder for the PNGs (default: RUN/plots)")
+    le = lsub.add_parser("export", help="one CSV per topic", parents=[common])
+    le.add_argument("--csv", required=True, metavar="DIR", help="folder for the CSV files")
+    ls.add_argument("--json", action="store_true", help="print the summary as JSON")
+    for q in (ls, lp, le):
+        q.add_argument("run", help="run folder, session id under runs/, or a session.mcap")
+
+    tp = sub.add_parser("top", help="live view of the running sessions", parents=[common])
+    tp.add_argument("session", nargs="?", default=None, help="only this session id")
+    tp.add_argument("--once", action="store_true", help="one sample, then exit")
+    tp.add_argument("--json", action="store_true", help="with --once: print JSON")
+    tp.add_argument("--interval", type=float, default=1.0, help="refresh period [s]")
     return p
 
 
@@ -214,7 +235,36 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         return _bench_plant(args, cfg)
     if args.command == "plant":
         return _plant(args, cfg)
+    if args.command == "log":
+        return _log(args, cfg)
+    if args.command == "top":
+        from redistro.top import run_top
+
+        return run_top(args.session, args.once, args.json, args.interval)
     raise ConfigError(f"unknown command {args.command}")
+
+
+def _log(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from redistro.log import inspect
+
+    run, sl, summary = inspect.load(args.run, cfg.session.runs_dir)
+    if args.log_command == "summary":
+        rows = inspect.summary_rows(run, sl, summary)
+        if args.json:
+            print(json.dumps(rows, indent=1, default=str))
+        else:
+            inspect.print_summary(rows)
+        return 0
+    if args.log_command == "plot":
+        out = Path(args.out) if args.out else run / "plots"
+        for path in inspect.plot_run(sl, out):
+            print(f"wrote {path}")
+        return 0
+    for path in inspect.export_csv(sl, Path(args.csv)):
+        print(f"wrote {path}")
+    return 0
 
 
 def _clean() -> int:

@@ -69,9 +69,16 @@ def check_positions(cfg: Config, task: Task) -> None:
 
 
 class Progress:
-    """Prints, about once a second, where each ESC is in its segments."""
+    """Where each node is in its segments: a progress bar per node with the
+    current segment on a terminal (rich), else a plain line about once a second."""
 
-    def __init__(self, session_id: str, specs: list[NodeSpec], out: Callable[[str], None]) -> None:
+    def __init__(
+        self,
+        session_id: str,
+        specs: list[NodeSpec],
+        out: Callable[[str], None],
+        live: bool | None = None,
+    ) -> None:
         self.session_id = session_id
         self.specs = specs
         self.out = out
@@ -80,55 +87,80 @@ class Progress:
         self.lds: dict[str, Any] = {}
         self.blocks: dict[str, Any] = {}
         self.ssc_segments: list[tuple[str, float]] = []
+        self.live = sys.stdout.isatty() if live is None else live
+        self.bars: Any = None
+        self.tasks: dict[str, Any] = {}
 
     def __call__(self) -> None:
         now = time.monotonic()
         if now < self.next:
             return
-        self.next = now + 1.0
+        self.next = now + (0.25 if self.live else 1.0)
         try:
             self._show(now)
         except Exception:  # progress is for people: it must never end a session
             log.debug("progress display failed", exc_info=True)
 
     def _show(self, now: float) -> None:
+        rows = [self._node(spec) for spec in self.specs]
+        if not self.live:
+            self.out(f"[{now - self.t0:6.1f} s] " + " | ".join(r[0] for r in rows))
+            return
+        if self.bars is None:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.bars = Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                TextColumn("{task.percentage:>3.0f}%"),
+                TimeElapsedColumn(),
+            )
+            self.bars.start()
+        for spec, (text, done_s, total_s) in zip(self.specs, rows, strict=True):
+            task = self.tasks.get(spec.node)
+            if task is None:
+                task = self.tasks[spec.node] = self.bars.add_task(text, total=total_s or 1.0)
+            self.bars.update(task, description=text, completed=done_s)
+
+    def _node(self, spec: NodeSpec) -> tuple[str, float, float]:
+        """(text, seconds of segments done, seconds of all segments)."""
         from redistro.localdata import LocalData
 
-        parts = []
-        for spec in self.specs:
-            ld = self.lds.get(spec.node)
-            if ld is None:
-                try:
-                    ld = self.lds[spec.node] = LocalData.attach(self.session_id, spec.node)
-                except (IPCError, LayoutError, OSError):
-                    parts.append(f"{spec.node} starting")
-                    continue
-            blocks = self.blocks.get(spec.node)
-            if blocks is None:
-                blocks = self.blocks[spec.node] = (ld.block("setpoint", 0), ld.block("manager"))
+        segs: list[dict[str, Any]]
+        if spec.kind == "ssc":
+            segs = [{"name": n, "duration_s": d} for n, d in self.ssc_segments]
+        else:
+            segs = list(spec.workers[0].params.get("segments", []))
+        total = float(sum(float(s["duration_s"]) for s in segs))
+        ld = self.lds.get(spec.node)
+        if ld is None:
             try:
-                sp = blocks[0].read()
-                mgr = blocks[1].read()
-            except Exception:
-                continue
-            if spec.kind == "ssc":
-                parts.append(self._ssc(spec, ld, int(mgr["cycle"])))
-                continue
-            segs = spec.workers[0].params["segments"]
-            k = int(sp["segment"])
-            if int(sp["done"]):
-                parts.append(f"{spec.node} done")
-            elif k == 0:
-                parts.append(f"{spec.node} cycle {int(mgr['cycle'])}")
-            else:
-                seg = segs[k - 1]
-                parts.append(
-                    f"{spec.node} {k}/{len(segs)} {seg['name']} "
-                    f"{float(sp['segment_t_s']):5.1f}/{seg['duration_s']:g} s"
-                )
-        self.out(f"[{now - self.t0:6.1f} s] " + " | ".join(parts))
+                ld = self.lds[spec.node] = LocalData.attach(self.session_id, spec.node)
+            except (IPCError, LayoutError, OSError):
+                return f"{spec.node} starting", 0.0, total
+        blocks = self.blocks.get(spec.node)
+        if blocks is None:
+            blocks = self.blocks[spec.node] = (ld.block("setpoint", 0), ld.block("manager"))
+        try:
+            sp = blocks[0].read()
+            mgr = blocks[1].read()
+        except Exception:
+            return f"{spec.node}", 0.0, total
+        if spec.kind == "ssc":
+            return self._ssc(spec, ld, int(mgr["cycle"]), total)
+        k = int(sp["segment"])
+        if int(sp["done"]):
+            return f"{spec.node} done", total, total
+        if k == 0:
+            return f"{spec.node} cycle {int(mgr['cycle'])}", 0.0, total
+        seg = segs[k - 1]
+        t = float(sp["segment_t_s"])
+        dur = float(seg["duration_s"])
+        done = sum(float(s["duration_s"]) for s in segs[: k - 1]) + min(t, dur)
+        text = f"{spec.node} {k}/{len(segs)} {seg['name']} {t:5.1f}/{seg['duration_s']:g} s"
+        return text, done, total
 
-    def _ssc(self, spec: NodeSpec, ld: Any, cycle: int) -> str:
+    def _ssc(self, spec: NodeSpec, ld: Any, cycle: int, total: float) -> tuple[str, float, float]:
         names = self.ssc_segments
         for i in range(len(spec.robots)):
             pl = ld.block("plan", i).read()
@@ -136,16 +168,20 @@ class Progress:
                 continue
             k = int(pl["segment"])
             if int(pl["done"]):
-                return "ssc done"
+                return "ssc done", total, total
             if 1 <= k <= len(names):
                 name, dur = names[k - 1]
-                return (
-                    f"ssc {k}/{len(names)} {name} ({spec.robots[i]}) "
-                    f"{float(pl['segment_t_s']):5.1f}/{dur:g} s"
-                )
-        return f"ssc cycle {cycle}"
+                t = float(pl["segment_t_s"])
+                done = sum(d for _, d in names[: k - 1]) + min(t, dur)
+                text = f"ssc {k}/{len(names)} {name} ({spec.robots[i]}) {t:5.1f}/{dur:g} s"
+                return text, done, total
+        return f"ssc cycle {cycle}", 0.0, total
 
     def close(self) -> None:
+        if self.bars is not None:
+            with contextlib.suppress(Exception):
+                self.bars.stop()
+            self.bars = None
         self.blocks.clear()
         for ld in self.lds.values():
             with contextlib.suppress(Exception):
@@ -264,6 +300,7 @@ def _run_task(
                         overrides=overrides,
                         positions_file=str(positions_file(cfg, r)),
                         messages_path=messages,
+                        run_dir=str(run_dir),
                     )
                     for r in group
                 ]
@@ -311,6 +348,9 @@ def _run_task(
             plant_result = plant.result()
             say("plant powered off")
     summary = build_summary(task, node_results, plant_result, started, time.time(), run_dir)
+    log_info = _finish_log(run_dir, say)
+    if log_info:
+        summary["log"] = log_info
     for robot in task.robots:
         src = positions_file(cfg, robot)
         if src.exists():
@@ -331,6 +371,23 @@ def _run_task(
         )
     say(f"wrote {run_dir / 'summary.json'}")
     return 0 if summary["result"] == "ok" else 1
+
+
+def _finish_log(run_dir: Path, say: Callable[[str], None]) -> dict[str, Any]:
+    """session.mcap from the nodes' parts, and its counters (never fails the session)."""
+    from redistro.log.mcapfile import finish_run_log
+
+    try:
+        info = finish_run_log(run_dir)
+    except Exception as exc:
+        log.warning("session log not finished: %s", exc)
+        return {"error": str(exc)}
+    if info:
+        say(
+            f"session log {run_dir / info['file']}: {info['messages']} messages, "
+            f"{info['dropped']} cycles dropped"
+        )
+    return info
 
 
 # The slowest the simulated plant is expected to run beside a strategy

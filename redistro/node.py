@@ -19,6 +19,7 @@ for the first command (frozen until then, ``starving`` if none comes within
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from collections.abc import Callable
@@ -96,6 +97,7 @@ def run_node(
                 messages_path=messages,
                 link=link,
                 plant_session=plant_session,
+                run_dir=str(run_dir),
             )
             where = f"plant of session {plant_session}"
         else:
@@ -126,6 +128,12 @@ def run_node(
         finally:
             progress.close()
     summary = build_summary(task, results, {}, started, time.time(), run_dir)
+    from redistro.log.mcapfile import finish_run_log
+
+    with contextlib.suppress(Exception):  # the log never fails the node
+        log_info = finish_run_log(run_dir)
+        if log_info:
+            summary["log"] = log_info
     summary["node"] = spec.node
     summary["link"] = link
     summary.pop("plant", None)  # the plant is another process (maybe another host)

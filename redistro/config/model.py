@@ -25,6 +25,7 @@ PAPER_PRIORITIES: dict[str, int] = {
     "manager": 20,
     "ddm": 19,
     "logger": 15,
+    "recorder": 15,
     "busy": 16,
     # The simulated plant: a nice value only (priority 20 -> nice -10), never
     # real time. A simulation that cannot keep up then slows its own clock

@@ -13,6 +13,8 @@ from redistro.process.spec import NodeSpec, WorkerSpec
 # Within a cycle: acquisition publishes feedback, the calibration its joint
 # reference, the pid its torques, then the sender checks and sends.
 ESC_WORKERS = (("acquisition", 0), ("calibration", 1), ("pid", 2), ("sender", 3))
+# ... and, given a run folder, the recorder logs the cycle last.
+ESC_RECORDER = ("recorder", 4)
 # In a strategy session the SSC computes the torques: the acquisition
 # publishes feedback, the sender checks and sends the SSC's command, and the
 # ddm (off the cycle, on its own timer) carries both between the nodes.
@@ -78,6 +80,7 @@ def esc_spec(
     messages_path: str = "",
     link: str = "",
     plant_session: str = "",
+    run_dir: str = "",
 ) -> NodeSpec:
     """link, plant_session: for a node started alone (``redistro node``): the
     id its DDM meets the other nodes on, and the session whose plant it drives
@@ -93,12 +96,17 @@ def esc_spec(
         "settle_s": settle,
         "link": link,
         "plant_session": plant_session,
+        "run_dir": run_dir,
+        "task_name": task.task,
     }
     strategy = task.kind == "strategy"
     if strategy:
         params["commands"] = "ssc"
     prio = cfg.scheduling.priorities
-    workers = worker_specs(cfg, ESC_STRATEGY_WORKERS if strategy else ESC_WORKERS, params)
+    roles = ESC_STRATEGY_WORKERS if strategy else ESC_WORKERS
+    if run_dir and not strategy:
+        roles = (*roles, ESC_RECORDER)  # a strategy session is logged by the SSC
+    workers = worker_specs(cfg, roles, params)
     return NodeSpec(
         session_id=session_id,
         node=f"esc.{robot}",

@@ -116,6 +116,8 @@ MANAGER = np.dtype(
         ("overruns", "<u8"),  # ticks taken more than one period late
         ("missed_ticks", "<u8"),  # ticks that passed unseen (coalesced) in those overruns
         ("pid", "<i4"),
+        ("fault_reason", NAME),  # the node's termination reason, set at its first fault
+        ("fault_text", f"S{MSG_TEXT}"),  # ... and the message naming the cause
     ]
 )
 

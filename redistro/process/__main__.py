@@ -1,4 +1,4 @@
-"""Process entry point: ``python -m redistro.process {manager|worker|plant} ...``.
+"""Process entry point: ``python -m redistro.process {manager|worker|plant|logwriter} ...``.
 
 The runtime signals are blocked and the math libraries limited to one thread
 *before* anything that may start a thread (numpy/OpenBLAS, pybullet,
@@ -35,12 +35,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--result")
     p.add_argument("--gui", action="store_true")
     p.add_argument("--seconds", type=float, default=0.0)
+    lw = sub.add_parser("logwriter")
+    lw.add_argument("--fd", type=int, required=True)
+    lw.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=os.environ.get("REDISTRO_LOG_LEVEL", "INFO"),
         format="%(message)s",
         stream=sys.stderr,
     )
+    if args.what == "logwriter":
+        from redistro.log.writer import run_writer
+
+        return run_writer(args.fd, args.out)
     if args.what == "plant":
         from redistro.plant.process import run_plant
 

@@ -28,7 +28,7 @@ from redistro.ipc.session import LOCK_FD_ENV, Manifest
 from redistro.ipc.timer import IntervalTimer
 from redistro.localdata import Block, LocalData, MessageBox, ProcState
 from redistro.localdata.block import Record
-from redistro.localdata.layout import MANAGER, PROC_STATUS
+from redistro.localdata.layout import MANAGER, MSG_TEXT, PROC_STATUS
 from redistro.process.spawn import spawn
 from redistro.process.spec import EXIT_FAILED, NodeSpec
 from redistro.process.stats import Samples
@@ -454,6 +454,8 @@ class Manager:
         if self.block is not None:
             with self.block.write() as d:
                 d["estop"] = 1
+                d["fault_reason"] = reason.encode()[:16]
+                d["fault_text"] = message.encode("utf-8", "replace")[:MSG_TEXT]
         try:
             self.on_fault(reason, message)
         except Exception:

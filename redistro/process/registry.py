@@ -18,6 +18,7 @@ ROLES: dict[str, str] = {
     "ddm": "redistro.ddm.worker:Ddm",
     "worker": "redistro.ssc.worker:SscWorker",
     "logger": "redistro.ssc.logger:SscLogger",
+    "recorder": "redistro.log.worker:EscRecorder",
 }
 
 # node kind -> its manager class ("bench" nodes use the base Manager)

@@ -4,6 +4,10 @@ the final pose error against the goal, and on force segments the force
 error after the first contact (mean and RMS). It also follows the peg's tip:
 how deep it went inside the hole. At Cleanup it writes them to
 ``ssc-segments.json`` in the run folder (the manager puts them in its result).
+
+It also records the session log (:mod:`redistro.log.recorder`): every cycle,
+per robot the feedback, the command and the plan (references, TCP pose,
+wrench in task axes), the SSC's timing, and segment changes as events.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from redistro.config.task import load_task
 from redistro.control.cartesian import pose_error, rotvec_to_matrix
 from redistro.localdata.block import Record
 from redistro.localdata.layout import PLAN
+from redistro.log.recorder import CycleRecorder, robots_meta
 from redistro.process.worker import Worker
 from redistro.ssc.plan import segment_plans
 from redistro.ssc.worker import AFTER
@@ -82,11 +87,31 @@ class SscLogger(Worker):
         run_dir = str(self.params.get("run_dir", ""))
         self.out_path = os.path.join(run_dir, "ssc-segments.json") if run_dir else ""
         self.cycles = 0
+        self.recorder: CycleRecorder | None = None
+        self.segment = [0] * len(self.robots)
+        if run_dir:
+            meta = robots_meta(cfg, self.robots)
+            meta["task"] = task.task
+            meta["segments"] = [
+                {"name": p.name, "robot": p.robot, "scheme": p.scheme, "duration_s": p.duration_s}
+                for p in self.plans
+            ]
+            topics: list[tuple[str, str, int | None]] = []
+            for i, r in enumerate(self.robots):
+                topics += [
+                    (f"/{r}/feedback", "feedback", i),
+                    (f"/{r}/command", "command", i),
+                    (f"/{r}/plan", "plan", i),
+                ]
+            self.recorder = CycleRecorder(self.ld, self.spec, topics, run_dir, meta)
+            self.recorder.start()
 
     def step(self, cycle: int) -> None:
         for block, rec in zip(self.blocks, self.recs, strict=True):
             block.read_into(rec.bytes)
         self.cycles += 1
+        if self.recorder is not None:
+            self._record(cycle)
         if self.peg_index >= 0:
             pl = self.recs[self.peg_index].array
             if int(pl["segment"]) != 0:
@@ -128,7 +153,29 @@ class SscLogger(Worker):
                 fig.force_sq += n2
                 fig.force_max = max(fig.force_max, float(np.sqrt(n2)))
 
+    def _record(self, cycle: int) -> None:
+        rec = self.recorder
+        assert rec is not None
+        rec.record(cycle)
+        for i, pr in enumerate(self.recs):
+            pl = pr.array
+            k = int(pl["segment"])
+            if k != self.segment[i] and (pl["moving"] or k in (0, AFTER)):
+                self.segment[i] = k
+                name = self.plans[k - 1].name if 1 <= k <= len(self.plans) else ""
+                rec.event(
+                    "segments",
+                    cycle,
+                    robot=self.robots[i],
+                    segment=k,
+                    name=name,
+                    t_s=round(float(pl["t_s"]), 4),
+                    done=bool(pl["done"]),
+                )
+
     def cleanup(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
         if not self.out_path:
             return
         doc = {

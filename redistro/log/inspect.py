@@ -1,0 +1,405 @@
+"""``redistro log summary|plot|export RUN``: a run folder read back.
+
+RUN is a run folder, a session id under ``session.runs_dir``, or a
+``session.mcap`` file. The figures follow the paper's: joint positions,
+velocities, accelerations and torques; wrist force and torque in the tool
+and the world frame; end-effector position and orientation; and per
+process, histograms of the cycle timing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from redistro.errors import ConfigError
+from redistro.log.mcapfile import SESSION_LOG, SessionLog, read_log
+
+MAX_POINTS = 5000  # per plotted series (the kinematics is redone per point)
+
+
+def resolve_run(arg: str, runs_dir: str) -> tuple[Path, Path]:
+    """(run folder, session log) of RUN; ConfigError naming it when there is none."""
+    p = Path(arg)
+    if not p.exists() and (Path(runs_dir) / arg).exists():
+        p = Path(runs_dir) / arg
+    if p.is_file():
+        if p.suffix != ".mcap":
+            raise ConfigError(f"{arg}: not a run folder or a .mcap file")
+        return p.parent, p
+    if not p.is_dir():
+        raise ConfigError(f"{arg}: no such run folder (nor a session id under {runs_dir})")
+    mc = p / SESSION_LOG
+    if not mc.exists():
+        raise ConfigError(f"{arg}: no {SESSION_LOG} in this run folder")
+    return p, mc
+
+
+def load(arg: str, runs_dir: str) -> tuple[Path, SessionLog, dict[str, Any]]:
+    run, path = resolve_run(arg, runs_dir)
+    try:
+        sl = read_log(path)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    summary: dict[str, Any] = {}
+    sp = run / "summary.json"
+    if sp.exists():
+        try:
+            summary = json.loads(sp.read_text())
+        except ValueError as exc:
+            raise ConfigError(f"{sp}: not valid JSON ({exc})") from None
+    return run, sl, summary
+
+
+def robot_names(sl: SessionLog) -> list[str]:
+    return sorted(t.split("/")[1] for t in sl.arrays if t.endswith("/feedback"))
+
+
+def board_time(sl: SessionLog, robot: str) -> np.ndarray[Any, Any]:
+    """Seconds on the boards' sample clock since the first logged sample."""
+    fb = sl.arrays[f"/{robot}/feedback"]
+    hz = float(sl.meta("redistro.meta").get("physics_hz", 1000.0))
+    step = fb["step"].astype(np.float64)
+    return (step - step[0]) / hz if len(step) else step
+
+
+# -- summary --
+
+
+def summary_rows(run: Path, sl: SessionLog, summary: dict[str, Any]) -> dict[str, Any]:
+    """Everything ``log summary`` shows, as data (also its --json)."""
+    nodes = summary.get("nodes", {})
+    rec = summary.get("log", {}).get("nodes", {})
+    node_rows = []
+    for name, n in nodes.items():
+        r = rec.get(name, {})
+        node_rows.append(
+            {
+                "node": name,
+                "result": n.get("result"),
+                "cycles": n.get("cycles"),
+                "rate_hz": n.get("rate_hz"),
+                "overruns": n.get("overruns"),
+                "lateness_p99_us": (n.get("lateness_us") or {}).get("p99"),
+                "logged": r.get("recorded"),
+                "dropped": r.get("dropped"),
+            }
+        )
+    faults = []
+    for topic, evs in sorted(sl.events.items()):
+        node = topic.split("/")[1]
+        for e in evs:
+            if topic.endswith("/events") and e.get("event") in ("fault", "estop", "guard trip"):
+                faults.append(
+                    {
+                        "node": node,
+                        "cycle": e.get("cycle"),
+                        "what": e.get("event"),
+                        "text": e.get("text") or e.get("reason", ""),
+                    }
+                )
+            elif topic.endswith("/messages") and e.get("level") in ("ERROR", "CRITICAL"):
+                faults.append(
+                    {
+                        "node": node,
+                        "cycle": e.get("cycle"),
+                        "what": e.get("level"),
+                        "text": f"{e.get('process')}: {e.get('text')}",
+                    }
+                )
+    segments = summary.get("segments") or []
+    if not segments:
+        for topic, evs in sorted(sl.events.items()):
+            if topic.endswith("/segments"):
+                segments += [
+                    {"name": e.get("name"), "robot": e.get("robot"), "cycle": e.get("cycle")}
+                    for e in evs
+                    if e.get("name")
+                ]
+    return {
+        "run": str(run),
+        "task": summary.get("task") or sl.meta("redistro.meta").get("task"),
+        "kind": summary.get("kind"),
+        "result": summary.get("result"),
+        "reason": summary.get("reason", ""),
+        "started": summary.get("started"),
+        "ended": summary.get("ended"),
+        "segments": segments,
+        "nodes": node_rows,
+        "faults": faults,
+        "topics": dict(sorted(sl.counts.items())),
+        "inserted": summary.get("inserted"),
+        "insertion_depth_m": summary.get("insertion_depth_m"),
+    }
+
+
+def print_summary(rows: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    head = f"[bold]{rows['task']}[/bold] ({rows['kind']}): result [bold]{rows['result']}[/bold]"
+    if rows["reason"]:
+        head += f" - {rows['reason']}"
+    con.print(head)
+    con.print(f"run {rows['run']}, {rows['started']} to {rows['ended']}")
+    if rows.get("inserted") is not None:
+        con.print(f"inserted: {rows['inserted']}, depth {rows['insertion_depth_m'] * 1e3:.2f} mm")
+    if rows["segments"]:
+        t = Table(title="segments")
+        keys = [
+            k
+            for k in ("name", "robot", "scheme", "duration_s", "cycle")
+            if any(k in s for s in rows["segments"])
+        ]
+        for k in (*keys, "final error"):
+            t.add_column(k)
+        for s in rows["segments"]:
+            fe = s.get("final_pose_error") or {}
+            err = f"{fe['position_m'] * 1e3:.2f} mm / {fe['orientation_rad']:.4f} rad" if fe else ""
+            t.add_row(*[str(s.get(k, "")) for k in keys], err)
+        con.print(t)
+    t = Table(title="nodes")
+    for k in (
+        "node",
+        "result",
+        "cycles",
+        "rate_hz",
+        "overruns",
+        "lateness_p99_us",
+        "logged",
+        "dropped",
+    ):
+        t.add_column(k)
+    for n in rows["nodes"]:
+        t.add_row(
+            *[
+                str(n.get(k, ""))
+                for k in (
+                    "node",
+                    "result",
+                    "cycles",
+                    "rate_hz",
+                    "overruns",
+                    "lateness_p99_us",
+                    "logged",
+                    "dropped",
+                )
+            ]
+        )
+    con.print(t)
+    t = Table(title="faults")
+    for k in ("node", "cycle", "what", "text"):
+        t.add_column(k)
+    for f in rows["faults"]:
+        t.add_row(str(f["node"]), str(f["cycle"]), str(f["what"]), str(f["text"]))
+    if not rows["faults"]:
+        t.add_row("-", "-", "none", "")
+    con.print(t)
+    t = Table(title="log")
+    t.add_column("topic")
+    t.add_column("messages", justify="right")
+    for topic, n in rows["topics"].items():
+        t.add_row(topic, str(n))
+    con.print(t)
+
+
+# -- export --
+
+
+def export_csv(sl: SessionLog, out: Path) -> list[Path]:
+    """One CSV per topic: binary channels flattened (arrays as name_1..name_n),
+    JSON channels with the union of their keys. Every row starts with the log
+    time [ns]."""
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    for topic, arr in sorted(sl.arrays.items()):
+        path = out / (topic.strip("/").replace("/", "_") + ".csv")
+        cols: list[tuple[str, np.ndarray[Any, Any]]] = [("log_time_ns", sl.log_times[topic])]
+        assert arr.dtype.names is not None
+        for name in arr.dtype.names:
+            v = arr[name]
+            if v.ndim == 1:
+                cols.append((name, v))
+            elif (
+                arr.dtype[name].base.kind == "u"
+                and arr.dtype[name].base.itemsize == 1
+                and name.endswith(("text", "quantity", "source"))
+            ):
+                cols.append(
+                    (name, np.array([bytes(r).rstrip(b"\0").decode(errors="replace") for r in v]))
+                )
+            else:
+                for k in range(v.shape[1]):
+                    cols.append((f"{name}_{k + 1}", v[:, k]))
+        with open(path, "w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow([c[0] for c in cols])
+            for i in range(len(arr)):
+                w.writerow([_cell(c[1][i]) for c in cols])
+        written.append(path)
+    for topic, evs in sorted(sl.events.items()):
+        path = out / (topic.strip("/").replace("/", "_") + ".csv")
+        keys: list[str] = ["log_time_ns"]
+        for e in evs:
+            keys += [k for k in e if k not in keys]
+        with open(path, "w", newline="", encoding="utf-8") as f:
+            dw = csv.DictWriter(f, fieldnames=keys)
+            dw.writeheader()
+            for e in evs:
+                dw.writerow(e)
+        written.append(path)
+    return written
+
+
+def _cell(v: Any) -> Any:
+    if isinstance(v, np.floating):
+        return repr(float(v))
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+# -- plots --
+
+
+def _stride(n: int) -> int:
+    return max(1, -(-n // MAX_POINTS))
+
+
+def plot_run(sl: SessionLog, out: Path) -> list[Path]:
+    """Write the PNG set; returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+
+    def save(fig: Any, name: str) -> None:
+        fig.tight_layout()
+        path = out / name
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+
+    def joint_plot(t: Any, series: list[tuple[str, Any]], ylabel: str, title: str) -> Any:
+        fig, axes = plt.subplots(7, 1, figsize=(8, 11), sharex=True)
+        for j, ax in enumerate(axes):
+            for label, v in series:
+                ax.plot(t, v[:, j], lw=0.8, label=label)
+            ax.set_ylabel(f"J{j + 1}")
+            ax.grid(alpha=0.3)
+        axes[0].set_title(f"{title} [{ylabel}]")
+        if len(series) > 1:
+            axes[0].legend(loc="upper right", fontsize=7)
+        axes[-1].set_xlabel("time on the boards' clock [s]")
+        return fig
+
+    robots_meta = sl.robots()
+    for r in robot_names(sl):
+        fb = sl.arrays[f"/{r}/feedback"]
+        if len(fb) < 3:
+            continue
+        s = _stride(len(fb))
+        t_all = board_time(sl, r)
+        t = t_all[::s]
+        q = fb["q_rad"][::s]
+        qd = fb["qd_rad_s"][::s]
+        # acceleration: the velocity's slope on the boards' clock (steps may repeat
+        # when the plant is late: those samples are left out of the difference)
+        keep = np.concatenate([[True], np.diff(t_all) > 0])
+        tk, qdk = t_all[keep], fb["qd_rad_s"][keep]
+        qdd = np.gradient(qdk, tk, axis=0) if len(tk) > 2 else np.zeros_like(qdk)
+        sk = _stride(len(tk))
+        save(joint_plot(t, [("q", q)], "rad", f"{r} joint positions"), f"{r}-joint-positions.png")
+        save(
+            joint_plot(t, [("qd", qd)], "rad/s", f"{r} joint velocities"),
+            f"{r}-joint-velocities.png",
+        )
+        save(
+            joint_plot(tk[::sk], [("qdd", qdd[::sk])], "rad/s^2", f"{r} joint accelerations"),
+            f"{r}-joint-accelerations.png",
+        )
+        cmd = sl.arrays.get(f"/{r}/command")
+        if cmd is None:
+            cmd = sl.arrays.get(f"/{r}/guard")
+        series = [("measured", fb["tau_nm"][::s])]
+        if cmd is not None and len(cmd) == len(fb):
+            series.insert(0, ("commanded", cmd["tau_nm"][::s]))
+        save(joint_plot(t, series, "N m", f"{r} joint torques"), f"{r}-joint-torques.png")
+        # kinematics: TCP pose and the wrist wrench in the world frame
+        info = robots_meta.get(r, {})
+        from redistro.control.cartesian import matrix_to_rotvec
+        from redistro.control.dynamics import ArmModel
+        from redistro.robotmodel import Peg
+
+        peg = info.get("peg")
+        model = ArmModel(Peg(*peg) if peg else None, info.get("base_xyz_m"))
+        pos = np.zeros((len(q), 3))
+        rot = np.zeros((len(q), 3))
+        w = fb["wrench"][::s]
+        w_world = np.zeros_like(w)
+        for i in range(len(q)):
+            kin = model.kinematics(np.ascontiguousarray(q[i], dtype=np.float64))
+            pos[i] = kin.p
+            rot[i] = matrix_to_rotvec(kin.R)
+            w_world[i, :3] = kin.R @ w[i, :3]
+            w_world[i, 3:] = kin.R @ w[i, 3:]
+        for frame, ww in (("tool", w), ("world", w_world)):
+            fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+            for k, ax_name in enumerate("xyz"):
+                axes[0].plot(t, ww[:, k], lw=0.8, label=f"F{ax_name}")
+                axes[1].plot(t, ww[:, 3 + k], lw=0.8, label=f"T{ax_name}")
+            axes[0].set_ylabel("force [N]")
+            axes[1].set_ylabel("torque [N m]")
+            axes[0].set_title(f"{r} wrist force and torque, {frame} frame")
+            for ax in axes:
+                ax.legend(loc="upper right", fontsize=7)
+                ax.grid(alpha=0.3)
+            axes[1].set_xlabel("time on the boards' clock [s]")
+            save(fig, f"{r}-wrench-{frame}.png")
+        fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        for k, ax_name in enumerate("xyz"):
+            axes[0].plot(t, pos[:, k], lw=0.8, label=ax_name)
+            axes[1].plot(t, rot[:, k], lw=0.8, label=f"r{ax_name}")
+        axes[0].set_ylabel("position [m]")
+        axes[1].set_ylabel("rotation vector [rad]")
+        axes[0].set_title(f"{r} end-effector (TCP) pose, world frame")
+        for ax in axes:
+            ax.legend(loc="upper right", fontsize=7)
+            ax.grid(alpha=0.3)
+        axes[1].set_xlabel("time on the boards' clock [s]")
+        save(fig, f"{r}-end-effector.png")
+    nodes = sl.nodes()
+    for topic, tm in sorted(sl.arrays.items()):
+        if not topic.endswith("/timing") or len(tm) == 0:
+            continue
+        node = topic.split("/")[1]
+        procs = list(nodes.get(node, {}).get("processes", []))
+        n = tm["late_us"].shape[1]
+        procs += [f"p{j}" for j in range(len(procs), n)]
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        axes[0].hist(tm["tick_late_us"], bins=60, histtype="step", label="manager", log=True)
+        for j in range(n):
+            late = tm["late_us"][:, j]
+            late = late[np.isfinite(late)]
+            if len(late):
+                axes[0].hist(late, bins=60, histtype="step", label=procs[j], log=True)
+            busy = tm["busy_us"][:, j]
+            busy = busy[np.isfinite(busy)]
+            if len(busy):
+                axes[1].hist(busy, bins=60, histtype="step", label=procs[j], log=True)
+        axes[0].set_xlabel("lateness after the tick [us]")
+        axes[1].set_xlabel("busy per cycle (woke to signed) [us]")
+        for ax in axes:
+            ax.set_ylabel("cycles")
+            ax.legend(fontsize=7)
+        fig.suptitle(f"{node} cycle timing ({len(tm)} cycles)")
+        save(fig, f"{node}-timing.png")
+    return written

@@ -1,0 +1,174 @@
+"""The run folder's ``session.mcap``: made from the nodes' parts, read back as numpy arrays."""
+
+from __future__ import annotations
+
+import heapq
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from redistro.log.schema import MESSAGE_ENCODING, dtype_from_ros1
+
+log = logging.getLogger(__name__)
+
+SESSION_LOG = "session.mcap"
+
+
+def finish_run_log(run_dir: Path) -> dict[str, Any]:
+    """Merge the nodes' ``<node>.mcap`` parts into ``session.mcap`` (time order)
+    and gather their recording counters (the ``log`` entry of summary.json).
+    Returns {} when nothing was recorded."""
+    parts = sorted(p for p in run_dir.glob("*.mcap") if p.name != SESSION_LOG)
+    if not parts:
+        return {}
+    nodes: dict[str, Any] = {}
+    for part in parts:
+        side = part.with_name(part.name[: -len(".mcap")] + ".log.json")
+        node = part.name[: -len(".mcap")]
+        try:
+            nodes[node] = json.loads(side.read_text())
+        except (OSError, ValueError):
+            nodes[node] = {"node": node, "complete": False}
+        side.unlink(missing_ok=True)
+    out = run_dir / SESSION_LOG
+    if len(parts) == 1:
+        os.replace(parts[0], out)
+    else:
+        _merge(parts, out)
+        for p in parts:
+            p.unlink()
+    return {
+        "file": SESSION_LOG,
+        "bytes": out.stat().st_size,
+        "messages": sum(int(n.get("messages", 0)) for n in nodes.values()),
+        "dropped": sum(int(n.get("dropped", 0)) for n in nodes.values()),
+        "nodes": nodes,
+    }
+
+
+def _merge(parts: list[Path], out: Path) -> None:
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    files = [open(p, "rb") for p in parts]  # noqa: SIM115
+    tmp = out.with_name(out.name + ".tmp")
+    try:
+        readers = [make_reader(f) for f in files]
+        with open(tmp, "wb") as sink:
+            w = Writer(sink, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+            w.start(profile="", library="redistro")
+            schemas: dict[tuple[int, int], int] = {}
+            channels: dict[tuple[int, int], int] = {}
+            for k, r in enumerate(readers):
+                summary = r.get_summary()
+                assert summary is not None
+                for sid, s in summary.schemas.items():
+                    schemas[(k, sid)] = w.register_schema(s.name, s.encoding, s.data)
+                for cid, c in summary.channels.items():
+                    channels[(k, cid)] = w.register_channel(
+                        c.topic, c.message_encoding, schemas.get((k, c.schema_id), 0), c.metadata
+                    )
+                for meta in r.iter_metadata():
+                    w.add_metadata(meta.name, meta.metadata)
+
+            def stream(k: int, r: Any) -> Any:
+                for _, ch, msg in r.iter_messages(log_time_order=True):
+                    yield msg.log_time, k, ch.id, msg
+
+            merged = heapq.merge(
+                *(stream(k, r) for k, r in enumerate(readers)), key=lambda e: (e[0], e[1])
+            )
+            for _, k, cid, msg in merged:
+                w.add_message(
+                    channels[(k, cid)], msg.log_time, msg.data, msg.publish_time, msg.sequence
+                )
+            w.finish()  # type: ignore[no-untyped-call]
+        os.replace(tmp, out)
+    finally:
+        for f in files:
+            f.close()
+        tmp.unlink(missing_ok=True)
+
+
+@dataclass
+class SessionLog:
+    """A session log read whole: per topic a numpy array (binary channels) or a
+    list of dicts (JSON channels, each with ``log_time_ns``); metadata by name."""
+
+    path: Path
+    arrays: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)
+    log_times: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)
+    events: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    metadata: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    schemas: dict[str, str] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def meta(self, name: str) -> dict[str, Any]:
+        """The metadata records of that name merged (later ones win)."""
+        out: dict[str, Any] = {}
+        for m in self.metadata.get(name, []):
+            out.update(m)
+        return out
+
+    def nodes(self) -> dict[str, dict[str, Any]]:
+        return {str(m.get("node")): m for m in self.metadata.get("redistro.node", [])}
+
+    def robots(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for m in self.metadata.get("redistro.meta", []):
+            out.update(m.get("robots", {}))
+        return out
+
+
+def read_log(path: Path) -> SessionLog:
+    """Read a session log; raises ValueError naming the file if it is not one."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    out = SessionLog(path)
+    chunks: dict[str, list[bytes]] = {}
+    times: dict[str, list[int]] = {}
+    dtypes: dict[str, np.dtype[Any]] = {}
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            for schema, channel, msg in reader.iter_messages(log_time_order=True):
+                topic = channel.topic
+                out.counts[topic] = out.counts.get(topic, 0) + 1
+                if channel.message_encoding == MESSAGE_ENCODING and schema is not None:
+                    if topic not in dtypes:
+                        text = schema.data.decode()
+                        out.schemas[topic] = text
+                        dtypes[topic] = dtype_from_ros1(text)
+                    chunks.setdefault(topic, []).append(msg.data)
+                    times.setdefault(topic, []).append(msg.log_time)
+                else:
+                    doc = json.loads(msg.data)
+                    doc["log_time_ns"] = msg.log_time
+                    out.events.setdefault(topic, []).append(doc)
+            for meta in reader.iter_metadata():
+                out.metadata.setdefault(meta.name, []).append(
+                    {k: _loads(v) for k, v in meta.metadata.items()}
+                )
+    except (McapError, OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: not a readable session log ({exc})") from exc
+    for topic, parts in chunks.items():
+        dt = dtypes[topic]
+        blob = b"".join(parts)
+        if len(blob) != dt.itemsize * len(parts):
+            raise ValueError(f"{path}: {topic}: messages do not match their schema")
+        out.arrays[topic] = np.frombuffer(blob, dt)
+        out.log_times[topic] = np.asarray(times[topic], dtype=np.int64)
+    return out
+
+
+def _loads(v: str) -> Any:
+    try:
+        return json.loads(v)
+    except ValueError:
+        return v

@@ -1,0 +1,171 @@
+"""A short real session logged, read back and inspected; ``top`` on it while it runs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tests.conftest import descendants
+from tests.helpers import attach_running, load_json, read_session_id, run_cli, start_cli
+
+SHORT = "tasks/self_calibration_short.yaml"
+ROBOTS = ("r1", "r2")
+
+
+@pytest.fixture(scope="module")
+def logged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """One short self-calibration, with ``top --once --json`` taken mid-run."""
+    tmp = tmp_path_factory.mktemp("logged")
+    run = tmp / "run"
+    proc = start_cli(
+        "--set", f"session.runs_dir={tmp / 'runs'}", "session", SHORT, "--out", str(run)
+    )
+    top: dict[str, Any] = {}
+    tree: set[int] = set()
+    try:
+        sid = read_session_id(proc)
+        for node in ("esc.r1", "esc.r2"):
+            attach_running(sid, node, min_cycle=50).close()
+        before = descendants(proc.pid)
+        res = run_cli("top", sid, "--once", "--json", timeout=60)
+        after = descendants(proc.pid)
+        assert res.returncode == 0, res.stderr
+        top = json.loads(res.stdout)
+        tree = before & after  # the processes that lived all through the look
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    return {"run": run, "top": top, "tree": tree, "sid": sid, "stdout": out}
+
+
+def test_the_mcap_file_holds_every_cycle_less_the_counted_drops(logged: dict[str, Any]) -> None:
+    from mcap.reader import make_reader
+
+    run: Path = logged["run"]
+    summary = load_json(run / "summary.json")
+    assert summary["result"] == "ok", summary["reason"]
+    log = summary["log"]
+    assert log["file"] == "session.mcap" and (run / "session.mcap").exists()
+    assert not list(run.glob("esc.*.mcap")), "the parts are merged into session.mcap"
+    counts: dict[str, int] = {}
+    cycles: dict[str, list[int]] = {}
+    with open(run / "session.mcap", "rb") as f:
+        reader = make_reader(f)
+        for _, channel, msg in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic.endswith("/feedback"):
+                cycles.setdefault(channel.topic, []).append(int.from_bytes(msg.data[:8], "little"))
+    for r in ROBOTS:
+        node = f"esc.{r}"
+        node_cycles = summary["nodes"][node]["cycles"]
+        rec = log["nodes"][node]
+        assert rec["complete"] and rec["cycles"] == node_cycles
+        expected = node_cycles - rec["dropped"]
+        for topic in (
+            f"/{r}/feedback",
+            f"/{r}/setpoint",
+            f"/{r}/control",
+            f"/{r}/guard",
+            f"/{node}/timing",
+        ):
+            assert counts[topic] == expected, (topic, counts[topic], node_cycles, rec)
+        assert rec["dropped"] <= 0.05 * node_cycles, rec
+        seen = np.asarray(cycles[f"/{r}/feedback"])
+        assert np.all(np.diff(seen) > 0) and seen[0] >= 1 and seen[-1] <= node_cycles
+        assert counts[f"/{node}/segments"] >= 3  # the three calibration segments
+    # the run's messages (what messages.log holds) are in the log too
+    assert sum(v for k, v in counts.items() if k.endswith("/messages")) >= 1
+
+
+def test_log_plot_writes_the_png_set(logged: dict[str, Any], tmp_path: Path) -> None:
+    res = run_cli("log", "plot", str(logged["run"]), "--out", str(tmp_path), timeout=240)
+    assert res.returncode == 0, res.stderr
+    expected = [
+        f"{r}-{what}.png"
+        for r in ROBOTS
+        for what in (
+            "joint-positions",
+            "joint-velocities",
+            "joint-accelerations",
+            "joint-torques",
+            "wrench-tool",
+            "wrench-world",
+            "end-effector",
+        )
+    ] + ["esc.r1-timing.png", "esc.r2-timing.png"]
+    for name in expected:
+        data = (tmp_path / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
+
+
+def test_log_summary_and_export(logged: dict[str, Any], tmp_path: Path) -> None:
+    run: Path = logged["run"]
+    summary = load_json(run / "summary.json")
+    res = run_cli("log", "summary", str(run), "--json")
+    assert res.returncode == 0, res.stderr
+    rows = json.loads(res.stdout)
+    assert rows["task"] == "self_calibration_short" and rows["result"] == "ok"
+    assert {n["node"] for n in rows["nodes"]} == {"esc.r1", "esc.r2"}
+    assert [n["logged"] for n in rows["nodes"]] == [
+        summary["log"]["nodes"][n["node"]]["recorded"] for n in rows["nodes"]
+    ]
+    names = [s["name"] for s in rows["segments"] if s["robot"] == "r1"]
+    assert names == ["clockwise", "counter_clockwise", "final_positioning"]
+    res = run_cli("log", "summary", str(run))
+    assert res.returncode == 0 and "self_calibration_short" in res.stdout
+    res = run_cli("log", "export", str(run), "--csv", str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    lines = (tmp_path / "r1_feedback.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    assert header[:2] == ["log_time_ns", "log_cycle"] and "q_rad_7" in header
+    node_rec = summary["log"]["nodes"]["esc.r1"]
+    assert len(lines) - 1 == node_rec["recorded"]
+    assert (tmp_path / "esc.r1_segments.csv").exists()
+
+
+def test_log_commands_refuse_what_is_not_a_log(tmp_path: Path) -> None:
+    res = run_cli("log", "summary", str(tmp_path / "nope"))
+    assert res.returncode == 2 and "no such run folder" in res.stderr
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
+    bad = tmp_path / "session.mcap"
+    bad.write_bytes(b"not an mcap file")
+    res = run_cli("log", "plot", str(bad))
+    assert res.returncode == 2 and "not a readable session log" in res.stderr
+    assert res.stderr.count("\n") == 1
+
+
+def test_top_once_json_lists_every_process(logged: dict[str, Any]) -> None:
+    doc = logged["top"]
+    sessions = [s for s in doc["sessions"] if s["session"] == logged["sid"]]
+    assert len(sessions) == 1
+    s = sessions[0]
+    nodes = {n["node"]: n for n in s["nodes"]}
+    assert set(nodes) == {"esc.r1", "esc.r2"}
+    listed: set[int] = {o["pid"] for o in s["other_processes"]}
+    for n in nodes.values():
+        assert n["state"] == "routine" and n["cycle"] > 0 and n["estop"] is False
+        assert n["measured_hz"] and n["measured_hz"] > 0
+        listed.add(n["manager_pid"])
+        roles = [p["role"] for p in n["processes"]]
+        assert roles == ["acquisition", "calibration", "pid", "sender", "recorder"]
+        for p in n["processes"]:
+            assert p["pid"] > 0 and p["state"] == "routine"
+            assert p["heartbeat_age_cycles"] is not None
+            listed.add(p["pid"])
+    assert logged["tree"], "no process seen under the session"
+    assert logged["tree"] <= listed, logged["tree"] - listed
+    whats = sorted(o["what"] for o in s["other_processes"])
+    assert whats == ["logwriter", "logwriter", "plant"], whats
+
+
+def test_a_session_without_a_terminal_prints_plain_progress(logged: dict[str, Any]) -> None:
+    out: str = logged["stdout"]
+    assert "\x1b[" not in out  # no terminal control codes in a pipe
+    assert "session log" in out and "cycles dropped" in out
