@@ -5,8 +5,8 @@ Started as ``python -m redistro.process plant --session SID [--config F]
 register bank (the chassis' shared memory, also carrying the simulation's
 ground truth), serves the backplane, and steps until SIGTERM/SIGINT, its
 parent's death, or ``--seconds``. Steps taken more than one step late are
-counted; when it falls more than 50 steps behind it skips ahead (counted) to
-stay on the wall clock. On the way out it engages every brake.
+counted; when it falls more than CATCH_UP_STEPS behind it skips ahead
+(counted) to stay on the wall clock. On the way out it engages every brake.
 """
 
 from __future__ import annotations
@@ -31,7 +31,13 @@ from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
 
 log = logging.getLogger(__name__)
-CATCH_UP_STEPS = 50
+# How far behind the wall clock the plant still catches up, stepping flat
+# out [steps]. Catching up runs steps back to back with no new command in
+# between: 50 steps meant up to 50 ms of simulated time on one 200 Hz
+# command (a 40 Hz loop in simulated time) whenever a starved plant got the
+# CPU back, which jolted the force-controlled peg sideways. Five steps are
+# one 200 Hz control cycle: further behind, the simulation skips ahead.
+CATCH_UP_STEPS = 5
 
 
 def run_plant(
