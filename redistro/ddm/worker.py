@@ -33,7 +33,7 @@ from redistro.ddm.transport import Transport, transport_class
 from redistro.errors import TransportError, WireError
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
-from redistro.localdata.layout import COMMAND, COUNTER, EXCHANGE, FEEDBACK, MANAGER
+from redistro.localdata.layout import COMMAND, COUNTER, EXCHANGE, FEEDBACK, MANAGER, SessionStatus
 from redistro.process.spec import NodeSpec
 from redistro.process.stats import Samples
 from redistro.process.worker import Worker
@@ -165,7 +165,10 @@ class Ddm(Worker):
             for ex in self.ex:
                 ex["link_lost"] = 1
                 ex["fresh"] = 0
-            self.post(f"{exc}; no more exchange", logging.ERROR)
+            if all(self._finished(i) for i in range(len(self.robots))):
+                self.post(f"session finished, links closed: {exc}", logging.INFO)
+            else:
+                self.post(f"{exc}; no more exchange", logging.ERROR)
             self.dirty = True
         if self.dirty:  # most ticks (1 kHz beside 200 Hz nodes) carry nothing
             self._publish()
@@ -181,7 +184,18 @@ class Ddm(Worker):
             self.ex[i]["link_lost"] = 1
             self.ex[i]["fresh"] = 0
             self.dirty = True
-            self.post(f"{why}; {self.robots[i]} no longer exchanged", logging.ERROR)
+            if self._finished(i):
+                # the session is over: the ESC ended its node and closed its end
+                self.post(f"{why}; {self.robots[i]} done (session finished)", logging.INFO)
+            else:
+                self.post(f"{why}; {self.robots[i]} no longer exchanged", logging.ERROR)
+
+    def _finished(self, i: int) -> bool:
+        """The SSC's side: the last command sent to robot i said the session finished."""
+        if self.kind == "esc":
+            return False
+        rec = self.out_recs[i]
+        return int(rec["seq_src"]) > 0 and int(rec["session_status"]) == SessionStatus.FINISHED
 
     def _receive(self) -> None:
         for raw in self.transport.receive():

@@ -178,7 +178,7 @@ def print_summary(rows: dict[str, Any]) -> None:
     for n in rows["nodes"]:
         t.add_row(
             *[
-                str(n.get(k, ""))
+                "-" if n.get(k) is None else str(n[k])
                 for k in (
                     "node",
                     "result",
@@ -267,6 +267,22 @@ def _cell(v: Any) -> Any:
 # -- plots --
 
 
+def continuous_rotvec(rot: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    """Rotation vectors made continuous in time: r and (|r| - 2 pi) r/|r| are
+    the same rotation; near pi (the peg pointing down) each sample takes the
+    one nearer the previous, so the curve does not jump between +pi and -pi."""
+    out = rot.copy()
+    for i in range(1, len(out)):
+        r = out[i]
+        n = float(np.linalg.norm(r))
+        if n < 1e-9:
+            continue
+        alt = r * (n - 2 * np.pi) / n
+        if np.linalg.norm(alt - out[i - 1]) < np.linalg.norm(r - out[i - 1]):
+            out[i] = alt
+    return out
+
+
 def _stride(n: int) -> int:
     return max(1, -(-n // MAX_POINTS))
 
@@ -351,6 +367,7 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
             rot[i] = matrix_to_rotvec(kin.R)
             w_world[i, :3] = kin.R @ w[i, :3]
             w_world[i, 3:] = kin.R @ w[i, 3:]
+        rot = continuous_rotvec(rot)
         for frame, ww in (("tool", w), ("world", w_world)):
             fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
             for k, ax_name in enumerate("xyz"):
@@ -385,7 +402,9 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
         n = tm["late_us"].shape[1]
         procs += [f"p{j}" for j in range(len(procs), n)]
         fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-        axes[0].hist(tm["tick_late_us"], bins=60, histtype="step", label="manager", log=True)
+        tick = tm["tick_late_us"][np.isfinite(tm["tick_late_us"])]
+        if len(tick):
+            axes[0].hist(tick, bins=60, histtype="step", label="manager", log=True)
         for j in range(n):
             late = tm["late_us"][:, j]
             late = late[np.isfinite(late)]

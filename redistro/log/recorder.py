@@ -115,6 +115,8 @@ class CycleRecorder:
         self.realtime_offset_ns = time.time_ns() - time.monotonic_ns()
         self.recorded = 0
         self.dropped_full = 0
+        self.repeated = 0
+        self.seen_cycle = 0
         self.events = 0
         self.events_dropped = 0
         self.first_cycle = 0
@@ -190,6 +192,7 @@ class CycleRecorder:
             "recorded": self.recorded,
             "dropped": max(0, final - self.recorded),
             "dropped_pipe_full": self.dropped_full,
+            "repeated": self.repeated,
             "first_cycle": self.first_cycle,
             "last_cycle": self.last_cycle,
             "events": self.events,
@@ -214,13 +217,24 @@ class CycleRecorder:
 
     # -- every cycle --
 
-    def record(self, cycle: int) -> None:
-        """Snapshot this cycle's blocks and timing into one frame; send it or count it dropped."""
+    def record(self, cycle: int, due_ns: int = 0) -> None:
+        """Snapshot this cycle's blocks and timing into one frame; send it or count it dropped.
+
+        due_ns: when the cycle's tick was due (the worker's ``due_ns``); the
+        manager block may already show a later cycle when this one runs late.
+        """
+        if cycle <= self.seen_cycle:
+            # a late wake-up that read the manager's next cycle, then that
+            # cycle's own sync: the step runs twice for one cycle, logged once
+            self.repeated += 1
+            return
+        self.seen_cycle = cycle
         mv = self.mv
         base = FRAME.size
         self.manager.read_into(self.mrec.bytes)
         m = self.mrec
-        due = int(m["tick_due_ns"])
+        current = int(m["cycle"]) == cycle
+        due = due_ns or int(m["tick_due_ns"])
         struct.pack_into("<q", self.frame, 5, due + self.realtime_offset_ns)
         for c in self.channels:
             if c.block is None:
@@ -228,7 +242,7 @@ class CycleRecorder:
             o = base + c.offset
             struct.pack_into("<Q", self.frame, o, cycle)
             c.block.read_into(mv[o + 8 : o + c.size])
-        self._timing(cycle, due, int(m["tick_ns"]))
+        self._timing(cycle, due, int(m["tick_ns"]) if current else 0)
         o = base + self.timing.offset
         mv[o : o + self.timing.size] = self.tbytes
         try:
@@ -249,7 +263,7 @@ class CycleRecorder:
         t = self.trec
         t["log_cycle"] = cycle
         t["tick_due_ns"] = due
-        t["tick_late_us"] = (tick_ns - due) / 1e3
+        t["tick_late_us"] = (tick_ns - due) / 1e3 if tick_ns else np.nan
         hb, late, busy = t["heartbeat_cycle"], t["late_us"], t["busy_us"]
         over, skip, state = t["overruns"], t["skipped"], t["state"]
         for j, (row, rec) in enumerate(zip(self.rows, self.row_recs, strict=True)):
@@ -286,9 +300,9 @@ class CycleRecorder:
                 )
 
     def _fault_event(self) -> None:
-        reason = bytes(self.mrec.array["fault_reason"]).decode(errors="replace")
+        reason = self.mrec.array["fault_reason"].item().decode(errors="replace")
         if reason:
-            text = bytes(self.mrec.array["fault_text"]).decode(errors="replace")
+            text = self.mrec.array["fault_text"].item().decode(errors="replace")
             self.event("events", int(self.mrec["cycle"]), event="fault", reason=reason, text=text)
 
     def event(self, topic: str, cycle: int, **fields: Any) -> None:

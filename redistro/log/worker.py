@@ -40,7 +40,7 @@ class EscRecorder(Worker):
         self.rec.start()
 
     def step(self, cycle: int) -> None:
-        self.rec.record(cycle)
+        self.rec.record(cycle, self.due_ns)
         self.sp_block.read_into(self.sp.bytes)
         k = int(self.sp["segment"])
         if k != self.segment:

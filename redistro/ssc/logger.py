@@ -156,7 +156,7 @@ class SscLogger(Worker):
     def _record(self, cycle: int) -> None:
         rec = self.recorder
         assert rec is not None
-        rec.record(cycle)
+        rec.record(cycle, self.due_ns)
         for i, pr in enumerate(self.recs):
             pl = pr.array
             k = int(pl["segment"])
