@@ -348,7 +348,8 @@ def _run_task(
             plant_result = plant.result()
             say("plant powered off")
     summary = build_summary(task, node_results, plant_result, started, time.time(), run_dir)
-    log_info = _finish_log(run_dir, say)
+    cycles = {str(r.get("node")): int(r.get("cycles", 0)) for r in node_results}
+    log_info = _finish_log(run_dir, say, cycles)
     if log_info:
         summary["log"] = log_info
     for robot in task.robots:
@@ -373,12 +374,14 @@ def _run_task(
     return 0 if summary["result"] == "ok" else 1
 
 
-def _finish_log(run_dir: Path, say: Callable[[str], None]) -> dict[str, Any]:
+def _finish_log(
+    run_dir: Path, say: Callable[[str], None], cycles: dict[str, int]
+) -> dict[str, Any]:
     """session.mcap from the nodes' parts, and its counters (never fails the session)."""
     from redistro.log.mcapfile import finish_run_log
 
     try:
-        info = finish_run_log(run_dir)
+        info = finish_run_log(run_dir, cycles)
     except Exception as exc:
         log.warning("session log not finished: %s", exc)
         return {"error": str(exc)}

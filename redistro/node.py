@@ -131,7 +131,9 @@ def run_node(
     from redistro.log.mcapfile import finish_run_log
 
     with contextlib.suppress(Exception):  # the log never fails the node
-        log_info = finish_run_log(run_dir)
+        log_info = finish_run_log(
+            run_dir, {str(r.get("node")): int(r.get("cycles", 0)) for r in results}
+        )
         if log_info:
             summary["log"] = log_info
     summary["node"] = spec.node

@@ -19,10 +19,12 @@ log = logging.getLogger(__name__)
 SESSION_LOG = "session.mcap"
 
 
-def finish_run_log(run_dir: Path) -> dict[str, Any]:
+def finish_run_log(run_dir: Path, node_cycles: dict[str, int] | None = None) -> dict[str, Any]:
     """Merge the nodes' ``<node>.mcap`` parts into ``session.mcap`` (time order)
     and gather their recording counters (the ``log`` entry of summary.json).
-    Returns {} when nothing was recorded."""
+    node_cycles: each node's cycles from its result, for a part whose
+    recorder died before it could send its own count. Returns {} when
+    nothing was recorded."""
     parts = sorted(p for p in run_dir.glob("*.mcap") if p.name != SESSION_LOG)
     if not parts:
         return {}
@@ -35,6 +37,13 @@ def finish_run_log(run_dir: Path) -> dict[str, Any]:
         except (OSError, ValueError):
             nodes[node] = {"node": node, "complete": False}
         side.unlink(missing_ok=True)
+        rec = nodes[node]
+        cycles = (node_cycles or {}).get(node)
+        if "recorded" not in rec and cycles is not None:
+            # the recorder died: what reached the file is what was recorded
+            rec["recorded"] = int(rec.get("frames_written", 0))
+            rec["cycles"] = cycles
+            rec["dropped"] = max(0, cycles - rec["recorded"])
     out = run_dir / SESSION_LOG
     if len(parts) == 1:
         os.replace(parts[0], out)

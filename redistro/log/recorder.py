@@ -183,7 +183,7 @@ class CycleRecorder:
         with contextlib.suppress(Exception):
             self.manager.read_into(self.mrec.bytes)
             final = max(final, int(self.mrec["cycle"]))
-            self._messages()
+            self._messages(final)
             if fault:
                 self._fault_event()
         stats = {
