@@ -20,6 +20,16 @@ from redistro.errors import ConfigError
 from redistro.log.mcapfile import SESSION_LOG, SessionLog, read_log
 
 MAX_POINTS = 5000  # per plotted series (the kinematics is redone per point)
+NODE_COLUMNS = (
+    "node",
+    "result",
+    "cycles",
+    "rate_hz",
+    "overruns",
+    "lateness_p99_us",
+    "logged",
+    "dropped",
+)
 
 
 def resolve_run(arg: str, runs_dir: str) -> tuple[Path, Path]:
@@ -164,33 +174,10 @@ def print_summary(rows: dict[str, Any]) -> None:
             t.add_row(*[str(s.get(k, "")) for k in keys], err)
         con.print(t)
     t = Table(title="nodes")
-    for k in (
-        "node",
-        "result",
-        "cycles",
-        "rate_hz",
-        "overruns",
-        "lateness_p99_us",
-        "logged",
-        "dropped",
-    ):
+    for k in NODE_COLUMNS:
         t.add_column(k)
     for n in rows["nodes"]:
-        t.add_row(
-            *[
-                "-" if n.get(k) is None else str(n[k])
-                for k in (
-                    "node",
-                    "result",
-                    "cycles",
-                    "rate_hz",
-                    "overruns",
-                    "lateness_p99_us",
-                    "logged",
-                    "dropped",
-                )
-            ]
-        )
+        t.add_row(*["-" if n.get(k) is None else str(n[k]) for k in NODE_COLUMNS])
     con.print(t)
     t = Table(title="faults")
     for k in ("node", "cycle", "what", "text"):
@@ -317,6 +304,21 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
         axes[-1].set_xlabel("time on the boards' clock [s]")
         return fig
 
+    def xyz_pair(
+        t: Any, top: tuple[Any, str, str], bottom: tuple[Any, str, str], title: str
+    ) -> Any:
+        """Two panels of x, y, z series: (values n x 3, label prefix, y label) each."""
+        fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        for ax, (v, prefix, ylabel) in zip(axes, (top, bottom), strict=True):
+            for k, ax_name in enumerate("xyz"):
+                ax.plot(t, v[:, k], lw=0.8, label=f"{prefix}{ax_name}")
+            ax.set_ylabel(ylabel)
+            ax.legend(loc="upper right", fontsize=7)
+            ax.grid(alpha=0.3)
+        axes[0].set_title(title)
+        axes[1].set_xlabel("time on the boards' clock [s]")
+        return fig
+
     robots_meta = sl.robots()
     for r in robot_names(sl):
         fb = sl.arrays[f"/{r}/feedback"]
@@ -369,29 +371,19 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
             w_world[i, 3:] = kin.R @ w[i, 3:]
         rot = continuous_rotvec(rot)
         for frame, ww in (("tool", w), ("world", w_world)):
-            fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-            for k, ax_name in enumerate("xyz"):
-                axes[0].plot(t, ww[:, k], lw=0.8, label=f"F{ax_name}")
-                axes[1].plot(t, ww[:, 3 + k], lw=0.8, label=f"T{ax_name}")
-            axes[0].set_ylabel("force [N]")
-            axes[1].set_ylabel("torque [N m]")
-            axes[0].set_title(f"{r} wrist force and torque, {frame} frame")
-            for ax in axes:
-                ax.legend(loc="upper right", fontsize=7)
-                ax.grid(alpha=0.3)
-            axes[1].set_xlabel("time on the boards' clock [s]")
+            fig = xyz_pair(
+                t,
+                (ww[:, :3], "F", "force [N]"),
+                (ww[:, 3:], "T", "torque [N m]"),
+                f"{r} wrist force and torque, {frame} frame",
+            )
             save(fig, f"{r}-wrench-{frame}.png")
-        fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-        for k, ax_name in enumerate("xyz"):
-            axes[0].plot(t, pos[:, k], lw=0.8, label=ax_name)
-            axes[1].plot(t, rot[:, k], lw=0.8, label=f"r{ax_name}")
-        axes[0].set_ylabel("position [m]")
-        axes[1].set_ylabel("rotation vector [rad]")
-        axes[0].set_title(f"{r} end-effector (TCP) pose, world frame")
-        for ax in axes:
-            ax.legend(loc="upper right", fontsize=7)
-            ax.grid(alpha=0.3)
-        axes[1].set_xlabel("time on the boards' clock [s]")
+        fig = xyz_pair(
+            t,
+            (pos, "", "position [m]"),
+            (rot, "r", "rotation vector [rad]"),
+            f"{r} end-effector (TCP) pose, world frame",
+        )
         save(fig, f"{r}-end-effector.png")
     nodes = sl.nodes()
     for topic, tm in sorted(sl.arrays.items()):

@@ -68,6 +68,8 @@ class Arm:
     brake_torque_nm: np.ndarray
     # bool (7,): the engaged brake has stopped its joint and holds its angle
     brake_held: np.ndarray = field(default_factory=lambda: np.zeros(7, dtype=bool))
+    # (7,): the motor torques of the last step [N m] (0 on a braked joint)
+    motor_tau: np.ndarray = field(default_factory=lambda: np.zeros(7))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -228,7 +230,10 @@ class World:
         # (indexed, not unpacked: the plant does this every step)
         q = np.array([s[0] for s in states])
         qd = np.array([s[1] for s in states])
-        tau = np.array([s[3] for s in states])
+        # PyBullet reports the applied torque of a velocity-controlled joint
+        # (a brake) but not of a torque-controlled one: there it keeps the last
+        # velocity-control value. A released joint's torque is its motor's.
+        tau = np.where(arm.braked, [s[3] for s in states], arm.motor_tau)
         return q, qd, tau
 
     def sensor_frame(self, arm: Arm) -> tuple[np.ndarray, np.ndarray]:
@@ -343,6 +348,7 @@ class World:
     def set_torques(self, arm: Arm, tau_nm: np.ndarray) -> None:
         """Motor torques for the next step [N m]; a braked joint's motor is inhibited."""
         tau = np.where(arm.braked, 0.0, tau_nm)
+        arm.motor_tau = tau
         self.pb.setJointMotorControlArray(
             arm.body,
             arm.joints,

@@ -63,6 +63,14 @@ TOPICS: list[tuple[str, str, int | None]] = [
 ]
 
 
+def _started(node: tuple[LocalData, NodeSpec], tmp_path: Path) -> tuple[LocalData, CycleRecorder]:
+    """A recorder on the node's Local Data with its writer process running."""
+    ld, spec = node
+    rec = CycleRecorder(ld, spec, TOPICS, str(tmp_path), META)
+    rec.start()
+    return ld, rec
+
+
 def _drive(ld: LocalData, rec: CycleRecorder, cycles: range) -> None:
     mgr = ld.writer("manager", role="manager")
     fb = ld.writer("feedback", 0, role="acquisition")
@@ -98,9 +106,7 @@ def test_every_block_has_a_ros1_definition_that_reads_back() -> None:
 def test_recorded_cycles_read_back_exactly(
     node: tuple[LocalData, NodeSpec], tmp_path: Path
 ) -> None:
-    ld, spec = node
-    rec = CycleRecorder(ld, spec, TOPICS, str(tmp_path), META)
-    rec.start()
+    ld, rec = _started(node, tmp_path)
     _drive(ld, rec, range(1, 401))
     rec.event("segments", 200, robot="r1", segment=2, name="counter_clockwise")
     stats = rec.close()
@@ -127,9 +133,7 @@ def test_recorded_cycles_read_back_exactly(
 def test_a_stalled_writer_makes_the_recorder_drop_and_count(
     node: tuple[LocalData, NodeSpec], tmp_path: Path
 ) -> None:
-    ld, spec = node
-    rec = CycleRecorder(ld, spec, TOPICS, str(tmp_path), META)
-    rec.start()
+    ld, rec = _started(node, tmp_path)
     assert rec.proc is not None
     os.kill(rec.proc.pid, signal.SIGSTOP)  # the writer stops draining the pipe
     try:
