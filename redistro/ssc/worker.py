@@ -333,9 +333,14 @@ class SscWorker(Worker):
             seg_t,
             dt,
             # the integral learns in free space, once the reference stands
-            # still, and is held in force segments: in contact a wall takes
-            # whatever it pushes, and a wound-up integral jams the peg
-            integrate=plan.scheme == "position" and (st.short_move or seg_t >= plan.move_s),
+            # still: in position segments, and in force segments until the
+            # first contact (the descent to the hole: the arm's posture
+            # changes and, held, the approach's integral let the tip drift
+            # 0.3-0.4 mm sideways, onto the mouth's edge); then it is held:
+            # in contact a wall takes whatever it pushes, and a wound-up
+            # integral jams the peg
+            integrate=(st.short_move or seg_t >= plan.move_s)
+            and (plan.scheme == "position" or (plan.scheme == "force" and not st.hybrid.contact)),
             a_ref=a6,
             inertia=inertia,
         )
