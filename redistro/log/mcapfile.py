@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from redistro.log.schema import MESSAGE_ENCODING, dtype_from_ros1
+from redistro.log.frames import MESSAGE_ENCODING
+from redistro.log.schema import dtype_from_ros1
 
 log = logging.getLogger(__name__)
 

@@ -34,17 +34,12 @@ from redistro.localdata import LocalData, MessageBox
 from redistro.localdata.block import Block, Record
 from redistro.localdata.layout import BLOCKS, MANAGER, PROC_STATUS
 from redistro.log import schema
+from redistro.log.frames import FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
 from redistro.process.spawn import THREAD_ENV
 from redistro.process.spec import NodeSpec
 
 log = logging.getLogger(__name__)
 
-# frame: u32 payload length, u8 kind, i64 log time (CLOCK_REALTIME ns), payload
-FRAME = struct.Struct("<IBq")
-KIND_CYCLE = 0
-KIND_EVENT = 1
-KIND_HEADER = 2
-KIND_END = 3
 PIPE_BUF = 4096  # a pipe write up to this size is all-or-nothing
 PIPE_BYTES = 1 << 20  # asked for; the kernel may give less (fs.pipe-max-size)
 WRITER_WAIT_S = 10.0

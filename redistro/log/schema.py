@@ -15,10 +15,6 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA_ENCODING = "ros1msg"
-MESSAGE_ENCODING = "ros1"
-JSON_SCHEMA = b'{"type": "object"}'
-
 # numpy scalar code -> ROS 1 primitive
 _ROS1 = {
     "u1": "uint8",

@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import json
 import os
-import struct
 from typing import IO, Any
 
-FRAME = struct.Struct("<IBq")
-KIND_CYCLE, KIND_EVENT, KIND_HEADER, KIND_END = 0, 1, 2, 3
+from redistro.log.frames import FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
+
 CHUNK_BYTES = 256 * 1024
 
 
@@ -31,7 +30,7 @@ def _read_exact(f: IO[bytes], n: int) -> bytes | None:
 def run_writer(fd: int, out: str) -> int:
     from mcap.writer import CompressionType, Writer
 
-    from redistro.log.schema import JSON_SCHEMA, MESSAGE_ENCODING, SCHEMA_ENCODING
+    from redistro.log.frames import JSON_SCHEMA, MESSAGE_ENCODING, SCHEMA_ENCODING
 
     src = os.fdopen(fd, "rb", buffering=1 << 16)
     tmp = out + ".tmp"
