@@ -30,10 +30,10 @@ from redistro.config.model import Config
 from redistro.config.task import load_task
 from redistro.decision import (
     Progress,
-    budget_s,
     build_summary,
     positions_file,
     unknown_positions,
+    wall_budget_s,
 )
 from redistro.errors import ConfigError, IPCError, LayoutError
 from redistro.esc.plan import esc_spec
@@ -122,9 +122,8 @@ def run_node(
         try:
             # the node waits for its peers (datum, first command) within its
             # connect timeout; then the task runs on the boards' clock
-            results = run_nodes(
-                [spec], s, budget_s=budget_s(task) + cfg.ddm.connect_timeout_s, on_wait=progress
-            )
+            budget = wall_budget_s(task) + cfg.ddm.connect_timeout_s
+            results = run_nodes([spec], s, budget_s=budget, on_wait=progress)
         finally:
             progress.close()
     summary = build_summary(task, results, {}, started, time.time(), run_dir)

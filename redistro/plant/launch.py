@@ -80,6 +80,15 @@ class PlantProcess:
         s = self.bank.status.read()
         return {name: s[name].item() for name in s.dtype.names or ()}
 
+    def clock_s(self) -> float | None:
+        """The plant's simulated time [s]; None when it cannot be read."""
+        if self.bank is None:
+            return None
+        try:
+            return int(self.bank.status.read()["sim_time_ns"]) * 1e-9
+        except RedistroError:
+            return None
+
     def stop(self, timeout_s: float = 10.0) -> int:
         """SIGTERM, wait; SIGKILL if it does not end in time. Returns the exit code."""
         if self.bank is not None:

@@ -43,6 +43,7 @@ def run_nodes(
     keep: frozenset[int] = frozenset(),
     later: list[NodeSpec] | None = None,
     later_ready: Callable[[], bool] | None = None,
+    clock: Callable[[], float | None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run nodes side by side to their ends; return each manager's result.
 
@@ -57,6 +58,9 @@ def run_nodes(
     later, later_ready: nodes started only once ``later_ready()`` is true (the
     SSC waits for every ESC's first feedback: the start-up datum); if that
     does not happen within their start-up timeout, every node is stopped.
+    clock: the task's own clock [s] (the simulated plant's time; None when it
+    cannot be read): budget_s then counts on it, so a slow plant is not a
+    fault, with a wall-clock backstop at MIN_CLOCK_RATE of real time.
     """
     signals.become_subreaper()
     nodes: list[_Node] = []
@@ -79,7 +83,7 @@ def run_nodes(
         for spec in specs:
             start(spec)
         pending = _Later(list(later or []), later_ready, start)
-        _wait_nodes(nodes, budget_s, on_wait, pending)
+        _wait_nodes(nodes, budget_s, on_wait, pending, clock)
     finally:
         for n in nodes:
             os.close(n.pidfd)
@@ -169,6 +173,50 @@ class _Node:
 # owner stops them itself. Nodes without DDMs are stopped at once.
 GROUP_STOP_GRACE_S = 0.25
 
+# The slowest a task's own clock (the simulated plant) may run before the
+# wall-clock backstop of its budget stops the nodes [share of real time]: a
+# stalled plant, not a slow one (a loaded two-vCPU host ran it at 0.1-0.9).
+MIN_CLOCK_RATE = 0.05
+
+
+class _Budget:
+    """The nodes' time budget, on the task's clock when there is one."""
+
+    def __init__(
+        self,
+        budget_s: float | None,
+        margin_s: float,
+        start: float,
+        clock: Callable[[], float | None] | None,
+    ) -> None:
+        self.budget_s, self.margin_s, self.clock = budget_s, margin_s, clock
+        self.clock_start = clock() if clock is not None and budget_s is not None else None
+        self.wall_deadline: float | None = None
+        if budget_s is not None:
+            rate = 1.0 if self.clock_start is None else MIN_CLOCK_RATE
+            self.wall_deadline = start + margin_s + budget_s / rate
+
+    def exceeded(self, now: float) -> str | None:
+        """Why the budget is spent (a line for the log), or None."""
+        if self.budget_s is None or self.wall_deadline is None:
+            return None
+        if now > self.wall_deadline:
+            if self.clock_start is None:
+                return f"nodes ran past their time budget ({self.budget_s:.1f} s); stopping them"
+            return (
+                f"the task's clock ran below {MIN_CLOCK_RATE:g} of real time past its "
+                f"budget ({self.budget_s:.1f} s); stopping the nodes"
+            )
+        if self.clock is not None and self.clock_start is not None:
+            t = self.clock()
+            if t is not None and t - self.clock_start > self.margin_s + self.budget_s:
+                return (
+                    f"nodes ran past their time budget ({self.budget_s:.1f} s of the "
+                    f"plant's time, {t - self.clock_start:.1f} s since they started); "
+                    "stopping them"
+                )
+        return None
+
 
 def _has_ddm(spec: NodeSpec) -> bool:
     return any(w.role == "ddm" for w in spec.workers)
@@ -179,16 +227,15 @@ def _wait_nodes(
     budget_s: float | None,
     on_wait: Callable[[], None] | None,
     pending: _Later | None = None,
+    clock: Callable[[], float | None] | None = None,
 ) -> None:
     start = time.monotonic()
     specs = [n.spec for n in nodes]
     margin = max(s.startup_timeout_s + s.shutdown_timeout_s for s in specs) + 5.0
-    if budget_s is not None:
-        deadline: float | None = start + margin + budget_s
-    elif all(s.cycles for s in specs):
-        deadline = start + margin + max(s.cycles / s.rate_hz for s in specs)
-    else:
-        deadline = None
+    if budget_s is None and all(s.cycles for s in specs):
+        budget_s, clock = max(s.cycles / s.rate_hz for s in specs), None
+    budget = _Budget(budget_s, margin, start, clock)
+    spent = False
     group_stop: tuple[float, str] | None = None  # (when, why): the fallback stop
     while any(n.status is None for n in nodes):
         busy = (pending is not None and pending.specs) or group_stop is not None
@@ -215,8 +262,10 @@ def _wait_nodes(
         if info is not None and info.si_signo in signals.STOP_SIGNALS:
             for n in nodes:
                 n.stop(signal.Signals(info.si_signo).name, now)
-        if deadline is not None and now > deadline:
-            log.error("nodes ran past their time budget; stopping them")
+        why = None if spent else budget.exceeded(now)
+        if why is not None:
+            spent = True
+            log.error("%s", why)
             for n in nodes:
                 n.stop("the session's time budget", now)
         for n in nodes:
