@@ -57,10 +57,6 @@ class Channel:
         return int(self.dtype.itemsize)
 
 
-def level_name(level: int) -> str:
-    return str(logging.getLevelName(level))
-
-
 class CycleRecorder:
     """Records one node's cycles: ``topics`` are (topic, block name, robot index)."""
 
@@ -88,7 +84,6 @@ class CycleRecorder:
         self.timing = Channel(f"/{spec.node}/timing", None, tdt, offset)
         self.channels.append(self.timing)
         offset += tdt.itemsize
-        self.payload_size = offset
         self.frame = bytearray(FRAME.size + offset)
         if len(self.frame) > PIPE_BUF:
             raise ValueError(
@@ -170,7 +165,7 @@ class CycleRecorder:
         self._send_blocking(KIND_HEADER, json.dumps(header).encode())
         os.set_blocking(wfd, False)
 
-    def close(self, fault: bool = True) -> dict[str, Any]:
+    def close(self) -> dict[str, Any]:
         """Send the counters and the node's fault, close the pipe, wait for the writer."""
         if self.fd < 0:
             return {}
@@ -179,8 +174,7 @@ class CycleRecorder:
             self.manager.read_into(self.mrec.bytes)
             final = max(final, int(self.mrec["cycle"]))
             self._messages(final)
-            if fault:
-                self._fault_event()
+            self._fault_event()
         stats = {
             "node": self.node,
             "cycles": final,
@@ -289,7 +283,7 @@ class CycleRecorder:
                     "messages",
                     cycle,
                     process=name,
-                    level=level_name(level),
+                    level=str(logging.getLevelName(level)),
                     text=text,
                     stamp_ns=stamp_ns,
                 )
