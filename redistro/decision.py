@@ -158,6 +158,8 @@ class Progress:
         dur = float(seg["duration_s"])
         done = sum(float(s["duration_s"]) for s in segs[: k - 1]) + min(t, dur)
         text = f"{spec.node} {k}/{len(segs)} {seg['name']} {t:5.1f}/{seg['duration_s']:g} s"
+        if k == len(segs) and t > dur:
+            text = f"{spec.node} {k}/{len(segs)} {seg['name']} done, settling"
         return text, done, total
 
     def _ssc(self, spec: NodeSpec, ld: Any, cycle: int, total: float) -> tuple[str, float, float]:

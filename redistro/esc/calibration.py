@@ -163,13 +163,13 @@ class Calibration(Worker):
 
     def _start(self, index: int, q0: np.ndarray) -> None:
         self.index = index
-        self.seg_t0_ns = self.now_ns
         self.seg_q0 = np.asarray(q0, dtype=np.float64).copy()
         if index < len(self.segments):
+            self.seg_t0_ns = self.now_ns
             seg = self.segments[index]
             self.sp["segment"] = index + 1
             self.post(f"segment {index + 1} {seg.name} ({seg.kind}, {seg.duration_s:g} s)")
-        else:
+        else:  # settling: the last segment's clock runs on (segment_t_s past its duration)
             self.end_ns = self.now_ns + int(self.settle_s * 1e9)
 
     def _finish_segment(self, seg: Segment, goal: np.ndarray) -> None:

@@ -203,7 +203,7 @@ SETPOINT = np.dtype(  # the joint reference of ESC-local motion (self-calibratio
         ("qdd_rad_s2", "<f8", (DOF,)),
         ("joint_on", "u1", (DOF,)),  # joints under control (their brakes released)
         ("segment", "u1"),  # 1-based index of the running segment; 0 before the first
-        ("segment_t_s", "<f8"),  # time into that segment [s]
+        ("segment_t_s", "<f8"),  # time into that segment [s] (past the last one: settling)
         ("done", "u1"),  # 1: every segment finished, the session may end
         ("failed", "u1"),  # 1: the segments cannot go on (the reason is in the message box)
         ("offset_rad", "<f8", (DOF,)),  # zero offsets the acquisition is asked to apply [rad]
