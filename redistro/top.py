@@ -198,21 +198,19 @@ def render(doc: dict[str, Any]) -> Any:
             )
             if n.get("fault"):
                 title += f" [red]{n['fault']}: {n.get('fault_text')}[/red]"
-            t = Table(title=title, title_justify="left", expand=False)
-            cols = (
-                "name",
-                "pid",
-                "state",
-                "sched",
-                "heartbeat_age_cycles",
-                "late_us",
-                "busy_us",
-                "cycles",
-                "overruns",
-                "skipped",
+            # short headings and no column rules: fits an 80-column terminal
+            t = Table(
+                title=title,
+                title_justify="left",
+                expand=False,
+                box=None,
+                header_style="bold underline",
+                padding=(0, 0, 0, 1),
+                pad_edge=False,
             )
-            for c in cols:
-                t.add_column(c.replace("_cycles", "").replace("_", " "), justify="right")
+            heads = ("name", "pid", "state", "sched", "hb age", "late us", "busy us")
+            for c in (*heads, "cycles", "overruns", "skip"):
+                t.add_column(c, justify="left" if c == "name" else "right", no_wrap=True)
             t.add_row(
                 "manager",
                 str(n.get("manager_pid", "")),
