@@ -342,6 +342,9 @@ class PlantConfig:
     backplane: how drivers reach the boards: ``shm`` (shared-memory register
         bank) or ``can`` (the same registers in CAN FD frames).
     physics_hz: physics steps per second, paced to the wall clock.
+    real_time_factor: the pace: 1 is real time, 0.1 slow motion (ten wall
+        seconds per simulated second: to watch, or to try the controller
+        against a plant as slow as a loaded host makes it).
     io_timeout_ms: bound on every backplane send and receive; a board that has
         not answered (CAN) or not updated (shm) within it is an I/O fault.
     output_watchdog_ms: the amplifiers' watchdog: a robot whose DAC boards
@@ -358,6 +361,7 @@ class PlantConfig:
     backplane: Literal["shm", "can"] = "shm"
     can: CanConfig = field(default_factory=CanConfig)
     physics_hz: float = field(default=1000.0, metadata={"ge": 100, "le": 10000})
+    real_time_factor: float = field(default=1.0, metadata={"gt": 0, "le": 1})
     gui: bool = False
     # 500 ms: beside a whole robot group on a 2-vCPU VM the (non-real-time)
     # simulated plant was seen not to step for 250-330 ms at times

@@ -85,7 +85,16 @@ def run_plant(
         policy = "none" if cfg.scheduling.policy == "none" else "nice"
         granted = sched.apply(cfg.scheduling.priorities.get("plant", 20), None, policy)
         result["scheduling"] = granted.as_dict()
-        result.update(_loop(cfg.plant.physics_hz, seconds, chassis, bank, port))
+        result.update(
+            _loop(
+                cfg.plant.physics_hz,
+                seconds,
+                chassis,
+                bank,
+                port,
+                cfg.plant.real_time_factor,
+            )
+        )
         result["state"] = "stopped"
         return 0
     except Exception as exc:
@@ -144,9 +153,16 @@ def write_pose(path: str, q_rad: dict[str, list[float]]) -> None:
 
 
 def _loop(
-    physics_hz: float, seconds: float, chassis: Any, bank: RegisterBank, port: BoardPort
+    physics_hz: float,
+    seconds: float,
+    chassis: Any,
+    bank: RegisterBank,
+    port: BoardPort,
+    pace: float = 1.0,
 ) -> dict[str, Any]:
+    """Step the physics, paced to ``pace`` x real time (1: real time)."""
     dt_ns = round(1e9 / physics_hz)
+    period_ns = round(dt_ns / pace)  # wall time between steps
     truths = [bank.truth(i) for i in range(len(chassis.rigs))]
     truth = Record(TRUTH)
     status = Record(bank.status.data.dtype)
@@ -206,10 +222,10 @@ def _loop(
             break
         if signal.sigpending() & stop_set:
             break
-        next_ns += dt_ns
-        if now > next_ns + dt_ns:
+        next_ns += period_ns
+        if now > next_ns + period_ns:
             late += 1
-            behind = (now - next_ns) // dt_ns
+            behind = (now - next_ns) // period_ns
             if behind > CATCH_UP_STEPS:
                 skipped += int(behind)
                 next_ns = now

@@ -120,6 +120,30 @@ def test_self_calibration_at_1khz_then_the_next_session_needs_none(tmp_path: Pat
         assert np.all(err <= 2.0), f"{r}: the frame moved by {err} counts between sessions"
 
 
+def test_a_slow_plant_is_no_fault(tmp_path: Path) -> None:
+    """The task and its time budget count on the plant's clock: a plant at 0.15
+    of real time (a loaded host's figure) takes longer than the budget would in
+    wall time, and the calibration still ends ok."""
+    from redistro.config.task import load_task
+    from redistro.decision import budget_s
+
+    cfg = load_config(None)
+    out = tmp_path / "r"
+    done = run_cli(
+        "--set", f"session.runs_dir={tmp_path / 'runs'}",
+        "--set", "plant.real_time_factor=0.15",
+        "session", SHORT, "--out", str(out), timeout=180,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    summary = _summary(out)
+    _check_calibrated(summary, ["r1", "r2"])
+    plant = load_json(out / "plant.json")
+    assert plant["rtf"] <= 0.16, plant["rtf"]  # paced: never faster than asked
+    # longer than the budget and its start-up margin, had they counted wall time
+    margin = cfg.session.startup_timeout_s + cfg.session.shutdown_timeout_s + 5.0
+    assert plant["wall_s"] > budget_s(load_task(SHORT, cfg)) + margin, plant["wall_s"]
+
+
 def test_a_velocity_limit_too_low_ends_unsafe_within_a_cycle(tmp_path: Path) -> None:
     out = tmp_path / "run"
     done = run_cli(
