@@ -22,7 +22,18 @@ from typing import Any
 from redistro.errors import ConfigError, IPCError, LayoutError
 
 STATES = {0: "none", 1: "init", 2: "routine", 3: "cleanup", 4: "idle"}
-POLICIES = {0: "other", 1: "fifo", 2: "rr", 3: "batch", 5: "idle"}
+
+
+def sched_text(policy: int, priority: int, nice: int) -> str:
+    """A process's scheduling, from its proc row (policy: POLICY_CODES)."""
+    from redistro.ipc.sched import POLICY_CODES
+
+    name = {v: k for k, v in POLICY_CODES.items()}.get(policy, "?")
+    if name == "SCHED_RR":
+        return f"rr/{priority}"
+    if name == "nice":
+        return f"nice/{nice}"
+    return name
 
 
 def _cmdline(pid: int) -> list[str]:
@@ -101,8 +112,9 @@ def _node(session_id: str, node: str) -> dict[str, Any] | None:
                     "role": role,
                     "pid": int(r["pid"]),
                     "state": STATES.get(int(r["state"]), "?"),
-                    "sched": f"{POLICIES.get(int(r['sched_policy']), '?')}"
-                    f"/{int(r['sched_priority'])}",
+                    "sched": sched_text(
+                        int(r["sched_policy"]), int(r["sched_priority"]), int(r["nice"])
+                    ),
                     "heartbeat_age_cycles": max(0, cycle - hb) if hb else None,
                     "late_us": round((wake - due) / 1e3, 1)
                     if stages[j] >= 0 and hb == cycle and wake

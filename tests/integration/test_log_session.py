@@ -149,6 +149,14 @@ def test_top_once_json_lists_every_process(logged: dict[str, Any]) -> None:
     nodes = {n["node"]: n for n in s["nodes"]}
     assert set(nodes) == {"esc.r1", "esc.r2"}
     listed: set[int] = {o["pid"] for o in s["other_processes"]}
+    summary = load_json(logged["run"] / "summary.json")
+    for name, n in nodes.items():
+        # the scheduling shown is what each worker was granted
+        granted = {w["pid"]: w["scheduling"] for w in summary["nodes"][name]["workers"]}
+        for p in n["processes"]:
+            g = granted[p["pid"]]
+            want = {"SCHED_RR": f"rr/{g['priority']}", "nice": f"nice/{g['nice']}"}
+            assert p["sched"] == want.get(g["policy"], g["policy"]), (p, g)
     for n in nodes.values():
         assert n["state"] == "routine" and n["cycle"] > 0 and n["estop"] is False
         assert n["measured_hz"] and n["measured_hz"] > 0

@@ -51,3 +51,12 @@ def test_the_process_table_fits_80_columns() -> None:
     rows = [line for line in text.splitlines() if line.startswith("calibration ")]
     assert len(rows) == 1 and "1234567" in rows[0] and "12345.6" in rows[0], text
     assert "hb age" in text and "overruns" in text
+
+
+def test_the_scheduling_column_names_what_was_granted() -> None:
+    from redistro.ipc.sched import POLICY_CODES
+    from redistro.top import sched_text
+
+    assert sched_text(POLICY_CODES["SCHED_RR"], 19, 0) == "rr/19"
+    assert sched_text(POLICY_CODES["nice"], 0, -9) == "nice/-9"
+    assert sched_text(POLICY_CODES["default"], 0, 0) == "default"
