@@ -387,6 +387,21 @@ class PlantConfig:
 
 
 @dataclass(frozen=True)
+class LogConfig:
+    """The session log's recorders: the SSC's logger and the ESC recorder.
+
+    heartbeat_limit_cycles: missed heartbeats that make a recorder hung. They
+        run at the lowest real-time priority, and a loaded host starves them
+        for a while (a CI host: over 25 cycles at 200 Hz, which ended a peg
+        insertion); they drop and count the cycles they miss. A starved
+        recorder is no fault, a hung one is, after this many of its node's
+        cycles (1 s at 200 Hz).
+    """
+
+    heartbeat_limit_cycles: int = field(default=200, metadata={"ge": 2, "le": 100000})
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole config. Sections are added as capabilities land."""
 
@@ -401,6 +416,7 @@ class Config:
     esc: EscConfig = field(default_factory=EscConfig)
     ssc: SscConfig = field(default_factory=SscConfig)
     ddm: DdmConfig = field(default_factory=DdmConfig)
+    log: LogConfig = field(default_factory=LogConfig)
     # The file this config was read from (relative hardware paths start from
     # its folder); set by the loader, never read from YAML.
     source: str = field(default="config/redistro.yaml", compare=False, metadata={"internal": True})

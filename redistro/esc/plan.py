@@ -15,6 +15,8 @@ from redistro.process.spec import NodeSpec, WorkerSpec
 ESC_WORKERS = (("acquisition", 0), ("calibration", 1), ("pid", 2), ("sender", 3))
 # ... and, given a run folder, the recorder logs the cycle last.
 ESC_RECORDER = ("recorder", 4)
+# the session log's recorders (lowest priority: a starved one drops cycles)
+RECORDERS = ("recorder", "logger")
 # In a strategy session the SSC computes the torques: the acquisition
 # publishes feedback, the sender checks and sends the SSC's command, and the
 # ddm (off the cycle, on its own timer) carries both between the nodes.
@@ -45,7 +47,8 @@ def worker_specs(
     cfg: Config, roles: tuple[tuple[str, int], ...], params: dict[str, Any]
 ) -> list[WorkerSpec]:
     """One WorkerSpec per (role, stage), at the role's configured priority; an
-    off-cycle worker (negative stage: the ddm) runs on its own timer at ddm.rate_hz."""
+    off-cycle worker (negative stage: the ddm) runs on its own timer at ddm.rate_hz;
+    the recorders get the log's heartbeat limit."""
     prio = cfg.scheduling.priorities
     return [
         WorkerSpec(
@@ -55,6 +58,7 @@ def worker_specs(
             priority=prio.get(role, 16),
             params=params,
             rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
+            heartbeat_limit_cycles=cfg.log.heartbeat_limit_cycles if role in RECORDERS else 0,
         )
         for role, stage in roles
     ]

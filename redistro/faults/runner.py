@@ -26,6 +26,7 @@ from typing import Any
 from redistro.config.model import Config
 from redistro.drivers import positions
 from redistro.errors import RedistroError
+from redistro.esc.plan import RECORDERS
 from redistro.faults.catalogue import Scenario
 
 TASK = "tasks/fault_drill.yaml"
@@ -335,6 +336,8 @@ def _limit_cycles(sc: Scenario, cfg: Config, node: str) -> float | None:
     rate = cfg.ssc.rate_hz if node == "ssc" else cfg.esc.rate_hz
     if sc.limit == "heartbeat":
         hb = cfg.ssc.heartbeat_limit_cycles if node == "ssc" else cfg.esc.heartbeat_limit_cycles
+        if sc.proc in RECORDERS:  # the session log's recorders have their own
+            hb = cfg.log.heartbeat_limit_cycles
         return hb + 2
     if sc.limit == "starving":
         return cfg.ddm.starving_limit_cycles + 2

@@ -106,6 +106,7 @@ class Manager:
         self.ld: LocalData | None = None
         self.sems: list[Semaphore] = []
         self.rows: list[Block] = []
+        self._hb_limits: list[int] = []
         self.boxes: list[MessageBox] = []
         self.last_error: dict[str, str] = {}  # worker name -> its last ERROR message
         self._failed: dict[int, str] = {}  # worker index -> why it failed (CRITICAL message)
@@ -186,6 +187,9 @@ class Manager:
         )
         self.block = ld.writer("manager", role="manager")
         self.rows = [ld.block("proc", j) for j in range(len(spec.workers))]
+        # each worker's heartbeat limit (the recorders' is longer than the node's)
+        node_limit = spec.heartbeat_limit_cycles
+        self._hb_limits = [w.heartbeat_limit_cycles or node_limit for w in spec.workers]
         self._last_hb = [0] * len(spec.workers)
         self._row_recs: list[Record] = []
         self.boxes = [ld.msgbox(j) for j in range(len(spec.workers))]
@@ -352,7 +356,7 @@ class Manager:
 
     def _check_heartbeats(self) -> None:
         """Each worker must have signed the cycle that just ended; ``limit`` misses is a hang."""
-        limit = self.spec.heartbeat_limit_cycles
+        limits = self._hb_limits
         snaps: list[Record | None] = []
         for j, (row, rec) in enumerate(zip(self.rows, self._row_recs, strict=True)):
             try:
@@ -369,6 +373,7 @@ class Manager:
                 self.late_heartbeats += 1  # signed late; may still come
             elif age > 1:
                 self.missed_heartbeats += 1  # a whole cycle without a sign-up
+            limit = limits[j]
             if age >= limit:
                 self.hung.add(j)
                 child = self.children[j]

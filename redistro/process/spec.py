@@ -25,6 +25,8 @@ class WorkerSpec:
     rate_hz: the own timer's rate of an off-cycle worker.
     cpus: CPUs to pin this worker to (empty: the node's CPUs).
     priority: paper priority (higher runs first).
+    heartbeat_limit_cycles: missed heartbeats that make this worker hung
+        (0: the node's limit).
     """
 
     name: str
@@ -34,6 +36,7 @@ class WorkerSpec:
     priority: int = 16
     params: dict[str, Any] = field(default_factory=dict)
     rate_hz: float = 0.0
+    heartbeat_limit_cycles: int = 0
 
     @property
     def on_cycle(self) -> bool:

@@ -237,3 +237,55 @@ def test_an_off_cycle_worker_keeps_its_own_rate_and_is_watched(tmp_path: Path) -
     # 2 s at 400 Hz beside the 100 Hz cycle (start-up and end give or take)
     assert 600 <= own <= 900, by_name["own"]
     assert by_name["own"]["exit"] == "exited with code 0"
+
+
+def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
+    """A worker with its own heartbeat_limit_cycles (the session log's
+    recorders) is hung after that many missed heartbeats, not the node's."""
+    import threading
+
+    from redistro.ipc.session import Session
+    from redistro.process.owner import run_node
+    from redistro.process.spec import NodeSpec, WorkerSpec
+
+    own_limit = 60
+    stopped: dict[str, int] = {}
+
+    def stop_it(sid: str) -> None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, signal.valid_signals())  # the main thread's
+        ld = attach_running(sid, "bench", min_cycle=20)
+        try:
+            stopped["pid"] = int(ld.block("proc", 1).read()["pid"])
+            stopped["cycle"] = int(ld.block("manager").read()["cycle"])
+            os.kill(stopped["pid"], signal.SIGSTOP)
+        finally:
+            ld.close()
+
+    with Session.create() as s:
+        spec = NodeSpec(
+            session_id=s.id,
+            node="bench",
+            kind="bench",
+            rate_hz=100.0,
+            heartbeat_limit_cycles=10,
+            workers=[
+                WorkerSpec(name="a", role="busy", stage=0),
+                WorkerSpec(name="rec", role="busy", stage=1, heartbeat_limit_cycles=own_limit),
+            ],
+            cycles=2000,
+        )
+        helper = threading.Thread(target=stop_it, args=(s.id,))
+        helper.start()
+        try:
+            r = run_node(spec, s)
+        finally:
+            helper.join(timeout=60)
+    assert stopped, "the worker was not stopped"
+    assert r["result"] == "abnormal", r["reason"]
+    hung = r"worker rec \(pid (\d+)\) missed (\d+) heartbeats \(limit (\d+)\) at cycle (\d+)"
+    m = re.search(hung, r["reason"])
+    assert m, r["reason"]
+    assert int(m.group(1)) == stopped["pid"] and int(m.group(3)) == own_limit
+    # not before its own limit (the node's is 10), and at it
+    assert int(m.group(2)) == own_limit
+    assert own_limit <= int(m.group(4)) - stopped["cycle"] <= own_limit + 1
