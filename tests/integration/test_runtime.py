@@ -9,6 +9,7 @@ import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -211,25 +212,15 @@ def test_an_off_cycle_worker_keeps_its_own_rate_and_is_watched(tmp_path: Path) -
     ends in order."""
     from redistro.ipc.session import Session
     from redistro.process.owner import run_node
-    from redistro.process.spec import NodeSpec, WorkerSpec
+    from redistro.process.spec import WorkerSpec
 
-    def spec(sid: str, cycles: int) -> NodeSpec:
-        return NodeSpec(
-            session_id=sid,
-            node="bench",
-            kind="bench",
-            rate_hz=100.0,
-            heartbeat_limit_cycles=20,
-            workers=[
-                WorkerSpec(name="a", role="busy", stage=0),
-                WorkerSpec(name="b", role="busy", stage=1),
-                WorkerSpec(name="own", role="busy", stage=-1, rate_hz=400.0),
-            ],
-            cycles=cycles,
-        )
-
+    workers = [
+        WorkerSpec(name="a", role="busy", stage=0),
+        WorkerSpec(name="b", role="busy", stage=1),
+        WorkerSpec(name="own", role="busy", stage=-1, rate_hz=400.0),
+    ]
     with Session.create() as s:
-        r = run_node(spec(s.id, 200), s)
+        r = run_node(_node_at_100hz(s.id, 20, workers, 200), s)
     assert r["result"] == "ok", r["reason"]
     by_name = {w["name"]: w for w in r["workers"]}
     assert by_name["a"]["cycles"] + by_name["a"]["stage_timeouts"] + by_name["a"]["skipped"] == 200
@@ -246,7 +237,7 @@ def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
 
     from redistro.ipc.session import Session
     from redistro.process.owner import run_node
-    from redistro.process.spec import NodeSpec, WorkerSpec
+    from redistro.process.spec import WorkerSpec
 
     own_limit = 60
     stopped: dict[str, int] = {}
@@ -262,18 +253,11 @@ def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
             ld.close()
 
     with Session.create() as s:
-        spec = NodeSpec(
-            session_id=s.id,
-            node="bench",
-            kind="bench",
-            rate_hz=100.0,
-            heartbeat_limit_cycles=10,
-            workers=[
-                WorkerSpec(name="a", role="busy", stage=0),
-                WorkerSpec(name="rec", role="busy", stage=1, heartbeat_limit_cycles=own_limit),
-            ],
-            cycles=2000,
-        )
+        workers = [
+            WorkerSpec(name="a", role="busy", stage=0),
+            WorkerSpec(name="rec", role="busy", stage=1, heartbeat_limit_cycles=own_limit),
+        ]
+        spec = _node_at_100hz(s.id, 10, workers, 2000)
         helper = threading.Thread(target=stop_it, args=(s.id,))
         helper.start()
         try:
@@ -289,3 +273,18 @@ def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
     # not before its own limit (the node's is 10), and at it
     assert int(m.group(2)) == own_limit
     assert own_limit <= int(m.group(4)) - stopped["cycle"] <= own_limit + 1
+
+
+def _node_at_100hz(sid: str, heartbeat_limit: int, workers: list[Any], cycles: int) -> Any:
+    """A node of busy workers at 100 Hz that runs ``cycles`` cycles."""
+    from redistro.process.spec import NodeSpec
+
+    return NodeSpec(
+        session_id=sid,
+        node="bench",
+        kind="bench",
+        rate_hz=100.0,
+        heartbeat_limit_cycles=heartbeat_limit,
+        workers=workers,
+        cycles=cycles,
+    )
