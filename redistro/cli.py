@@ -91,6 +91,14 @@ def _parser() -> argparse.ArgumentParser:
     pb.add_argument("--rate", type=float, default=200.0, help="driver cycle rate [Hz]")
     pb.add_argument("--json", dest="json_path", default=None)
 
+    gr = bsub.add_parser(
+        "group",
+        help="a whole robot group's session, measured per process (plant, nodes, ddms, log)",
+        parents=[common],
+    )
+    gr.add_argument("task", help="task file, e.g. tasks/peg_insertion.yaml")
+    gr.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+
     pl = sub.add_parser("plant", help="run the simulated plant alone", parents=[common])
     pl.add_argument("--gui", action="store_true", help="open the PyBullet window")
     pl.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
@@ -233,6 +241,8 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         return _bench_ipc(args)
     if args.command == "bench" and args.bench == "plant":
         return _bench_plant(args, cfg)
+    if args.command == "bench" and args.bench == "group":
+        return _bench_group(args, cfg)
     if args.command == "plant":
         return _plant(args, cfg)
     if args.command == "log":
@@ -338,6 +348,25 @@ def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
         write_json(Path(args.json_path), out)
         print(f"wrote {args.json_path}")
     return 0 if ok else 1
+
+
+def _bench_group(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from redistro.bench import group
+    from redistro.process.owner import write_json
+
+    config, overrides = _config_args(args)
+    if args.json_path:
+        parent = Path(args.json_path).resolve().parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise ConfigError(f"--json {args.json_path}: {parent} is not a writable folder")
+    out = group.run(cfg, args.task, config, overrides)
+    group.print_figures(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0 if out["result"] == "ok" else 1
 
 
 def _bench_ipc(args: argparse.Namespace) -> int:

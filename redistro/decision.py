@@ -199,7 +199,10 @@ def run_session(
     overrides: list[str],
     out_dir: str | None = None,
     say: Callable[[str], None] | None = None,
+    around_task: Callable[[], contextlib.AbstractContextManager[Any]] | None = None,
 ) -> int:
+    """around_task: a context the task itself runs in (not a self-calibration
+    run first): what ``redistro bench group`` measures."""
     say = say or (lambda text: print(text, flush=True))
     task = load_task(task_path, cfg)
     load_hardware(cfg)
@@ -229,9 +232,10 @@ def run_session(
             if rc != 0:
                 say(f"{task.task} not started: the self-calibration did not end ok")
                 return rc
-    return _run_task(
-        cfg, task, config_path=config_path, overrides=overrides, out_dir=out_dir, say=say
-    )
+    with around_task() if around_task is not None else contextlib.nullcontext():
+        return _run_task(
+            cfg, task, config_path=config_path, overrides=overrides, out_dir=out_dir, say=say
+        )
 
 
 def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
@@ -481,6 +485,8 @@ def build_summary(
                         "stage_timeouts",
                         "lateness_us",
                         "compute_us",
+                        "cpu_s",
+                        "cpu_percent",
                         "scheduling",
                         "exit",
                     )
@@ -554,6 +560,11 @@ def build_summary(
             "rtf",
             "late_steps",
             "skipped_steps",
+            "step_us",
+            "physics_us",
+            "chassis_us",
+            "cpu_s",
+            "cpu_percent",
             "max_step_gap_ms",
             "torn_outputs",
             "bad_frames",

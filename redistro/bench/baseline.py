@@ -99,6 +99,83 @@ def cyclictest(rate_hz: float, seconds: float, priority: int) -> dict[str, Any] 
     return stats
 
 
+class Cyclictest:
+    """cyclictest running beside a benchmark, for its whole length: one thread
+    at ``rate_hz`` (at ``priority`` under SCHED_RR when permitted). ``stop()``
+    ends it (SIGINT, as Ctrl-C) and returns its figures, or None when it is
+    not installed."""
+
+    def __init__(self, rate_hz: float, priority: int) -> None:
+        self.proc: subprocess.Popen[str] | None = None
+        self.interval_us = max(1, round(1e6 / rate_hz))
+        exe = shutil.which("cyclictest")
+        if exe is None:
+            return
+        cmd = [exe, "-q", "-m", "-t", "1", "-i", str(self.interval_us), "-h", "20000"]
+        if _rr_permitted(priority):
+            cmd += ["-p", str(priority), "--policy=rr"]
+        else:
+            cmd += ["--policy=other"]
+        self.command = " ".join(cmd)
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
+        from redistro.process.owner import SPARED
+
+        SPARED.add(self.proc.pid)  # a session's reaping must leave it running
+
+    def stop(self) -> dict[str, Any] | None:
+        if self.proc is None:
+            return None
+        import signal
+
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            out, err = self.proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, err = self.proc.communicate()
+        from redistro.process.owner import SPARED
+
+        SPARED.discard(self.proc.pid)
+        stats = histogram_percentiles(out, self.interval_us)
+        if stats is None:
+            return {"error": (err or out).strip()[:200], "command": self.command}
+        stats["command"] = self.command
+        return stats
+
+
+def cpu_busy_ticks(stat_path: str = "/proc/stat") -> dict[str, tuple[int, int]]:
+    """Per CPU (busy, total) time in USER_HZ ticks, steal left out of both:
+    how busy the machine itself was."""
+    out: dict[str, tuple[int, int]] = {}
+    try:
+        with open(stat_path) as f:
+            for line in f:
+                parts = line.split()
+                if parts and parts[0].startswith("cpu") and parts[0] != "cpu" and len(parts) > 8:
+                    # user nice system idle iowait irq softirq steal
+                    v = [int(x) for x in parts[1:9]]
+                    total = sum(v[:7])
+                    out[parts[0]] = (total - v[3] - v[4], total)
+    except OSError:
+        return {}
+    return out
+
+
+def busy_report(
+    before: dict[str, tuple[int, int]], after: dict[str, tuple[int, int]]
+) -> dict[str, float]:
+    """Per CPU, the share of the run's time it was busy [%] (every process on the host)."""
+    out: dict[str, float] = {}
+    for cpu, (b1, t1) in after.items():
+        if cpu in before:
+            b0, t0 = before[cpu]
+            out[cpu] = round(100 * (b1 - b0) / (t1 - t0), 1) if t1 > t0 else 0.0
+    return out
+
+
 def cpu_steal_ticks(stat_path: str = "/proc/stat") -> dict[str, int]:
     """Per-CPU 'steal' time (USER_HZ ticks): time the hypervisor ran something
     else while this vCPU wanted to run. Empty where the kernel does not say."""

@@ -43,6 +43,9 @@ def run_writer(fd: int, out: str) -> int:
     header: dict[str, Any] = {}
     stats: dict[str, Any] = {}
     frames = messages = 0
+    import time
+
+    cpu0, wall0 = time.process_time(), time.monotonic()
     while True:
         head = _read_exact(src, FRAME.size)
         if head is None:
@@ -85,6 +88,9 @@ def run_writer(fd: int, out: str) -> int:
     stats["frames_written"] = frames
     stats["messages"] = messages
     stats["complete"] = "recorded" in stats
+    wall = time.monotonic() - wall0
+    stats["writer_cpu_s"] = round(time.process_time() - cpu0, 3)
+    stats["writer_cpu_percent"] = round(100 * stats["writer_cpu_s"] / wall, 2) if wall else 0.0
     writer.add_metadata("redistro.recording", {k: json.dumps(v) for k, v in stats.items()})
     writer.finish()  # type: ignore[no-untyped-call]
     sink.close()

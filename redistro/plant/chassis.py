@@ -114,6 +114,7 @@ class Chassis:
                 )
             )
         self.step_count = 0
+        self.physics_ns = 0  # CPU time of the last PyBullet step
         # the amplifiers' watchdog: per DAC board, (last value, when it moved)
         self.watchdog_ns = round(cfg.plant.output_watchdog_ms * 1e6)
         self._wd: dict[int, tuple[int, int]] = {}
@@ -227,7 +228,9 @@ class Chassis:
             self._inj_done = True
             assert self.injection is not None
             self.rigs[self._inj_rig].encoders.offset[1] += int(self.injection.arg or 5000)
+        t0 = time.thread_time_ns()
         self.world.step()
+        self.physics_ns = time.thread_time_ns() - t0
         self.step_count += 1
         self._sample()
 

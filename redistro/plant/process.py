@@ -170,6 +170,11 @@ def _loop(
     boards = list(chassis.boards)
     late = skipped = 0
     max_gap_ns = max_gap_at_ns = 0  # the longest the plant went without a step (a stall)
+    from redistro.process.stats import Samples
+
+    physics, whole = Samples(), Samples()
+    cpu_ns = time.thread_time_ns
+    cpu0 = time.process_time()
     t0 = time.monotonic_ns()
     last_step_ns = t0
     next_ns = t0
@@ -180,6 +185,7 @@ def _loop(
     freezes: list[dict[str, Any]] = []
     all_braked = [bool(r.arm.braked.all()) for r in chassis.rigs]
     while True:
+        c0 = cpu_ns()
         outputs = {a: port.outputs(a) for a in boards}
         chassis.apply_outputs(outputs, time.monotonic_ns())
         for i, rig in enumerate(chassis.rigs):
@@ -195,6 +201,7 @@ def _loop(
                         }
                     )
         chassis.step()
+        physics.add(chassis.physics_ns)
         # the truth of a step is out before its boards: a reader that sees a
         # board sample can find the truth of the same step
         for block, rig in zip(truths, chassis.rigs, strict=True):
@@ -202,6 +209,7 @@ def _loop(
             block.publish(truth.bytes)
         for a in boards:
             port.publish(a, chassis.inp[a])
+        whole.add(cpu_ns() - c0)
         now = time.monotonic_ns()
         inj = chassis.injection
         if inj is not None and inj.fired_ns and not inj.recorded:
@@ -231,6 +239,7 @@ def _loop(
                 next_ns = now
         port.service(next_ns)
     wall = (time.monotonic_ns() - t0) / 1e9
+    cpu_s = time.process_time() - cpu0
     for rig in chassis.rigs:  # brakes on: the arms stay where they are
         chassis.world.set_brakes(rig.arm, np.ones(7, dtype=bool), rig.brake_torque_nm)
     return {
@@ -246,9 +255,25 @@ def _loop(
         "bad_frames": int(getattr(port, "bad_frames", 0)),
         "physics_hz": physics_hz,
         "pid": os.getpid(),
+        "cpu_s": round(cpu_s, 3),
+        "cpu_percent": round(100 * cpu_s / wall, 1) if wall > 0 else 0.0,
+        "step_us": whole.summary_us(),
+        "physics_us": physics.summary_us(),
+        "chassis_us": _difference(whole, physics),
         "freezes": freezes,
         "watchdog_trips": chassis.watchdog_trips,
     }
+
+
+def _difference(whole: Any, part: Any) -> dict[str, float]:
+    """p50/p99/max of (whole - part), step by step."""
+    from redistro.process.stats import Samples
+
+    n = min(whole.count, part.count)
+    d = Samples(max(1, n))
+    for v in (whole.values_ns()[:n] - part.values_ns()[:n]).tolist():
+        d.add(v)
+    return d.summary_us()
 
 
 def _fill_truth(truth: Record, rig: Any, chassis: Any) -> None:

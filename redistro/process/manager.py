@@ -530,7 +530,7 @@ class Manager:
         self.messages_lost = sum(b.lost for b in self.boxes)
         routine_s = max(0.0, self._routine_end - self._routine_start)
         workers: list[dict[str, Any]] = []
-        cpu_s = max(0.0, self._cpu_end - self._cpu_start)
+        cpu_s = manager_cpu_s = max(0.0, self._cpu_end - self._cpu_start)
         for j, child in enumerate(self.children):
             row = self.rows[j].read()
             w = self.spec.workers[j]
@@ -549,6 +549,9 @@ class Manager:
                     "lateness_us": _triple(row["lateness_us"]),
                     "compute_us": _triple(row["compute_us"]),
                     "cpu_s": round(float(row["cpu_s"]), 3),
+                    "cpu_percent": round(100 * float(row["cpu_s"]) / routine_s, 2)
+                    if routine_s
+                    else 0.0,
                     "scheduling": {
                         "policy": {v: k for k, v in sched.POLICY_CODES.items()}[
                             int(row["sched_policy"])
@@ -594,6 +597,9 @@ class Manager:
                 "manager": {
                     "pid": os.getpid(),
                     "scheduling": self.granted.as_dict() if self.granted else {},
+                    "cpu_s": round(manager_cpu_s, 3),
+                    "cpu_percent": round(100 * manager_cpu_s / routine_s, 2) if routine_s else 0.0,
+                    "tick_work_us": self.tick_work.summary_us(),
                 },
                 "workers": workers,
                 "messages": self.messages,

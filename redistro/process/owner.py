@@ -27,6 +27,9 @@ from redistro.process.spec import NodeSpec
 log = logging.getLogger(__name__)
 
 OWNER_WAIT = frozenset({signal.SIGCHLD}) | signals.STOP_SIGNALS
+# children of this process that are no part of any node (a benchmark's
+# cyclictest running beside a session): reaping leaves them alone
+SPARED: set[int] = set()
 
 
 def run_node(spec: NodeSpec, session: Session) -> dict[str, Any]:
@@ -278,7 +281,8 @@ def _wait_nodes(
 def reap_descendants(timeout_s: float, keep: frozenset[int] = frozenset()) -> list[int]:
     """Wait for orphaned descendants (we are their subreaper); SIGKILL stragglers.
 
-    keep: children to leave alone (and not wait for)."""
+    keep: children to leave alone (and not wait for), with those in SPARED."""
+    keep = keep | frozenset(SPARED)
     me = os.getpid()
     deadline = time.monotonic() + timeout_s
     killed: list[int] = []

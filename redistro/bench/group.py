@@ -1,0 +1,211 @@
+"""``redistro bench group TASK``: a whole robot group's session, measured.
+
+It runs a real session of ``TASK`` (the plant, an ESC per robot, the SSC,
+their ddms and the session log; a self-calibration first when the joint
+positions are unknown, not measured) and gathers, in one document:
+
+- per node and per process: cycles, overrun cycles, compute p50/p99/max,
+  lateness p50/p99, CPU as a share of one vCPU;
+- the plant: real-time factor, step cost split into physics (PyBullet's
+  step) and chassis (everything else a step does), late and skipped steps;
+- DDM command latency per robot (and the transport);
+- session-log cycles recorded and dropped;
+- the whole group's CPU (every process of the session, the plant and the
+  log writers included) as a share of one vCPU;
+- cyclictest at the node rate, running beside the session for its whole
+  length (the timer baseline of the same minutes);
+- host steal and host busy time per vCPU during the run (from /proc/stat).
+
+Every figure but the last two comes from the session's own ``summary.json``
+(each process measures itself); this module only puts them side by side.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from redistro.bench.baseline import (
+    Cyclictest,
+    busy_report,
+    cpu_busy_ticks,
+    cpu_steal_ticks,
+    steal_report,
+)
+from redistro.config.model import Config
+
+
+def _triple(d: dict[str, Any] | None, keys: tuple[str, ...] = ("p50", "p99", "max")) -> Any:
+    d = d or {}
+    return {k: round(float(d[k]), 1) if d.get(k) is not None else None for k in keys}
+
+
+def _process(w: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "cycles": w.get("cycles"),
+        "overruns": w.get("overruns"),
+        "compute_us": _triple(w.get("compute_us")),
+        "lateness_us": _triple(w.get("lateness_us"), ("p50", "p99")),
+        "cpu_percent": w.get("cpu_percent"),
+        "scheduling": w.get("scheduling"),
+    }
+
+
+def figures(summary: dict[str, Any]) -> dict[str, Any]:
+    """The benchmark's figures from a session's summary.json."""
+    nodes: dict[str, Any] = {}
+    group_cpu = 0.0
+    for name, n in summary.get("nodes", {}).items():
+        periods = int(n.get("cycles") or 0) + int(n.get("missed_ticks") or 0)
+        overruns = int(n.get("overruns") or 0)
+        mgr = n.get("manager", {})
+        procs = {"manager": {"cpu_percent": mgr.get("cpu_percent"), "tick_work_us": None}}
+        procs["manager"]["tick_work_us"] = _triple(mgr.get("tick_work_us"))
+        for w in n.get("workers", []):
+            procs[str(w.get("name"))] = _process(w)
+        node_cpu = sum(float(p.get("cpu_percent") or 0.0) for p in procs.values())
+        group_cpu += node_cpu
+        nodes[name] = {
+            "result": n.get("result"),
+            "rate_hz": n.get("rate_hz"),
+            "cycles": n.get("cycles"),
+            "overrun_cycles": overruns,
+            "overrun_percent": round(100 * overruns / periods, 4) if periods else None,
+            "lateness_us": _triple(n.get("lateness_us")),
+            "makespan_us": _triple(n.get("makespan_us")),
+            "cpu_percent": round(node_cpu, 2),
+            "processes": procs,
+        }
+    p = summary.get("plant", {})
+    plant = {
+        "rtf": p.get("rtf"),
+        "steps": p.get("steps"),
+        "late_steps": p.get("late_steps"),
+        "skipped_steps": p.get("skipped_steps"),
+        "step_us": _triple(p.get("step_us")),
+        "physics_us": _triple(p.get("physics_us")),
+        "chassis_us": _triple(p.get("chassis_us")),
+        "cpu_percent": p.get("cpu_percent"),
+    }
+    group_cpu += float(p.get("cpu_percent") or 0.0)
+    log = summary.get("log", {}) or {}
+    writers = 0.0
+    log_nodes = {}
+    for node, rec in (log.get("nodes") or {}).items():
+        writers += float(rec.get("writer_cpu_percent") or 0.0)
+        log_nodes[node] = {
+            k: rec.get(k)
+            for k in ("cycles", "recorded", "dropped", "dropped_pipe_full", "writer_cpu_percent")
+        }
+    group_cpu += writers
+    ddm: dict[str, Any] = {}
+    for node, ex in (summary.get("ddm") or {}).items():
+        if node.startswith("esc.") and isinstance(ex, dict):
+            ddm[node[4:]] = {
+                "command_latency_us": _triple(ex.get("command_latency_us")),
+                "commands": ex.get("latency_n"),
+                "dropped": ex.get("dropped"),
+                "starving_index_max": ex.get("starving_index_max"),
+            }
+    return {
+        "task": summary.get("task"),
+        "result": summary.get("result"),
+        "reason": summary.get("reason"),
+        "inserted": summary.get("inserted"),
+        "run_dir": summary.get("run_dir"),
+        "nodes": nodes,
+        "plant": plant,
+        "ddm": ddm,
+        "log": {
+            "dropped": log.get("dropped"),
+            "nodes": log_nodes,
+        },
+        "group_cpu_percent": round(group_cpu, 1),
+    }
+
+
+@contextlib.contextmanager
+def measured(out: dict[str, Any], rate_hz: float, priority: int) -> Iterator[None]:
+    """cyclictest beside the task, and the host's steal and busy time over it."""
+    ct = Cyclictest(rate_hz, priority)
+    steal0, busy0, t0 = cpu_steal_ticks(), cpu_busy_ticks(), time.monotonic()
+    try:
+        yield
+    finally:
+        seconds = time.monotonic() - t0
+        out["cyclictest_us"] = ct.stop()
+        out["host_steal"] = steal_report(steal0, cpu_steal_ticks(), seconds)
+        out["host_busy_percent"] = busy_report(busy0, cpu_busy_ticks())
+        out["seconds"] = round(seconds, 2)
+
+
+def run(
+    cfg: Config, task_path: str, config_path: str | None, overrides: list[str]
+) -> dict[str, Any]:
+    from redistro.decision import run_session
+
+    rate = max(cfg.esc.rate_hz, cfg.ssc.rate_hz)
+    host: dict[str, Any] = {}
+    out_dir = Path(cfg.session.runs_dir) / f"bench-group-{time.strftime('%Y%m%dT%H%M%S')}"
+    rc = run_session(
+        cfg,
+        task_path,
+        config_path=config_path,
+        overrides=overrides,
+        out_dir=str(out_dir),
+        around_task=lambda: measured(host, rate, cfg.scheduling.priorities.get("manager", 20)),
+    )
+    import json
+
+    summary = json.loads((out_dir / "summary.json").read_text())
+    out = figures(summary)
+    out.update(host)
+    out["exit_code"] = rc
+    out["transport"] = cfg.ddm.transport
+    out["rates_hz"] = {"esc": cfg.esc.rate_hz, "ssc": cfg.ssc.rate_hz, "ddm": cfg.ddm.rate_hz}
+    out["overrides"] = overrides
+    return out
+
+
+def print_figures(f: dict[str, Any], out: Any = sys.stdout) -> None:
+    def p(text: str) -> None:
+        print(text, file=out)
+
+    p(f"bench group: {f['task']} over {f['transport']}: {f['result']} {f['reason'] or ''}")
+    for name, n in f["nodes"].items():
+        lat = n["lateness_us"]
+        p(
+            f"  {name:7s} {n['cycles']} cycles at {n['rate_hz']:g} Hz, overrun "
+            f"{n['overrun_cycles']} ({n['overrun_percent']}%), lateness p50/p99 "
+            f"{lat['p50']}/{lat['p99']} us, CPU {n['cpu_percent']}%"
+        )
+        for pname, pr in n["processes"].items():
+            if pname == "manager":
+                p(f"      {'manager':12s} CPU {pr['cpu_percent']}%")
+                continue
+            c = pr["compute_us"]
+            p(
+                f"      {pname:12s} compute p50/p99/max {c['p50']}/{c['p99']}/{c['max']} us, "
+                f"CPU {pr['cpu_percent']}%"
+            )
+    pl = f["plant"]
+    p(
+        f"  plant   rtf {pl['rtf']}, step p50 {pl['step_us']['p50']} us (physics "
+        f"{pl['physics_us']['p50']}, chassis {pl['chassis_us']['p50']}), late "
+        f"{pl['late_steps']}, skipped {pl['skipped_steps']}, CPU {pl['cpu_percent']}%"
+    )
+    for robot, d in f["ddm"].items():
+        c = d["command_latency_us"]
+        p(f"  ddm {robot}  command latency p50/p99/max {c['p50']}/{c['p99']}/{c['max']} us")
+    p(f"  log dropped {f['log']['dropped']} cycles")
+    p(f"  whole group CPU {f['group_cpu_percent']}% of one vCPU")
+    ct = f.get("cyclictest_us") or {}
+    if "p50" in ct:
+        p(f"  cyclictest p50/p99/max {ct['p50']}/{ct['p99']}/{ct['max']} us")
+    steal = (f.get("host_steal") or {}).get("ms")
+    if steal:
+        p("  host steal " + ", ".join(f"{c} {ms} ms" for c, ms in steal.items()))
