@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -103,10 +104,15 @@ class Cyclictest:
     """cyclictest running beside a benchmark, for its whole length: one thread
     at ``rate_hz`` (at ``priority`` under SCHED_RR when permitted). ``stop()``
     ends it (SIGINT, as Ctrl-C) and returns its figures, or None when it is
-    not installed."""
+    not installed.
+
+    Started with posix_spawn and an empty signal mask: this process blocks
+    SIGINT (it takes signals synchronously), and a child inherits the mask."""
 
     def __init__(self, rate_hz: float, priority: int) -> None:
-        self.proc: subprocess.Popen[str] | None = None
+        import tempfile
+
+        self.pid = 0
         self.interval_us = max(1, round(1e6 / rate_hz))
         exe = shutil.which("cyclictest")
         if exe is None:
@@ -117,31 +123,46 @@ class Cyclictest:
         else:
             cmd += ["--policy=other"]
         self.command = " ".join(cmd)
-        self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        self.out = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 (closed in stop)
+        self.pid = os.posix_spawn(
+            exe,
+            cmd,
+            os.environ,
+            file_actions=[
+                (os.POSIX_SPAWN_DUP2, self.out.fileno(), 1),
+                (os.POSIX_SPAWN_DUP2, self.out.fileno(), 2),
+            ],
+            setsigmask=(),
+            setsid=True,
         )
         from redistro.process.owner import SPARED
 
-        SPARED.add(self.proc.pid)  # a session's reaping must leave it running
+        SPARED.add(self.pid)  # a session's reaping must leave it running
 
     def stop(self) -> dict[str, Any] | None:
-        if self.proc is None:
+        if not self.pid:
             return None
         import signal
+        import time
 
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            out, err = self.proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, err = self.proc.communicate()
         from redistro.process.owner import SPARED
 
-        SPARED.discard(self.proc.pid)
-        stats = histogram_percentiles(out, self.interval_us)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(self.pid, signal.SIGINT)
+        deadline = time.monotonic() + 10
+        while os.waitpid(self.pid, os.WNOHANG) == (0, 0):
+            if time.monotonic() > deadline:
+                os.kill(self.pid, signal.SIGKILL)
+                os.waitpid(self.pid, 0)
+                break
+            time.sleep(0.02)  # cyclictest prints its histogram on the way out
+        SPARED.discard(self.pid)
+        self.out.seek(0)
+        text = self.out.read()
+        self.out.close()
+        stats = histogram_percentiles(text, self.interval_us)
         if stats is None:
-            return {"error": (err or out).strip()[:200], "command": self.command}
+            return {"error": text.strip()[-200:], "command": self.command}
         stats["command"] = self.command
         return stats
 
