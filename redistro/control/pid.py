@@ -69,3 +69,45 @@ def pid_update(
     tau: F64 = gravity_nm + gains.kp * e + gains.kd * (qd_ref - qd) + gains.ki * integral
     tau *= mask
     return tau
+
+
+class PidWork:
+    """Scratch buffers of :func:`pid_update_into` (made once per controller)."""
+
+    def __init__(self, n: int = 7) -> None:
+        self.e = np.zeros(n)
+        self.d = np.zeros(n)
+        self.mask = np.zeros(n)
+
+
+def pid_update_into(
+    gains: PidGains,
+    state: PidState,
+    work: PidWork,
+    q: F64,
+    qd: F64,
+    q_ref: F64,
+    qd_ref: F64,
+    gravity_nm: F64,
+    on: np.ndarray[Any, Any],
+    dt_s: float,
+    tau: F64,
+) -> None:
+    """:func:`pid_update` into ``tau``, in place and without temporaries (the
+    same arithmetic; the hot path of a control cycle)."""
+    e, d, mask, integral = work.e, work.d, work.mask, state.integral
+    np.subtract(q_ref, q, out=e)
+    np.multiply(e, dt_s, out=d)
+    integral += d
+    np.minimum(integral, gains.i_lim, out=integral)
+    np.maximum(integral, -gains.i_lim, out=integral)
+    np.copyto(mask, on)
+    integral *= mask
+    np.multiply(gains.kp, e, out=tau)
+    np.subtract(qd_ref, qd, out=d)
+    d *= gains.kd
+    tau += d
+    np.multiply(gains.ki, integral, out=d)
+    tau += d
+    tau += gravity_nm
+    tau *= mask

@@ -52,3 +52,24 @@ def quintic(q0: F64, q1: F64, duration_s: float, t_s: float) -> tuple[F64, F64, 
     vel = (30 * s2 - 60 * s3 + 30 * s2 * s2) / T
     acc = (60 * s - 180 * s2 + 120 * s3) / (T * T)
     return q0 + d * pos, d * vel, d * acc
+
+
+def quintic_into(
+    q0: F64,
+    d: F64,
+    duration_s: float,
+    t_s: float,
+    q: F64,
+    qd: F64,
+    qdd: F64,
+) -> None:
+    """:func:`quintic` into preallocated arrays (``d`` = q1 - q0): six
+    in-place operations, no temporaries (a control cycle's hot path)."""
+    T = float(duration_s)
+    s = min(max(t_s / T, 0.0), 1.0)
+    s2 = s * s
+    s3 = s2 * s
+    np.multiply(d, 10 * s3 - 15 * s3 * s + 6 * s3 * s2, out=q)
+    q += q0
+    np.multiply(d, (30 * s2 - 60 * s3 + 30 * s2 * s2) / T, out=qd)
+    np.multiply(d, (60 * s - 180 * s2 + 120 * s3) / (T * T), out=qdd)

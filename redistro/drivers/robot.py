@@ -17,15 +17,18 @@ from typing import Any
 
 import numpy as np
 
+from redistro import kernels
 from redistro.config.hardware import RobotHardware, by_board
+from redistro.drivers.io import registers as R
 from redistro.drivers.io.adc import AdcDriver
 from redistro.drivers.io.backplane import Backplane
 from redistro.drivers.io.dac import DacDriver
 from redistro.drivers.io.dio import DioDriver
 from redistro.drivers.io.encoder import EncoderDriver
 from redistro.drivers.io.force import ForceDriver
+from redistro.drivers.io.image import RegisterImage
 from redistro.drivers.io.module import ModuleDriver
-from redistro.drivers.io.registers import BOARD_NAMES, ENC_MODULO, LATCH_HOME_EDGES
+from redistro.drivers.io.registers import BOARD_NAMES, ENC_MODULO, LATCH_HOME_EDGES, BoardType
 from redistro.errors import ConfigError, IOFault
 
 DOF = 7
@@ -65,11 +68,27 @@ class Feedback:
 
 
 class RobotDriver:
-    def __init__(self, hw: RobotHardware, backplane: Backplane, physics_hz: float) -> None:
+    """The robot-level driver. Its boards' registers live in one register
+    image (:mod:`redistro.drivers.io.image`): the last snapshot of their
+    ``in`` banks and the ``out`` banks it stages; its decoded feedback and
+    state in one arena. The per-cycle arithmetic (:meth:`sample`,
+    :meth:`send_torques`) is a compiled kernel call each
+    (:mod:`redistro.kernels`), with the same arithmetic kept in numpy
+    (``use_kernels=False``), the reference the kernels are tested against."""
+
+    def __init__(
+        self,
+        hw: RobotHardware,
+        backplane: Backplane,
+        physics_hz: float,
+        *,
+        use_kernels: bool | None = None,
+    ) -> None:
         self.hw = hw
         self.name = hw.name
         self.bp = backplane
         self.physics_hz = physics_hz
+        self.kernels = kernels.AVAILABLE if use_kernels is None else use_kernels
         s = hw.sensors
         self.counts_per_rad = (
             np.asarray(s.counts_per_rev, dtype=np.float64) * np.asarray(s.gear_ratio) / (2 * np.pi)
@@ -81,8 +100,17 @@ class RobotDriver:
         )
         self.tach_v = np.asarray(s.tach_volts_per_rad_s, dtype=np.float64)
         self.torque_v = np.asarray(s.torque_volts_per_nm, dtype=np.float64)
+        # register codes -> robot units
+        self.tach_scale = R.ADC_FULL_SCALE_V / 32768 / self.tach_v  # [rad/s per code]
+        self.torque_scale = R.ADC_FULL_SCALE_V / 32768 / self.torque_v  # [N m per code]
+        self.dac_scale = R.DAC_FULL_SCALE_V / 2048 * self.nm_per_volt  # [N m per code]
+        boards: dict[int, BoardType] = {
+            b.address: BOARD_NAMES[b.type] for b in hw.io.boards.values()
+        }
+        self.regs = regs = RegisterImage(boards)
         self.modules: dict[int, ModuleDriver] = {
-            b.address: DRIVERS[b.type](backplane, b.address) for b in hw.io.boards.values()
+            b.address: DRIVERS[b.type](backplane, b.address, regs.rec_out[b.address])
+            for b in hw.io.boards.values()
         }
         self.addresses = sorted(self.modules)
         js = hw.joints
@@ -94,15 +122,127 @@ class RobotDriver:
         self.tach = by_board([w.tach for w in js])
         self.has_tach = all(w.tach is not None for w in js)
         self.has_torque = all(w.torque is not None for w in js)
+        # wires in joint order: (joint, board row, channel)
+        wire = {
+            kind: np.array(regs.wires([getattr(w, kind) for w in js], 0), dtype=np.int64)
+            for kind in ("encoder", "dac", "home", "brake", "torque", "tach")
+        }
+        self._wire = wire
+        # state and outputs: one arena (the acquisition copies out of it in one call)
+        a = self.arena = kernels.Arena(1024)
+        self.q = a.take("q", np.float64, DOF)
+        self.qd = a.take("qd", np.float64, DOF)
+        self.tau = a.take("tau", np.float64, DOF)
+        self.wrench = a.take("wrench", np.float64, 6)
+        self.home_levels = a.take("home", np.bool_, DOF)
+        self.brakes = a.take("brakes", np.bool_, DOF)
+        self.latch_count = a.take("latch_count", np.uint32, DOF)
+        self.latch_edge = a.take("latch_edge", np.uint8, DOF)
+        self.latch_q = a.take("latch_q", np.float64, DOF)
+        self.stamp_ns = a.take("stamp_ns", np.int64, 1)
         # encoder unwrapping: q = q_ref + (accumulated counts since the reference) / scale
-        self._raw = np.zeros(DOF, dtype=np.int64)
-        self._acc = np.zeros(DOF, dtype=np.int64)
-        self._q_ref = np.zeros(DOF)
-        self._have_ref = False
-        self._prev: tuple[int, np.ndarray] | None = None
-        # speed above which a counter change is a glitch (0: not checked)
-        self.jump_limit_rad_s = 0.0
-        self._qd = np.zeros(DOF)
+        self._raw = a.take("raw", np.int64, DOF)
+        self._acc = a.take("acc", np.int64, DOF)
+        self._q_ref = a.take("q_ref", np.float64, DOF)
+        self._prev_q = a.take("prev_q", np.float64, DOF)
+        # [have_ref, prev_step (-1: none), step, coherent]
+        self._state = a.take("state", np.int64, 4)
+        self._state[1] = -1
+        self.step_now = self._state[2:3]  # the boards' sample number of the last sample
+        a.alias("step", self.step_now)
+        # [jump_limit_rad_s, physics_hz, has_tach, has_torque, retry an incoherent snapshot]
+        self._params = a.take("params", np.float64, 5)
+        self._params[:] = (0.0, physics_hz, float(self.has_tach), float(self.has_torque), 1.0)
+        self._jump = a.take("jump", np.float64, 3)  # delta, limit, steps of a refused change
+        self.tau_cmd = a.take("tau_cmd", np.float64, DOF)  # the torques send() writes
+        self._read: Any = None  # the batch reader and writer: made by open()
+        self._write_dac: Any = None
+        self._dac_watchdog = regs.out[BoardType.DAC]["watchdog"]
+        self._enc_steps = regs.inp[BoardType.ENCODER]["step"]
+        self._decode: Any = self._decode_numpy
+        if self.kernels:
+            self._plans()
+            run, plan = kernels.KERNELS.driver_decode, self._decode_plan
+            self._decode = lambda: run(plan)
+
+    # -- the kernels' plans --
+
+    def _plans(self) -> None:
+        regs, w = self.regs, self._wire
+        enc, dac, adc, dio, force = (
+            BoardType.ENCODER,
+            BoardType.DAC,
+            BoardType.ADC,
+            BoardType.DIO,
+            BoardType.FORCE,
+        )
+        at = regs.offsets
+
+        def rows(kind: str) -> Any:
+            return w[kind][:, 1] if len(w[kind]) else []
+
+        def chs(kind: str) -> Any:
+            return w[kind][:, 2] if len(w[kind]) else []
+
+        none = np.full(DOF, -1, dtype=np.int64)
+        wrist = self.hw.wrist
+        wrist_row = [regs.row[wrist.address]] if wrist is not None else []
+        self._decode_plan = kernels.plan(
+            "driver_decode",
+            image=regs.image,
+            step_off=at(enc, "in", "step", sorted(set(rows("encoder")))),
+            counter_off=at(enc, "in", "counter", rows("encoder"), chs("encoder"), 4),
+            latch_off=at(enc, "in", "latch", rows("encoder"), chs("encoder"), 4),
+            latch_count_off=at(enc, "in", "latch_count", rows("encoder"), chs("encoder"), 4),
+            latch_edge_off=at(enc, "in", "latch_edge", rows("encoder"), chs("encoder"), 1),
+            tach_off=at(adc, "in", "code", rows("tach"), chs("tach"), 2) if self.has_tach else none,
+            torque_off=at(adc, "in", "code", rows("torque"), chs("torque"), 2)
+            if self.has_torque
+            else none,
+            readback_off=at(dac, "in", "readback", rows("dac"), chs("dac"), 2),
+            home_word=at(dio, "in", "inputs", rows("home")),
+            home_bit=np.ascontiguousarray(chs("home"), dtype=np.int64),
+            brake_word=at(dio, "in", "outputs_readback", rows("brake")),
+            brake_bit=np.ascontiguousarray(chs("brake"), dtype=np.int64),
+            strain_off=at(force, "in", "strain", wrist_row) if wrist_row else np.full(1, -1),
+            cal_off=at(force, "in", "calibration", wrist_row) if wrist_row else np.full(1, -1),
+            counts_per_rad=self.counts_per_rad,
+            tach_scale=self.tach_scale,
+            torque_scale=self.torque_scale,
+            dac_scale=self.dac_scale,
+            raw=self._raw,
+            acc=self._acc,
+            q_ref=self._q_ref,
+            prev_q=self._prev_q,
+            state=self._state,
+            params=self._params,
+            q=self.q,
+            qd=self.qd,
+            tau=self.tau,
+            wrench=self.wrench,
+            home=self.home_levels,
+            brakes=self.brakes,
+            latch_count=self.latch_count.view(np.uint8),
+            latch_edge=self.latch_edge,
+            latch_q=self.latch_q,
+            out=self._jump,
+        )
+        self._dac_plan = kernels.plan(
+            "driver_dac",
+            image=regs.image,
+            tau=self.tau_cmd,
+            volts_per_nm=1.0 / self.nm_per_volt,
+            code_off=at(dac, "out", "code", rows("dac"), chs("dac"), 2),
+        )
+
+    @property
+    def jump_limit_rad_s(self) -> float:
+        """Speed above which a counter change is a glitch (0: not checked)."""
+        return float(self._params[0])
+
+    @jump_limit_rad_s.setter
+    def jump_limit_rad_s(self, value: float) -> None:
+        self._params[0] = value
 
     # -- set-up --
 
@@ -129,6 +269,10 @@ class RobotDriver:
                     f"{self.hw.io_path}: boards.{name}.type: the chassis has a "
                     f"{chassis[b.address].name.lower()} board at address {b.address}, not {b.type}"
                 )
+        regs = self.regs
+        self._read = self.bp.reader({a: regs.bytes_in[a] for a in self.addresses}, regs.image)
+        dacs = sorted(a for a, t in regs.types.items() if t == BoardType.DAC)
+        self._write_dac = self.bp.writer({a: regs.rec_out[a] for a in dacs}, regs.image)
         if owner:
             for a, (_js, axes) in self.enc.items():
                 enc = self.modules[a]
@@ -147,97 +291,113 @@ class RobotDriver:
     def read_raw(self) -> dict[int, np.ndarray[Any, Any]]:
         return self.bp.read(self.addresses)
 
-    def read_feedback(self) -> Feedback:
+    def sample(self) -> None:
+        """Read the boards and decode them into robot units, in place: ``q``
+        [rad], ``qd`` [rad/s] (tachometer where fitted, else differentiated
+        over the boards' sample times), ``tau`` [N m] (torque sensor where
+        fitted, else the motor model applied to the DAC output), ``wrench``
+        [N, N m] (sensor frame), ``home_levels``, ``brakes``, the latches
+        (``latch_count``, ``latch_edge``, ``latch_q``), ``step_now``,
+        ``stamp_ns``. The hot path: no allocation."""
         # Boards are sampled one after another; a snapshot that straddles a
         # plant step is taken again once (the figures are then coherent).
-        for _attempt in range(2):
-            recs = self.read_raw()
-            steps = [int(recs[a]["step"]) for a in self.enc]
-            if min(steps) == max(steps):
-                break
-        now = time.monotonic_ns()
+        self._read()
+        self.stamp_ns[0] = time.monotonic_ns()
+        decode = self._decode
+        bad = decode()
+        if bad < 0:
+            self._read()
+            self.stamp_ns[0] = time.monotonic_ns()
+            self._params[4] = 0.0
+            bad = decode()
+            self._params[4] = 1.0
+        if bad:
+            j = bad - 1
+            delta, limit, n = self._jump.tolist()
+            raise IOFault(
+                f"{self.name} joint {j + 1}: encoder jump of {int(delta)} counts in "
+                f"{int(n)} sample(s) (any real motion: at most {limit:.0f})"
+            )
+
+    def read_feedback(self) -> Feedback:
+        """:meth:`sample`, returned as a :class:`Feedback` of copies."""
+        self.sample()
+        return Feedback(
+            self.q.copy(),
+            self.qd.copy(),
+            self.tau.copy(),
+            self.wrench.copy(),
+            self.home_levels.copy(),
+            self.brakes.copy(),
+            int(self._state[2]),
+            int(self.stamp_ns[0]),
+            bool(self._state[3]),
+            self.latch_count.astype(np.int64),
+            self.latch_edge.copy(),
+            self.latch_q.copy(),
+        )
+
+    def _decode_numpy(self) -> int:
+        """The arithmetic of the ``driver_decode`` kernel (see it for the rules)."""
+        regs = self.regs
+        recs = {a: regs.rec_in[a] for a in self.addresses}
+        steps = [int(recs[a]["step"]) for a in self.enc]
+        step = min(steps)
+        st = self._state
+        st[2], st[3] = step, min(steps) == max(steps)
+        if not st[3] and self._params[4]:
+            return -1
         raw = np.zeros(DOF, dtype=np.int64)
         latch_raw = np.zeros(DOF, dtype=np.int64)
-        latch_count = np.zeros(DOF, dtype=np.int64)
-        latch_edge = np.zeros(DOF, dtype=np.uint8)
-        step = min(steps)
         for a, (js, axes) in self.enc.items():
             rec = recs[a]
             raw[js] = rec["counter"][axes]
             latch_raw[js] = rec["latch"][axes]
-            latch_count[js] = rec["latch_count"][axes]
-            latch_edge[js] = rec["latch_edge"][axes]
-        if not self._have_ref:
+            self.latch_count[js] = rec["latch_count"][axes]
+            self.latch_edge[js] = rec["latch_edge"][axes]
+        if not st[0]:
             signed = np.where(raw >= ENC_MODULO // 2, raw - ENC_MODULO, raw)
-            self._q_ref = signed / self.counts_per_rad
+            self._q_ref[...] = signed / self.counts_per_rad
             self._acc[:] = 0
-            self._have_ref = True
+            st[0] = 1
         else:
             delta = _wrap(raw - self._raw)
-            if self.jump_limit_rad_s > 0 and self._prev is not None:
-                self._check_jump(delta, step - self._prev[0])
+            limit_rad_s = self._params[0]
+            if limit_rad_s > 0 and st[1] >= 0:
+                n = max(1, step - int(st[1]))
+                limit = limit_rad_s * self.counts_per_rad * n / self.physics_hz + 2
+                bad = np.flatnonzero(np.abs(delta) > limit)
+                if bad.size:
+                    j = int(bad[0])
+                    self._jump[:] = (float(delta[j]), float(limit[j]), float(n))
+                    return j + 1
             self._acc += delta
-        self._raw = raw
-        q = self._q_ref + self._acc / self.counts_per_rad
+        self._raw[...] = raw
+        self.q[...] = self._q_ref + self._acc / self.counts_per_rad
         # a latched count is within half the counter's range of the present one
-        back = _wrap(latch_raw - raw)
-        latch_q = q + back / self.counts_per_rad
+        self.latch_q[...] = self.q + _wrap(latch_raw - raw) / self.counts_per_rad
         if self.has_tach:
-            qd = np.zeros(DOF)
             for a, (js, ch) in self.tach.items():
-                qd[js] = AdcDriver.volts(recs[a], ch) / self.tach_v[js]
-        else:
-            qd = self._qd
-            if self._prev is not None and step > self._prev[0]:
-                dt = (step - self._prev[0]) / self.physics_hz
-                qd = (q - self._prev[1]) / dt
-            self._qd = qd
-        self._prev = (step, q)
+                self.qd[js] = recs[a]["code"][ch] * self.tach_scale[js]
+        elif st[1] >= 0 and step > st[1]:
+            dt = (step - int(st[1])) / self.physics_hz
+            self.qd[...] = (self.q - self._prev_q) / dt
+        st[1] = step
+        self._prev_q[...] = self.q
         if self.has_torque:
-            tau = np.zeros(DOF)
             for a, (js, ch) in self.torque.items():
-                tau[js] = AdcDriver.volts(recs[a], ch) / self.torque_v[js]
+                self.tau[js] = recs[a]["code"][ch] * self.torque_scale[js]
         else:
-            tau = np.zeros(DOF)
             for a, (js, ch) in self.dac.items():
-                tau[js] = DacDriver.readback_volts(recs[a], ch) * self.nm_per_volt[js]
-        home = np.zeros(DOF, dtype=bool)
+                self.tau[js] = recs[a]["readback"][ch] * self.dac_scale[js]
         for a, (js, bits) in self.home.items():
-            home[js] = DioDriver.bits(recs[a], bits)
-        brakes = np.ones(DOF, dtype=bool)
+            self.home_levels[js] = DioDriver.bits(recs[a], bits)
         for a, (js, bits) in self.brake.items():
-            brakes[js] = ~DioDriver.output_bits(recs[a], bits)
-        wrench = np.zeros(6)
+            self.brakes[js] = ~DioDriver.output_bits(recs[a], bits)
+        self.wrench[:] = 0.0
         if self.hw.wrist is not None:
-            wrench = ForceDriver.wrench(recs[self.hw.wrist.address])
-        return Feedback(
-            q,
-            qd,
-            tau,
-            wrench,
-            home,
-            brakes,
-            step,
-            now,
-            min(steps) == max(steps),
-            latch_count,
-            latch_edge,
-            latch_q,
-        )
-
-    def _check_jump(self, delta: np.ndarray[Any, Any], steps: int) -> None:
-        """A counter change no motion could make in ``steps`` samples is a glitch."""
-        steps = max(1, steps)
-        limit = np.broadcast_to(
-            self.jump_limit_rad_s * self.counts_per_rad * steps / self.physics_hz + 2, delta.shape
-        )
-        bad = np.flatnonzero(np.abs(delta) > limit)
-        if bad.size:
-            j = int(bad[0])
-            raise IOFault(
-                f"{self.name} joint {j + 1}: encoder jump of {int(delta[j])} counts in "
-                f"{steps} sample(s) (any real motion: at most {float(limit[j]):.0f})"
-            )
+            self.wrench[...] = ForceDriver.wrench(recs[self.hw.wrist.address])
+        return 0
 
     def shift_zero(self, offset_rad: np.ndarray[Any, Any]) -> None:
         """Take ``offset_rad`` out of every joint position from now on.
@@ -245,23 +405,44 @@ class RobotDriver:
         The counters are left alone: q_new = q_old - offset, exactly, even
         while the arm moves (a counter preset would race the motion).
         """
-        self._q_ref = self._q_ref - np.asarray(offset_rad, dtype=np.float64)
-        if self._prev is not None:
-            self._prev = (self._prev[0], self._prev[1] - offset_rad)
+        offset = np.asarray(offset_rad, dtype=np.float64)
+        self._q_ref -= offset
+        self._prev_q -= offset
 
     # -- commands --
 
     def send_torques(self, tau_nm: np.ndarray[Any, Any]) -> None:
         """Joint torques [N m], through the motor model to DAC volts (saturated)."""
         tau = np.asarray(tau_nm, dtype=np.float64)
-        if tau.shape != (DOF,) or not np.all(np.isfinite(tau)):
+        if tau.shape != (DOF,):
             raise ValueError(f"{self.name}: joint torques must be 7 finite numbers, got {tau}")
+        self.tau_cmd[...] = tau
+        self.send()
+
+    def send(self) -> None:
+        """Send the joint torques staged in ``tau_cmd`` [N m] (the hot path:
+        write them there, then call this)."""
+        bad = kernels.KERNELS.driver_dac(self._dac_plan) if self.kernels else self._dac_numpy()
+        if bad:
+            raise ValueError(
+                f"{self.name}: joint torques must be 7 finite numbers, got {self.tau_cmd}"
+            )
+        # a new watchdog value on every write (never 0, which disables it)
+        self._dac_watchdog[...] = (time.monotonic_ns() >> 10) & 0xFFFFFFFF or 1
+        self._write_dac()
+
+    def _dac_numpy(self) -> int:
+        """The arithmetic of the ``driver_dac`` kernel."""
+        tau = self.tau_cmd
+        bad = np.flatnonzero(~np.isfinite(tau))
+        if bad.size:
+            return int(bad[0]) + 1
         volts = tau / self.nm_per_volt
         for a, (js, ch) in self.dac.items():
             dac = self.modules[a]
             assert isinstance(dac, DacDriver)
             dac.set_volts(ch, volts[js])
-            dac.flush()
+        return 0
 
     def freeze(self) -> None:
         """Brakes on, then every DAC channel to zero."""
@@ -321,8 +502,8 @@ class RobotDriver:
                 break
             if time.monotonic() > deadline:
                 raise IOFault(f"{self.name}: encoder preset not acknowledged in time")
-        self._raw = values.copy()
+        self._raw[...] = values
         self._acc[:] = 0
-        self._q_ref = q.copy()
-        self._have_ref = True
-        self._prev = None
+        self._q_ref[...] = q
+        self._state[0] = 1  # a reference
+        self._state[1] = -1  # no previous sample

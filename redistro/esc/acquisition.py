@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from redistro import kernels
 from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
 from redistro.localdata.layout import FEEDBACK, HOME, SETPOINT
@@ -33,36 +34,46 @@ class Acquisition(Worker):
         self.offset = np.zeros(7)
         self.offset_seq = 0
         self.samples = 0
+        self.calibrating = bool(self.params.get("calibrates", False))
+        # the driver's decoded figures -> the two records, one table each
+        fb_fields = {
+            "stamp_ns": "stamp_ns",
+            "q": "q_rad",
+            "qd": "qd_rad_s",
+            "tau": "tau_nm",
+            "wrench": "wrench",
+            "step": "step",
+        }
+        home_fields = {
+            "stamp_ns": "stamp_ns",
+            "step": "step",
+            "home": "home_switch",
+            "latch_count": "latch_count",
+            "latch_edge": "latch_edge",
+            "latch_q": "latch_q_rad",
+        }
+        self._to_fb = kernels.copier(self.driver.arena, self.fb.array, fb_fields)
+        self._to_home = kernels.copier(self.driver.arena, self.home.array, home_fields)
 
     def step(self, cycle: int) -> None:
-        self.setpoint_block.read_into(self.sp.bytes)
-        seq = self.sp["offset_seq"]
-        if seq != self.offset_seq:
-            new = self.sp.array["offset_rad"].copy()
-            self.driver.shift_zero(new - self.offset)
-            self.offset = new
-            self.offset_seq = seq
-            self.post(f"zero offsets applied (request {seq})")
-        fb = self.driver.read_feedback()
+        if self.calibrating:  # only a self-calibration asks for zero offsets
+            self.setpoint_block.read_into(self.sp.bytes)
+            seq = self.sp["offset_seq"]
+            if seq != self.offset_seq:
+                new = self.sp.array["offset_rad"].copy()
+                self.driver.shift_zero(new - self.offset)
+                self.offset = new
+                self.offset_seq = seq
+                h = self.home.array
+                h["offset_rad"] = new
+                h["offset_seq"] = seq
+                self.post(f"zero offsets applied (request {seq})")
+        self.driver.sample()
         self.samples += 1
-        a = self.fb.array
-        a["stamp_ns"] = fb.stamp_ns
-        a["seq_src"] = self.samples
-        a["q_rad"] = fb.q_rad
-        a["qd_rad_s"] = fb.qd_rad_s
-        a["tau_nm"] = fb.tau_nm
-        a["wrench"] = fb.wrench
-        a["step"] = fb.step
+        self._to_fb()
+        self.fb["seq_src"] = self.samples
         self.feedback_block.publish(self.fb.bytes)
-        h = self.home.array
-        h["stamp_ns"] = fb.stamp_ns
-        h["step"] = fb.step
-        h["home_switch"] = fb.home
-        h["latch_count"] = fb.latch_count
-        h["latch_edge"] = fb.latch_edge
-        h["latch_q_rad"] = fb.latch_q_rad
-        h["offset_rad"] = self.offset
-        h["offset_seq"] = self.offset_seq
+        self._to_home()
         self.home_block.publish(self.home.bytes)
 
     def cleanup(self) -> None:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from redistro.control.trajectory import quintic
+from redistro.control.trajectory import quintic_into
 from redistro.drivers.io.registers import EDGE_FALLING, EDGE_RISING
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Record
@@ -111,9 +111,15 @@ class Calibration(Worker):
         self.ref = np.zeros(DOF)  # the last reference published
         self.rising: list[list[float]] = [[] for _ in range(DOF)]
         self.falling: list[list[float]] = [[] for _ in range(DOF)]
-        self.latch_seen = np.zeros(DOF, dtype=np.int64)
+        self.latch_seen = np.zeros(DOF, dtype=np.uint32)
         self.waiting_offsets = False
         self.end_ns = 0
+        # field views, made once (the cycle works in place)
+        self.latch_count = self.home.array["latch_count"]
+        sp = self.sp.array
+        self.sp_q, self.sp_qd, self.sp_qdd = sp["q_rad"], sp["qd_rad_s"], sp["qdd_rad_s2"]
+        self.seg_d = np.zeros(DOF)  # the running segment's goal - start
+        self._new = np.zeros(DOF, dtype=bool)
 
     # -- the cycle --
 
@@ -125,7 +131,7 @@ class Calibration(Worker):
         if self.index < 0:
             self.q_init = self.fb.array["q_rad"].copy()
             self.ref = self.q_init.copy()
-            self.latch_seen = self.home.array["latch_count"].astype(np.int64)
+            self.latch_seen[...] = self.latch_count
             self._start(0, self.q_init)
         seg = self.segments[self.index] if self.index < len(self.segments) else None
         if seg is not None and seg.kind == "sweep":
@@ -138,22 +144,21 @@ class Calibration(Worker):
                 self.cal["applied"] = 1
                 self.calib_block.publish(self.cal.bytes)
                 self._start(self.index, self.ref)
-            self._publish(cycle, self.ref, np.zeros(DOF), np.zeros(DOF))
+            self._hold(cycle)
             return
         if seg is None:
-            self._publish(cycle, self.ref, np.zeros(DOF), np.zeros(DOF))
+            self._hold(cycle)
             if self.now_ns >= self.end_ns and not self.sp["done"]:
                 self.sp["done"] = 1
-                self._publish(cycle, self.ref, np.zeros(DOF), np.zeros(DOF))
+                self._hold(cycle)
                 self.post("all segments done")
             return
         t = (self.now_ns - self.seg_t0_ns) / 1e9
-        goal = self._goal(seg)
-        q, qd, qdd = quintic(self.seg_q0, goal, seg.duration_s, t)
-        self.ref = q
-        self._publish(cycle, q, qd, qdd)
+        quintic_into(self.seg_q0, self.seg_d, seg.duration_s, t, self.sp_q, self.sp_qd, self.sp_qdd)
+        self.ref = self.sp_q
+        self._publish(cycle)
         if t >= seg.duration_s:
-            self._finish_segment(seg, goal)
+            self._finish_segment(seg, self._goal(seg))
 
     def _goal(self, seg: Segment) -> np.ndarray:
         if seg.kind == "sweep":
@@ -164,9 +169,11 @@ class Calibration(Worker):
     def _start(self, index: int, q0: np.ndarray) -> None:
         self.index = index
         self.seg_q0 = np.asarray(q0, dtype=np.float64).copy()
+        self.ref = self.seg_q0.copy()
         if index < len(self.segments):
             self.seg_t0_ns = self.now_ns
             seg = self.segments[index]
+            self.seg_d = self._goal(seg) - self.seg_q0
             self.sp["segment"] = index + 1
             self.post(f"segment {index + 1} {seg.name} ({seg.kind}, {seg.duration_s:g} s)")
         else:  # settling: the last segment's clock runs on (segment_t_s past its duration)
@@ -188,13 +195,16 @@ class Calibration(Worker):
         self._start(nxt, goal)
 
     def _collect_edges(self) -> None:
+        if not np.count_nonzero(np.not_equal(self.latch_count, self.latch_seen, out=self._new)):
+            return  # no new latch (most cycles)
         h = self.home.array
         counts = h["latch_count"].astype(np.int64)
-        new = np.flatnonzero(counts != self.latch_seen)
+        seen = self.latch_seen.astype(np.int64)
+        new = np.flatnonzero(counts != seen)
         for j in new.tolist():
-            if counts[j] - self.latch_seen[j] > 1:
+            if counts[j] - seen[j] > 1:
                 self.post(
-                    f"joint {j + 1}: {counts[j] - self.latch_seen[j] - 1} home edge(s) "
+                    f"joint {j + 1}: {counts[j] - seen[j] - 1} home edge(s) "
                     "passed between two samples",
                     logging.WARNING,
                 )
@@ -204,7 +214,7 @@ class Calibration(Worker):
                 self.rising[j].append(q)
             elif edge == EDGE_FALLING:
                 self.falling[j].append(q)
-        self.latch_seen = counts
+        self.latch_seen[...] = self.latch_count
         if new.size:
             self.cal.array["edges"] = [
                 len(r) + len(f) for r, f in zip(self.rising, self.falling, strict=True)
@@ -235,13 +245,19 @@ class Calibration(Worker):
         self.sp["offset_seq"] = self.sp["offset_seq"] + 1
         return True
 
-    def _publish(self, cycle: int, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> None:
-        sp = self.sp.array
+    def _hold(self, cycle: int) -> None:
+        """Publish the last reference, standing still."""
+        if self.sp_q is not self.ref:
+            self.sp_q[...] = self.ref
+            self.ref = self.sp_q
+        self.sp_qd[...] = 0.0
+        self.sp_qdd[...] = 0.0
+        self._publish(cycle)
+
+    def _publish(self, cycle: int) -> None:
+        """Publish the setpoint record (its reference already in place)."""
         self.sp["stamp_ns"] = self.due_ns
         self.sp["cycle"] = cycle
-        sp["q_rad"] = q
-        sp["qd_rad_s"] = qd
-        sp["qdd_rad_s2"] = qdd
-        sp["joint_on"] = 0 if self.sp["failed"] else 1
+        self.sp.array["joint_on"] = 0 if self.sp["failed"] else 1
         self.sp["segment_t_s"] = max(0.0, (self.now_ns - self.seg_t0_ns) / 1e9)
         self.setpoint_block.publish(self.sp.bytes)

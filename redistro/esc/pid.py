@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from redistro.control.dynamics import ArmModel
-from redistro.control.pid import PidGains, PidState, pid_update
+from redistro.control.pid import PidGains, PidState, PidWork, pid_update_into
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Record
 from redistro.localdata.layout import CONTROL, FEEDBACK, HOME, SETPOINT
@@ -46,34 +46,41 @@ class Pid(Worker):
         self.home = Record(HOME)
         self.sample_s = 1.0 / cfg.plant.physics_hz
         self.last_step = -1
+        # field views, made once (the cycle works in place)
+        fb, sp, o = self.fb.array, self.sp.array, self.out.array
+        self.q, self.qd = fb["q_rad"], fb["qd_rad_s"]
+        self.q_ref, self.qd_ref = sp["q_rad"], sp["qd_rad_s"]
+        self.sp_on = sp["joint_on"].view(np.bool_)
+        self.on = o["joint_on"].view(np.bool_)
+        self.tau = o["tau_nm"]
+        self.work = PidWork()
 
     def step(self, cycle: int) -> None:
         self.feedback_block.read_into(self.fb.bytes)
         self.setpoint_block.read_into(self.sp.bytes)
-        fb, sp = self.fb.array, self.sp.array
         self.home_block.read_into(self.home.bytes)
         # the integral advances by the time between the samples (boards' clock)
         step = self.home["step"]
         dt = (step - self.last_step) * self.sample_s if self.last_step >= 0 else 0.0
         self.last_step = step
-        q = fb["q_rad"]
-        on = sp["joint_on"].astype(bool)
+        on = self.on
         if self.sp["cycle"] == 0:
             on[:] = False  # no reference yet
-        tau = pid_update(
+        else:
+            on[...] = self.sp_on
+        pid_update_into(
             self.gains,
             self.state,
-            q,
-            fb["qd_rad_s"],
-            sp["q_rad"],
-            sp["qd_rad_s"],
-            self.model.gravity(q),
+            self.work,
+            self.q,
+            self.qd,
+            self.q_ref,
+            self.qd_ref,
+            self.model.gravity(self.q),
             on,
             min(max(dt, 0.0), 10 * self.period_ns / 1e9),
+            self.tau,
         )
-        o = self.out.array
         self.out["stamp_ns"] = self.due_ns
         self.out["cycle"] = cycle
-        o["tau_nm"] = tau
-        o["joint_on"] = on
         self.control_block.publish(self.out.bytes)

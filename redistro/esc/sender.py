@@ -24,9 +24,11 @@ import json
 import logging
 import os
 import time
+from typing import Any
 
 import numpy as np
 
+from redistro import kernels
 from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
 from redistro.localdata.layout import (
@@ -43,16 +45,6 @@ from redistro.process.worker import Worker
 
 DOF = 7
 TRACE_CYCLES = 400  # the cycles kept for the trace written when the guard trips
-TRACE = np.dtype(
-    [
-        ("cycle", "<u8"),
-        ("step", "<u8"),  # the boards' sample number
-        ("q_rad", "<f8", (DOF,)),
-        ("qd_rad_s", "<f8", (DOF,)),
-        ("tau_nm", "<f8", (DOF,)),  # measured
-        ("tau_cmd_nm", "<f8", (DOF,)),
-    ]
-)
 
 
 class Violation(Exception):
@@ -142,80 +134,107 @@ class Sender(Worker):
             self.stamp = Record(COUNTER)
         else:
             self.control_block = ld.block("control", 0)
+            self.ctl = Record(CONTROL)
         self.manager_block = ld.block("manager")
         self.fb = Record(FEEDBACK)
         self.home = Record(HOME)
-        self.ctl = Record(CONTROL)
         self.mgr = Record(MANAGER)
         self.guard = Record(GUARD)
         self.released = np.zeros(DOF, dtype=bool)
         self.tripped = False
-        # the last cycles as the guard saw them, written out if it trips
-        self.trace = np.zeros(TRACE_CYCLES, dtype=TRACE)
-        self.traced = 0
+        self.on = np.zeros(DOF, dtype=bool)
+        self.tau_cmd = self.driver.tau_cmd  # what the driver sends
+        self.guard_tau = self.guard.array["tau_nm"]
+        # the last cycles as the guard saw them, written out if it trips:
+        # per row cycle, board step, q, qd, tau (measured), tau commanded
+        self.trace = np.zeros((TRACE_CYCLES, 2 + 4 * DOF))
+        self.trace_at = np.zeros(2, dtype=np.int64)  # rows written, this cycle
         run_dir = os.path.dirname(self.spec.messages_path)
         self.trace_path = os.path.join(run_dir, f"trip-{self.robot}.json") if run_dir else ""
+        # the guard's screen: the command prepared (joints on, their torques)
+        # and every figure against its limit in one kernel call; anything it
+        # flags is checked again by check(), which names the first limit broken
+        src = self.cmd if self.from_ssc else self.ctl
+        fields = src.array.dtype.fields
+        assert fields is not None
+        fbf, homef = FEEDBACK.fields, HOME.fields
+        assert fbf is not None and homef is not None
+        self.limits = np.concatenate(
+            [self.qd_max, self.tau_max, [self.force_max, self.moment_max]]
+        ).astype(np.float64)
+        status = int(fields["session_status"][1]) if "session_status" in fields else -1
+        self._prepare_args = {
+            "fb": self.fb.array.reshape(1).view(np.uint8),
+            "fb_off": np.array(
+                [int(fbf[n][1]) for n in ("q_rad", "qd_rad_s", "tau_nm", "wrench")], np.int64
+            ),
+            "src": src.array.reshape(1).view(np.uint8),
+            "src_off": np.array(
+                [int(fields["tau_nm"][1]), int(fields["joint_on"][1]), status], np.int64
+            ),
+            "home": self.home.array.reshape(1).view(np.uint8),
+            "home_off": np.array([int(homef["step"][1])], np.int64),
+            "limits": self.limits,
+            "on": self.on,
+            "released": self.released,
+            "tau": self.tau_cmd,
+            "trace": self.trace,
+            "trace_at": self.trace_at,
+        }
+        self._prepare: Any = self._prepare_numpy
+        if kernels.AVAILABLE:
+            plan = kernels.plan("guard_prepare", **self._prepare_args)
+            run = kernels.KERNELS.guard_prepare
+            self._prepare = lambda: run(plan)
 
     def step(self, cycle: int) -> None:
         self.manager_block.read_into(self.mgr.bytes)
         if self.tripped or self.mgr["estop"]:
             return  # frozen: nothing goes out any more
         self.feedback_block.read_into(self.fb.bytes)
-        fb = self.fb.array
         if self.from_ssc:
             self.command_block.read_into(self.cmd.bytes)
-            cmd = self.cmd.array
-            if int(cmd["seq_src"]) == 0:
+            if self.cmd["seq_src"] == 0:
                 return  # no command yet: the robot stays frozen
-            on = cmd["joint_on"].astype(bool)
-            if int(cmd["session_status"]) == SessionStatus.FINISHED:
-                on = np.zeros(DOF, dtype=bool)
-            tau_cmd = np.where(on, cmd["tau_nm"], 0.0)
         else:
             self.control_block.read_into(self.ctl.bytes)
-            ctl = self.ctl.array
-            on = ctl["joint_on"].astype(bool)
-            tau_cmd = np.where(on, ctl["tau_nm"], 0.0)
-        self.guard["cycle"] = cycle
         self.home_block.read_into(self.home.bytes)
-        row = self.trace[self.traced % TRACE_CYCLES]
-        row["cycle"] = cycle
-        row["step"] = self.home["step"]
-        row["q_rad"] = fb["q_rad"]
-        row["qd_rad_s"] = fb["qd_rad_s"]
-        row["tau_nm"] = fb["tau_nm"]
-        row["tau_cmd_nm"] = tau_cmd
-        self.traced += 1
-        try:
-            check(
-                fb["q_rad"],
-                fb["qd_rad_s"],
-                fb["tau_nm"],
-                fb["wrench"],
-                tau_cmd,
-                self.qd_max,
-                self.tau_max,
-                self.force_max,
-                self.moment_max,
-            )
-        except Violation as v:
-            self._trip(cycle, v)
-            return
+        self.trace_at[1] = cycle
+        flags = self._prepare()
+        on, tau_cmd = self.on, self.tau_cmd
+        self.guard["cycle"] = cycle
+        if flags & 1:
+            fb = self.fb.array
+            try:
+                check(
+                    fb["q_rad"],
+                    fb["qd_rad_s"],
+                    fb["tau_nm"],
+                    fb["wrench"],
+                    tau_cmd,
+                    self.qd_max,
+                    self.tau_max,
+                    self.force_max,
+                    self.moment_max,
+                )
+            except Violation as v:
+                self._trip(cycle, v)
+                return
         # brakes on before a joint's torque goes to zero; its torque out
         # before its brake comes off (the amplifier is inhibited while braked)
         up: list[int] = []
-        if (on != self.released).any():
+        if flags & 2:
             up = np.flatnonzero(on & ~self.released).tolist()
             down = np.flatnonzero(~on & self.released).tolist()
             if down:
                 self.driver.engage_brakes(down)
-            self.released = on.copy()
+            self.released[...] = on
             self.guard.array["released"] = on
-        self.driver.send_torques(tau_cmd)
+        self.driver.send()
         if up:
             self.driver.release_brakes(up)
         self.guard["sent_cycle"] = cycle
-        self.guard.array["tau_nm"] = tau_cmd
+        self.guard_tau[...] = tau_cmd
         self.guard_block.publish(self.guard.bytes)
         if self.from_ssc:
             now = time.monotonic_ns()
@@ -225,6 +244,34 @@ class Sender(Worker):
             self.stamp["count"] = self.cmd["seq_src"]
             self.stamp["stamp_ns"] = self.cmd["stamp_ns"]
             self.stamp_block.publish(self.stamp.bytes)
+
+    def _prepare_numpy(self) -> int:
+        """The arithmetic of the ``guard_prepare`` kernel (see it)."""
+        fb = self.fb.array
+        src = self.cmd.array if self.from_ssc else self.ctl.array
+        finished = self.from_ssc and int(src["session_status"]) == SessionStatus.FINISHED
+        on, tau = self.on, self.tau_cmd
+        on[...] = (src["joint_on"] != 0) & (not finished)
+        tau[...] = np.where(on, src["tau_nm"], 0.0)
+        row = self.trace[self.trace_at[0] % TRACE_CYCLES]
+        self.trace_at[0] += 1
+        row[0], row[1] = self.trace_at[1], self.home["step"]
+        row[2:9], row[9:16], row[16:23], row[23:] = fb["q_rad"], fb["qd_rad_s"], fb["tau_nm"], tau
+        flags = 0
+        measured = np.concatenate([fb["q_rad"], fb["qd_rad_s"], fb["tau_nm"], tau, fb["wrench"]])
+        lim = self.limits
+        if (
+            not np.isfinite(measured).all()
+            or (np.abs(fb["qd_rad_s"]) > lim[:7]).any()
+            or (np.abs(fb["tau_nm"]) > lim[7:14]).any()
+            or (np.abs(tau) > lim[7:14]).any()
+            or np.linalg.norm(fb["wrench"][:3]) > lim[14]
+            or np.linalg.norm(fb["wrench"][3:]) > lim[15]
+        ):
+            flags |= 1
+        if (on != self.released).any():
+            flags |= 2
+        return flags
 
     def _trip(self, cycle: int, v: Violation) -> None:
         self.driver.freeze()
@@ -253,10 +300,18 @@ class Sender(Worker):
         """The last cycles before the trip, oldest first, as JSON columns."""
         if not self.trace_path:
             return
-        n = min(self.traced, TRACE_CYCLES)
-        start = self.traced - n
-        rows = self.trace[np.arange(start, self.traced) % TRACE_CYCLES]
-        doc = {name: rows[name].tolist() for name in TRACE.names or ()}
+        traced = int(self.trace_at[0])
+        n = min(traced, TRACE_CYCLES)
+        start = traced - n
+        rows = self.trace[np.arange(start, traced) % TRACE_CYCLES]
+        doc = {
+            "cycle": rows[:, 0].astype(np.int64).tolist(),
+            "step": rows[:, 1].astype(np.int64).tolist(),
+            "q_rad": rows[:, 2:9].tolist(),
+            "qd_rad_s": rows[:, 9:16].tolist(),
+            "tau_nm": rows[:, 16:23].tolist(),
+            "tau_cmd_nm": rows[:, 23:30].tolist(),
+        }
         try:
             with open(self.trace_path, "w", encoding="utf-8") as f:
                 json.dump({"robot": self.robot, "cycles": n, **doc}, f)

@@ -1,11 +1,14 @@
 """Models of the devices between the boards and the joints (pure numpy).
 
-Per robot, vectorized over its 7 joints. Units in names; angles are joint
-side unless named ``motor``.
+Vectorized over joints: built from one robot's sensor/actuator config, or
+from several robots' stacked (the chassis models every joint of every robot
+in one array, so each step is one operation per quantity, not per robot or
+per joint). Units in names; angles are joint side unless named ``motor``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -16,18 +19,26 @@ from redistro.drivers.io.registers import ENC_MODULO
 F64 = np.ndarray[Any, np.dtype[np.float64]]
 
 
+def _stack(sensors: SensorsConfig | Sequence[SensorsConfig], name: str) -> F64:
+    """The per-joint list ``name`` of one config, or of several end to end."""
+    configs = [sensors] if isinstance(sensors, SensorsConfig) else list(sensors)
+    return np.concatenate([np.asarray(getattr(s, name), dtype=np.float64) for s in configs])
+
+
 class Motors:
     """DAC volts -> amplifier current (saturated) -> motor torque -> joint torque."""
 
-    def __init__(self, s: SensorsConfig) -> None:
-        self.amps_per_volt = np.asarray(s.amps_per_volt, dtype=np.float64)
-        self.max_current_a = np.asarray(s.max_current_a, dtype=np.float64)
-        self.kt = np.asarray(s.torque_constant_nm_a, dtype=np.float64)
-        self.gear = np.asarray(s.gear_ratio, dtype=np.float64)
+    def __init__(self, s: SensorsConfig | Sequence[SensorsConfig]) -> None:
+        self.amps_per_volt = _stack(s, "amps_per_volt")
+        self.max_current_a = _stack(s, "max_current_a")
+        self.kt = _stack(s, "torque_constant_nm_a")
+        self.gear = _stack(s, "gear_ratio")
+        self.nm_per_amp = self.kt * self.gear
+        self.min_current_a = -self.max_current_a
 
     def joint_torque_nm(self, volts: F64, enabled: np.ndarray[Any, Any] | bool = True) -> F64:
         current = np.clip(volts * self.amps_per_volt, -self.max_current_a, self.max_current_a)
-        return np.where(enabled, current * self.kt * self.gear, 0.0)
+        return np.where(enabled, current * self.nm_per_amp, 0.0)
 
 
 class Encoders:
@@ -35,18 +46,25 @@ class Encoders:
     24-bit, wrapping. The counter's zero is wherever it was at power-on or at
     the last preset."""
 
-    def __init__(self, s: SensorsConfig, q0_rad: F64, disturbance_rad: F64) -> None:
-        self.counts_per_rad = (
-            np.asarray(s.counts_per_rev, dtype=np.float64) * np.asarray(s.gear_ratio) / (2 * np.pi)
-        )
+    def __init__(
+        self, s: SensorsConfig | Sequence[SensorsConfig], q0_rad: F64, disturbance_rad: F64
+    ) -> None:
+        self.counts_per_rad = _stack(s, "counts_per_rev") * _stack(s, "gear_ratio") / (2 * np.pi)
         # At power-on the counters read as if the joints stood at q0 + disturbance
         # (the arm was moved while powered off): offset such that counter(q0) does.
         self.offset = np.rint(np.asarray(disturbance_rad) * self.counts_per_rad).astype(np.int64)
+        self._f = np.zeros(self.counts_per_rad.shape)
+        self._raw = np.zeros(self.counts_per_rad.shape, dtype=np.int64)
 
     def counts(self, q_rad: F64) -> np.ndarray[Any, np.dtype[np.int64]]:
-        raw = np.floor(q_rad * self.counts_per_rad).astype(np.int64) + self.offset
-        out: np.ndarray[Any, np.dtype[np.int64]] = np.mod(raw, ENC_MODULO)
-        return out
+        """The counters' readings at ``q_rad`` (a buffer reused by the next call)."""
+        f, raw = self._f, self._raw
+        np.multiply(q_rad, self.counts_per_rad, out=f)
+        np.floor(f, out=f)
+        np.copyto(raw, f, casting="unsafe")
+        raw += self.offset
+        raw &= ENC_MODULO - 1  # modulo 2**24, negative counts included (two's complement)
+        return raw
 
     def preset(self, axis: int, q_rad: float, value: int) -> None:
         """Load ``value`` into the counter of ``axis`` now (the joint at ``q_rad``)."""
@@ -58,34 +76,86 @@ class HomeSwitches:
     """Hall-effect switches: on inside a window around the zero mark, with
     hysteresis (turns on a little inside the edges, off a little outside)."""
 
-    def __init__(self, s: SensorsConfig) -> None:
-        self.center = np.asarray(s.home_angle_rad, dtype=np.float64)
-        self.half = np.asarray(s.home_window_rad, dtype=np.float64) / 2
-        self.hyst = np.asarray(s.home_hysteresis_rad, dtype=np.float64) / 2
+    def __init__(self, s: SensorsConfig | Sequence[SensorsConfig]) -> None:
+        self.center = _stack(s, "home_angle_rad")
+        half = _stack(s, "home_window_rad") / 2
+        hyst = _stack(s, "home_hysteresis_rad") / 2
+        self.on_within = half - hyst
+        self.off_beyond = half + hyst
         self.state = np.zeros(self.center.shape, dtype=bool)
+        self._d = np.zeros(self.center.shape)
+        self._on = np.zeros(self.center.shape, dtype=bool)
+        self._off = np.zeros(self.center.shape, dtype=bool)
 
     def update(self, q_rad: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
-        d = np.abs(q_rad - self.center)
-        turn_on = d < self.half - self.hyst
-        turn_off = d > self.half + self.hyst
-        self.state = np.where(self.state, ~turn_off, turn_on)
+        """The switches' levels at ``q_rad`` (``self.state``, updated in place)."""
+        d = self._d
+        np.subtract(q_rad, self.center, out=d)
+        np.abs(d, out=d)
+        np.less(d, self.on_within, out=self._on)
+        np.less_equal(d, self.off_beyond, out=self._off)  # True: not turned off
+        # on stays on unless beyond the window; off turns on well inside it
+        # (inside implies not beyond: on = (on and not beyond) or inside)
+        np.logical_and(self.state, self._off, out=self.state)
+        np.logical_or(self.state, self._on, out=self.state)
         return self.state
 
 
-class WristSensor:
-    """6-axis strain-gauge sensor: gauge counts = C^-1 (wrench + bias + noise)."""
+class WristSensors:
+    """6-axis strain-gauge sensors, one row each: gauge counts = C^-1 (wrench +
+    bias + noise). ``calibration`` (k, 6, 6), ``bias`` (k, 6).
 
-    def __init__(self, calibration: F64, bias: F64, noise_n: float, noise_nm: float, seed: int):
-        self.calibration = np.asarray(calibration, dtype=np.float64)
-        self.inverse = np.linalg.inv(self.calibration)
-        self.bias = np.asarray(bias, dtype=np.float64)
+    The noise is drawn ahead in blocks (one draw of many samples costs about
+    what one draw of six does), already in gauge counts: ``noise`` (block, k,
+    6) and the next row to use, ``noise_at[0]`` (both filled in place: a
+    compiled kernel may hold them)."""
+
+    NOISE_BLOCK = 1024
+
+    def __init__(
+        self, calibration: F64, bias: F64, noise_n: float, noise_nm: float, seed: int
+    ) -> None:
+        self.calibration = np.asarray(calibration, dtype=np.float64).reshape(-1, 6, 6)
+        self.k = self.calibration.shape[0]
+        self.inverse = np.ascontiguousarray(np.linalg.inv(self.calibration))
+        self.bias = np.asarray(bias, dtype=np.float64).reshape(self.k, 6)
         self.sigma = np.array([noise_n] * 3 + [noise_nm] * 3)
         self.rng = np.random.default_rng(seed)
+        self.noise = np.zeros((self.NOISE_BLOCK, self.k, 6))
+        self.noise_at = np.zeros(1, dtype=np.int64)
+        self.refill()
+        self._counts = np.zeros((self.k, 6, 1))
+
+    def refill(self) -> None:
+        """The next block of noise (in gauge counts); start at its first row."""
+        w = self.rng.normal(0.0, 1.0, (self.NOISE_BLOCK, self.k, 6)) * self.sigma + self.bias
+        self.noise[...] = np.matmul(self.inverse, w[..., None])[..., 0]
+        self.noise_at[0] = 0
+
+    def _draw(self) -> F64:
+        if self.noise_at[0] >= self.NOISE_BLOCK:
+            self.refill()
+        row: F64 = self.noise[self.noise_at[0]]
+        self.noise_at[0] += 1
+        return row
+
+    def gauges_into(self, wrenches: F64, out: np.ndarray[Any, Any]) -> None:
+        """The gauge counts of ``wrenches`` (k, 6; sensor frames) into ``out``
+        (k, 6; int32 registers)."""
+        c = self._counts
+        np.matmul(self.inverse, wrenches[..., None], out=c)
+        c[..., 0] += self._draw()
+        np.rint(c, out=c)
+        np.minimum(c, (1 << 23) - 1, out=c)
+        np.maximum(c, -(1 << 23), out=c)
+        out[...] = c[..., 0]
+
+
+class WristSensor(WristSensors):
+    """One wrist sensor: ``calibration`` (6, 6), ``bias`` (6,)."""
 
     def gauges(self, wrench: F64) -> np.ndarray[Any, np.dtype[np.int32]]:
-        w = wrench + self.bias + self.rng.normal(0.0, 1.0, 6) * self.sigma
-        counts = np.rint(self.inverse @ w)
-        out: np.ndarray[Any, np.dtype[np.int32]] = np.clip(
-            counts, -(1 << 23), (1 << 23) - 1
-        ).astype(np.int32)
-        return out
+        out = np.zeros((1, 6), dtype=np.int32)
+        self.gauges_into(np.asarray(wrench, dtype=np.float64).reshape(1, 6), out)
+        one: np.ndarray[Any, np.dtype[np.int32]] = out[0]
+        return one

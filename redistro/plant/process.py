@@ -106,7 +106,7 @@ def run_plant(
         if chassis is not None:
             result["final_q_rad"] = {r.name: [float(v) for v in r.q] for r in chassis.rigs}
             result["encoder_offset_rad"] = {
-                r.name: [float(v) for v in _signed(r.encoders.offset) / r.encoders.counts_per_rad]
+                r.name: [float(v) for v in _signed(r.encoder_offset) / r.counts_per_rad]
                 for r in chassis.rigs
             }
             if cfg.plant.pose_file:
@@ -160,20 +160,25 @@ def _loop(
     port: BoardPort,
     pace: float = 1.0,
 ) -> dict[str, Any]:
-    """Step the physics, paced to ``pace`` x real time (1: real time)."""
-    dt_ns = round(1e9 / physics_hz)
-    period_ns = round(dt_ns / pace)  # wall time between steps
-    truths = [bank.truth(i) for i in range(len(chassis.rigs))]
-    truth = Record(TRUTH)
-    status = Record(bank.status.data.dtype)
-    status["state"] = PlantState.RUNNING
-    boards = list(chassis.boards)
-    late = skipped = 0
-    max_gap_ns = max_gap_at_ns = 0  # the longest the plant went without a step (a stall)
+    """Step the physics, paced to ``pace`` x real time (1: real time).
+
+    Each step's cost is timed in two parts, in this thread's CPU time (a
+    real-time controller that preempts the plant mid-step does not count):
+    PyBullet's ``stepSimulation`` (physics) and everything else the step does
+    (chassis: the boards in and out, the device models, the truth, the bank)."""
     from redistro.process.stats import Samples
 
-    physics, whole = Samples(), Samples()
-    cpu_ns = time.thread_time_ns
+    dt_ns = round(1e9 / physics_hz)
+    period_ns = round(dt_ns / pace)  # wall time between steps
+    status = Record(bank.status.data.dtype)
+    status["state"] = PlantState.RUNNING
+    read_outputs = port.outputs_reader(chassis.outputs_wanted, chassis.image)
+    publish_boards = port.publisher(chassis.inp, chassis.image)
+    publish_truth = _truth_publisher(bank, chassis)
+    physics = Samples()
+    whole = Samples()
+    late = skipped = 0
+    max_gap_ns = max_gap_at_ns = 0  # the longest the plant went without a step (a stall)
     cpu0 = time.process_time()
     t0 = time.monotonic_ns()
     last_step_ns = t0
@@ -181,36 +186,29 @@ def _loop(
     stop_set = set(signals.STOP_SIGNALS)
     steps_limit = int(seconds * physics_hz) if seconds > 0 else 0
     why = "signal"
-    # every time an arm becomes fully braked (a freeze), with the step and the time
-    freezes: list[dict[str, Any]] = []
-    all_braked = [bool(r.arm.braked.all()) for r in chassis.rigs]
+    monotonic_ns = time.monotonic_ns
+    cpu_ns = time.thread_time_ns
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    gc.disable()  # no collector pauses inside steps: a step allocates little
     while True:
         c0 = cpu_ns()
-        outputs = {a: port.outputs(a) for a in boards}
-        chassis.apply_outputs(outputs, time.monotonic_ns())
-        for i, rig in enumerate(chassis.rigs):
-            braked = bool(rig.arm.braked.all())
-            if braked != all_braked[i]:
-                all_braked[i] = braked
-                if braked and len(freezes) < 1000:
-                    freezes.append(
-                        {
-                            "robot": rig.name,
-                            "step": chassis.step_count + 1,
-                            "monotonic_ns": time.monotonic_ns(),
-                        }
-                    )
-        chassis.step()
-        physics.add(chassis.physics_ns)
+        read_outputs()
+        chassis.apply_outputs(None, monotonic_ns())
+        ph0 = cpu_ns()
+        chassis.step_physics()
+        ph1 = cpu_ns()
+        chassis.sample()
         # the truth of a step is out before its boards: a reader that sees a
         # board sample can find the truth of the same step
-        for block, rig in zip(truths, chassis.rigs, strict=True):
-            _fill_truth(truth, rig, chassis)
-            block.publish(truth.bytes)
-        for a in boards:
-            port.publish(a, chassis.inp[a])
+        chassis.fill_truth()
+        publish_truth()
+        publish_boards()
         whole.add(cpu_ns() - c0)
-        now = time.monotonic_ns()
+        physics.add(ph1 - ph0)
+        now = monotonic_ns()
         inj = chassis.injection
         if inj is not None and inj.fired_ns and not inj.recorded:
             inj.record(now)  # the fault is on the boards from this step
@@ -228,7 +226,7 @@ def _loop(
         if steps_limit and steps >= steps_limit:
             why = "seconds"
             break
-        if signal.sigpending() & stop_set:
+        if not steps & 7 and signal.sigpending() & stop_set:  # every 8 steps: it costs
             break
         next_ns += period_ns
         if now > next_ns + period_ns:
@@ -238,10 +236,10 @@ def _loop(
                 skipped += int(behind)
                 next_ns = now
         port.service(next_ns)
+    gc.enable()
     wall = (time.monotonic_ns() - t0) / 1e9
     cpu_s = time.process_time() - cpu0
-    for rig in chassis.rigs:  # brakes on: the arms stay where they are
-        chassis.world.set_brakes(rig.arm, np.ones(7, dtype=bool), rig.brake_torque_nm)
+    chassis.brake_all()  # brakes on: the arms stay where they are
     return {
         "ended_by": why,
         "steps": chassis.step_count,
@@ -255,14 +253,37 @@ def _loop(
         "bad_frames": int(getattr(port, "bad_frames", 0)),
         "physics_hz": physics_hz,
         "pid": os.getpid(),
+        "kernels": chassis.kernels,
         "cpu_s": round(cpu_s, 3),
         "cpu_percent": round(100 * cpu_s / wall, 1) if wall > 0 else 0.0,
+        # per step [us of CPU]: the whole step, PyBullet's stepSimulation, the rest
         "step_us": whole.summary_us(),
         "physics_us": physics.summary_us(),
         "chassis_us": _difference(whole, physics),
-        "freezes": freezes,
+        "freezes": chassis.freezes,
         "watchdog_trips": chassis.watchdog_trips,
     }
+
+
+def _truth_publisher(bank: RegisterBank, chassis: Any) -> Any:
+    """A callable that publishes every robot's truth record into the bank."""
+    from redistro import kernels
+
+    n = len(chassis.rigs)
+    if chassis.kernels:
+        size = TRUTH.itemsize
+        table = kernels.offsets(*((*bank.truth_offsets(i)[:2], size, i * size) for i in range(n)))
+        p = kernels.plan("seq_write", dst=bank.raw, src=chassis.truth_image, table=table)
+        write = kernels.KERNELS.seq_write
+        return lambda: write(p)
+    blocks = [bank.truth(i) for i in range(n)]
+    rows = [memoryview(chassis.truth[i : i + 1].view(np.uint8)) for i in range(n)]
+
+    def publish() -> None:
+        for block, row in zip(blocks, rows, strict=True):
+            block.publish(row)
+
+    return publish
 
 
 def _difference(whole: Any, part: Any) -> dict[str, float]:
@@ -274,19 +295,3 @@ def _difference(whole: Any, part: Any) -> dict[str, float]:
     for v in (whole.values_ns()[:n] - part.values_ns()[:n]).tolist():
         d.add(v)
     return d.summary_us()
-
-
-def _fill_truth(truth: Record, rig: Any, chassis: Any) -> None:
-    a = truth.array
-    truth["step"] = chassis.step_count
-    a["q_rad"] = rig.q
-    a["qd_rad_s"] = rig.qd
-    a["tau_nm"] = rig.tau
-    a["braked"] = rig.arm.braked
-    a["home"] = rig.homes.state
-    a["wrench_sensor"] = rig.wrench
-    if rig.wrist is not None:
-        a["contact_world"] = chassis.world.contact_wrench_world(rig.arm, rig.tool_xyz)
-        a["tool_xyz_m"] = rig.tool_xyz
-        a["tool_rot"] = rig.tool_rot
-    a["encoder_offset_counts"] = rig.encoders.offset

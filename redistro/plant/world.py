@@ -71,6 +71,13 @@ class Arm:
     # (7,): the motor torques of the last step [N m] (0 on a braked joint)
     motor_tau: np.ndarray = field(default_factory=lambda: np.zeros(7))
 
+    # tool_com_m as plain floats (read every step)
+    tool_com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        x, y, z = self.tool_com_m.tolist()
+        self.tool_com = (x, y, z)
+
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """3-vector cross product (np.cross costs ten times more for one pair)."""
@@ -225,16 +232,28 @@ class World:
 
     def joint_states(self, arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q [rad], qd [rad/s], applied joint torque [N m] (motor or brake)."""
-        states = self.pb.getJointStates(arm.body, arm.joints, physicsClientId=self.client)
-        # JointState's order: position, velocity, reaction, applied torque
-        # (indexed, not unpacked: the plant does this every step)
-        q = np.array([s[0] for s in states])
-        qd = np.array([s[1] for s in states])
+        q, qd, applied = np.zeros(7), np.zeros(7), np.zeros(7)
+        self.read_joints(arm, q, qd, applied)
         # PyBullet reports the applied torque of a velocity-controlled joint
         # (a brake) but not of a torque-controlled one: there it keeps the last
         # velocity-control value. A released joint's torque is its motor's.
-        tau = np.where(arm.braked, [s[3] for s in states], arm.motor_tau)
+        tau = np.where(arm.braked, applied, arm.motor_tau)
         return q, qd, tau
+
+    def joint_states_raw(self, arm: Arm) -> Any:
+        """PyBullet's joint states of the arm's joints, as it returns them
+        (position, velocity, reaction, applied torque per joint)."""
+        return self.pb.getJointStates(arm.body, arm.joints, physicsClientId=self.client)
+
+    def read_joints(self, arm: Arm, q: np.ndarray, qd: np.ndarray, applied: np.ndarray) -> None:
+        """Into the given (7,) arrays: q [rad], qd [rad/s] and PyBullet's applied
+        joint torque [N m] (only meaningful on a braked joint: see joint_states)."""
+        states = self.pb.getJointStates(arm.body, arm.joints, physicsClientId=self.client)
+        # JointState's order: position, velocity, reaction, applied torque
+        pos, vel, _, app = zip(*states, strict=True)
+        q[:] = pos
+        qd[:] = vel
+        applied[:] = app
 
     def sensor_frame(self, arm: Arm) -> tuple[np.ndarray, np.ndarray]:
         """Position [m] and rotation matrix (world from sensor) of the wrist sensor frame."""
@@ -243,6 +262,32 @@ class World:
         )
         # link frame (not the inertial frame): world position/orientation of the URDF link frame
         return np.asarray(ls[4]), _quat_matrix(self.pb, ls[5])
+
+    def read_wrist(self, arm: Arm, xyz: np.ndarray, rot9: np.ndarray, wrench: np.ndarray) -> None:
+        """Into the given arrays: the wrist sensor frame's position [m] (3,), its
+        rotation (world from sensor, row-major, (9,)), and the external wrench
+        on the tool in that frame (6,): what :meth:`sensor_frame` and
+        :meth:`wrist_wrench` give, in plain floats (this runs every step)."""
+        pb, cid = self.pb, self.client
+        ls = pb.getLinkState(
+            arm.body, arm.tool_link, computeForwardKinematics=True, physicsClientId=cid
+        )
+        m = pb.getMatrixFromQuaternion(ls[5])
+        xyz[:] = ls[4]
+        rot9[:] = m
+        r = pb.getJointState(arm.body, arm.sensor_joint, physicsClientId=cid)[2]
+        # the tool's weight in the sensor frame: rot.T @ (0, 0, -g m) = -g m rot[2, :]
+        gm = GRAVITY * arm.tool_mass_kg
+        fx, fy, fz = -r[0] + gm * m[6], -r[1] + gm * m[7], -r[2] + gm * m[8]
+        cx, cy, cz = arm.tool_com
+        wrench[:] = (
+            fx,
+            fy,
+            fz,
+            -r[3] + cy * fz - cz * fy,
+            -r[4] + cz * fx - cx * fz,
+            -r[5] + cx * fy - cy * fx,
+        )
 
     def wrist_wrench(self, arm: Arm, rot: np.ndarray | None = None) -> np.ndarray:
         """The external wrench on the tool, in the sensor frame, about its origin
@@ -289,6 +334,32 @@ class World:
         r = np.array([c.position_on_a for c in cps]) - origin
         return np.concatenate([f.sum(axis=0), np.cross(r, f).sum(axis=0)])
 
+    def contact_wrench_world_into(self, arm: Arm, origin: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`contact_wrench_world` into ``out`` (6,), in plain floats (every step)."""
+        contacts = self.pb.getContactPoints(
+            bodyA=arm.body, linkIndexA=arm.tool_link, physicsClientId=self.client
+        )
+        if not contacts:
+            out[...] = 0.0
+            return
+        ox, oy, oz = origin.tolist()
+        fx = fy = fz = mx = my = mz = 0.0
+        for c in contacts:
+            # ContactPoint: position_on_a 5, normal_on_b 7, normal_force 9,
+            # friction1 10, friction_dir1 11, friction2 12, friction_dir2 13
+            n, f1, f2 = c[9], c[10], c[12]
+            nb, d1, d2 = c[7], c[11], c[13]
+            x = n * nb[0] - f1 * d1[0] - f2 * d2[0]
+            y = n * nb[1] - f1 * d1[1] - f2 * d2[1]
+            z = n * nb[2] - f1 * d1[2] - f2 * d2[2]
+            p = c[5]
+            rx, ry, rz = p[0] - ox, p[1] - oy, p[2] - oz
+            fx, fy, fz = fx + x, fy + y, fz + z
+            mx += ry * z - rz * y
+            my += rz * x - rx * z
+            mz += rx * y - ry * x
+        out[...] = (fx, fy, fz, mx, my, mz)
+
     # -- actuation --
 
     def set_brakes(self, arm: Arm, engaged: np.ndarray, torque_nm: np.ndarray) -> None:
@@ -309,9 +380,10 @@ class World:
             forces=forces,
             physicsClientId=self.client,
         )
-        arm.braked = engaged.copy()
-        arm.brake_held = arm.brake_held & engaged
-        arm.brake_torque_nm = np.asarray(torque_nm, dtype=np.float64).copy()
+        # in place: the chassis keeps these arrays as views of its own
+        arm.braked[...] = engaged
+        arm.brake_held &= engaged
+        arm.brake_torque_nm[...] = torque_nm
 
     def settle_brakes(self, arm: Arm, q: np.ndarray, qd: np.ndarray) -> None:
         """Braked joints that have stopped are held at their angle from now on."""
@@ -330,7 +402,7 @@ class World:
             velocityGains=[1.0] * len(js),
             physicsClientId=self.client,
         )
-        arm.brake_held = arm.brake_held | stopped
+        arm.brake_held |= stopped
 
     def push(self, arm: Arm, force_world: np.ndarray) -> None:
         """A force [N] (world frame) on the tool at the sensor's origin, for the
@@ -347,13 +419,16 @@ class World:
 
     def set_torques(self, arm: Arm, tau_nm: np.ndarray) -> None:
         """Motor torques for the next step [N m]; a braked joint's motor is inhibited."""
-        tau = np.where(arm.braked, 0.0, tau_nm)
-        arm.motor_tau = tau
+        np.copyto(arm.motor_tau, np.where(arm.braked, 0.0, tau_nm))
+        self.apply_motor_torques(arm)
+
+    def apply_motor_torques(self, arm: Arm) -> None:
+        """Apply ``arm.motor_tau`` (already zero on braked joints) for the next step."""
         self.pb.setJointMotorControlArray(
             arm.body,
             arm.joints,
             self.pb.TORQUE_CONTROL,
-            forces=tau.tolist(),
+            forces=arm.motor_tau.tolist(),
             physicsClientId=self.client,
         )
 

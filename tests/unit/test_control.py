@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from redistro.control.pid import PidGains, PidState, pid_update
-from redistro.control.trajectory import PEAK_SPEED, Quintic, quintic
+from redistro.control.pid import PidGains, PidState, PidWork, pid_update, pid_update_into
+from redistro.control.trajectory import PEAK_SPEED, Quintic, quintic, quintic_into
 
 
 def test_quintic_rests_at_both_ends() -> None:
@@ -81,3 +81,21 @@ def test_pid_integral_is_clamped_and_reset_when_off() -> None:
     pid_update(gains, state, np.zeros(3), np.zeros(3), np.ones(3), np.zeros(3), np.zeros(3),
                np.zeros(3, bool), 0.01)  # fmt: skip
     assert np.allclose(state.integral, 0.0)
+
+
+def test_the_in_place_forms_compute_what_the_plain_ones_do() -> None:
+    rng = np.random.default_rng(3)
+    q0, q1 = rng.normal(size=7), rng.normal(size=7)
+    out = np.zeros((3, 7))
+    for t in (-0.1, 0.0, 0.7, 1.3, 2.0, 2.5):
+        quintic_into(q0, q1 - q0, 2.0, t, out[0], out[1], out[2])
+        assert np.allclose(out, np.array(quintic(q0, q1, 2.0, t)), rtol=1e-12, atol=1e-12)
+    g = PidGains(*(np.abs(rng.normal(size=7)) * 10 for _ in range(4)))
+    a, b, work, tau = PidState(), PidState(), PidWork(), np.zeros(7)
+    on = np.array([1, 1, 0, 1, 1, 1, 0], dtype=bool)
+    for _ in range(50):
+        args = [rng.normal(size=7) for _ in range(5)]
+        ref = pid_update(g, a, *args, on, 0.005)
+        pid_update_into(g, b, work, *args, on, 0.005, tau)
+        assert np.allclose(tau, ref, rtol=1e-12, atol=1e-12)
+        assert np.allclose(a.integral, b.integral, rtol=0, atol=0)

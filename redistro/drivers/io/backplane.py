@@ -40,8 +40,43 @@ class Backplane(ABC):
     def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
         """Set a board's whole ``out`` bank."""
 
+    def reader(
+        self, views: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        """A callable that takes a fresh snapshot of every listed board's ``in``
+        bank into ``views`` (address -> its bytes; views of ``image``, the
+        caller's register memory, when given): :meth:`read`, in one go."""
+        addrs = list(views)
+        pairs = [(a, views[a]) for a in addrs]
+
+        def read_all() -> None:
+            recs = self.read(addrs)
+            for a, dst in pairs:
+                dst[...] = _bytes_array(recs[a])
+
+        return read_all
+
+    def writer(
+        self, records: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        """A callable that writes every listed board's ``out`` bank from
+        ``records`` (address -> the bank, kept and updated in place by the
+        caller; views of ``image`` when given): :meth:`write`, in one go."""
+        pairs = list(records.items())
+
+        def write_all() -> None:
+            for a, rec in pairs:
+                self.write(a, rec)
+
+        return write_all
+
     @abstractmethod
     def close(self) -> None: ...
+
+
+def _bytes_array(rec: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    raw: np.ndarray[Any, Any] = rec.reshape(1).view(np.uint8)
+    return raw
 
 
 class BoardPort(ABC):
@@ -51,9 +86,40 @@ class BoardPort(ABC):
     def outputs(self, address: int) -> np.ndarray[Any, Any]:
         """The latest ``out`` bank the controller wrote (a 0-d record)."""
 
+    def outputs_into(self, address: int, dst: memoryview) -> None:
+        """Copy the latest ``out`` bank into ``dst`` (its raw bytes)."""
+        dst[:] = _bytes(self.outputs(address))
+
     @abstractmethod
     def publish(self, address: int, record: np.ndarray[Any, Any]) -> None:
         """Make a board's ``in`` bank visible to the controller."""
+
+    def publisher(
+        self, records: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        """A callable that publishes every board's ``in`` bank from ``records``
+        (address -> a record the board side keeps and updates in place; each a
+        view of ``image``, the board side's register memory, when given)."""
+        pairs = list(records.items())
+
+        def publish_all() -> None:
+            for a, rec in pairs:
+                self.publish(a, rec)
+
+        return publish_all
+
+    def outputs_reader(
+        self, views: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        """A callable that takes every listed board's latest ``out`` bank into
+        ``views`` (address -> its bytes; views of ``image`` when given)."""
+        pairs = [(a, memoryview(v)) for a, v in views.items()]  # type: ignore[arg-type]
+
+        def read_all() -> None:
+            for a, dst in pairs:
+                self.outputs_into(a, dst)
+
+        return read_all
 
     def service(self, until_ns: int) -> None:
         """Serve requests until ``until_ns`` (CLOCK_MONOTONIC); default: sleep."""
@@ -108,17 +174,83 @@ class ShmBackplane(Backplane):
                 block.read_into(self._views[a], budget_s=self.timeout_s)
             except TornReadTimeout:
                 raise IOFault(f"board {a}: register bank stuck mid-update") from None
-            step = int(rec["step"])
-            last = self._last.get(a)
-            if last is None or step != last[0]:
-                self._last[a] = (step, now)
-            elif now - last[1] > self.timeout_s * 1e9:
-                raise IOFault(
-                    f"board {a}: no update for {(now - last[1]) / 1e6:.0f} ms "
-                    f"(step {step}): the plant is stopped or gone"
-                )
+            self._fresh(a, int(rec["step"]), now)
             out[a] = rec
         return out
+
+    def reader(
+        self, views: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        from redistro import kernels
+
+        if image is None or not kernels.AVAILABLE:
+            return super().reader(views, image)
+        addrs = list(views)
+        for a in addrs:
+            self._in_block(a)  # checks the address
+        bank = self.bank
+        table = kernels.offsets(
+            *(
+                (
+                    *bank.board_offsets(a, "in")[:2],
+                    views[a].nbytes,
+                    kernels.address_in(image, views[a]),
+                )
+                for a in addrs
+            )
+        )
+        torn = np.zeros(len(addrs), dtype=np.int64)
+        p = kernels.plan("seq_read", src=bank.raw, dst=image, table=table, torn=torn)
+        read = kernels.KERNELS.seq_read
+        # the first board's step (the bank's common header), read from the
+        # snapshot: the plant publishes every board at each step, so a plant
+        # that stopped stops them all
+        at = int(BANKS[BoardType.ENCODER][0].fields["step"][1])  # type: ignore[index]
+        first = addrs[0]
+        step = views[first][at : at + 8].view("<u8")
+        fallback = super().reader(views, image)
+        fresh = self._fresh
+        monotonic_ns = time.monotonic_ns
+
+        def read_kernel() -> None:
+            if read(p):  # a board mid-update: its snapshot the patient way (or an IOFault)
+                fallback()
+                return
+            fresh(first, int(step[0]), monotonic_ns())
+
+        return read_kernel
+
+    def _fresh(self, a: int, step: int, now: int) -> None:
+        """A board whose step has not moved for the I/O timeout is an IOFault."""
+        last = self._last.get(a)
+        if last is None or step != last[0]:
+            self._last[a] = (step, now)
+        elif now - last[1] > self.timeout_s * 1e9:
+            raise IOFault(
+                f"board {a}: no update for {(now - last[1]) / 1e6:.0f} ms "
+                f"(step {step}): the plant is stopped or gone"
+            )
+
+    def writer(
+        self, records: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        from redistro import kernels
+
+        if image is None or not kernels.AVAILABLE:
+            return super().writer(records, image)
+        bank = self.bank
+        for a in records:
+            if a not in bank.index:
+                raise IOFault(f"no board at address {a} in the chassis")
+        table = kernels.offsets(
+            *(
+                (*bank.board_offsets(a, "out")[:2], rec.nbytes, kernels.address_in(image, rec))
+                for a, rec in records.items()
+            )
+        )
+        p = kernels.plan("seq_write", dst=bank.raw, src=image, table=table)
+        write = kernels.KERNELS.seq_write
+        return lambda: write(p)
 
     def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
         block = self._out.get(address)
@@ -144,7 +276,13 @@ class ShmPort(BoardPort):
         self._scratch = {a: np.zeros((), r.dtype) for a, r in self._recs.items()}
         self._scratch_bytes = {a: _bytes(r) for a, r in self._scratch.items()}
         self._published: dict[int, tuple[np.ndarray[Any, Any], memoryview]] = {}
-        self.torn_outputs = 0  # steps that kept a board's previous outputs
+        self._torn = 0
+        self._kernel_torn = np.zeros(0, dtype=np.int64)
+
+    @property
+    def torn_outputs(self) -> int:
+        """Steps that kept a board's previous outputs (its writer was mid-write)."""
+        return self._torn + int(self._kernel_torn.sum())
 
     def outputs(self, address: int) -> np.ndarray[Any, Any]:
         """The latest consistent outputs. A writer held off inside its write
@@ -154,16 +292,80 @@ class ShmPort(BoardPort):
         try:
             self._out[address].read_into(self._scratch_bytes[address])
         except TornReadTimeout:
-            self.torn_outputs += 1
+            self._torn += 1
             return self._recs[address]
         self._rec_bytes[address][:] = self._scratch_bytes[address]
         return self._recs[address]
+
+    def outputs_into(self, address: int, dst: memoryview) -> None:
+        """As :meth:`outputs`, straight into ``dst``: a torn read leaves ``dst``
+        (the board's registers) as they were."""
+        scratch = self._scratch_bytes[address]
+        try:
+            self._out[address].read_into(scratch)
+        except TornReadTimeout:
+            self._torn += 1
+            return
+        dst[:] = scratch
 
     def publish(self, address: int, record: np.ndarray[Any, Any]) -> None:
         cached = self._published.get(address)
         if cached is None or cached[0] is not record:  # the chassis keeps its records
             cached = self._published[address] = (record, _bytes(record))
         self._in[address].publish(cached[1])
+
+    def publisher(
+        self, records: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        from redistro import kernels
+
+        if image is not None and kernels.AVAILABLE:  # every board in one call
+            bank = self.bank
+            table = kernels.offsets(
+                *(
+                    (*bank.board_offsets(a, "in")[:2], rec.nbytes, kernels.address_in(image, rec))
+                    for a, rec in records.items()
+                )
+            )
+            p = kernels.plan("seq_write", dst=bank.raw, src=image, table=table)
+            write = kernels.KERNELS.seq_write
+
+            def publish_kernel() -> None:
+                write(p)
+
+            return publish_kernel
+        pairs = [(self._in[a].publish, _bytes(rec)) for a, rec in records.items()]
+
+        def publish_all() -> None:
+            for publish, raw in pairs:
+                publish(raw)
+
+        return publish_all
+
+    def outputs_reader(
+        self, views: dict[int, np.ndarray[Any, Any]], image: np.ndarray[Any, Any] | None = None
+    ) -> Any:
+        from redistro import kernels
+
+        if image is not None and kernels.AVAILABLE:  # every board in one call
+            bank = self.bank
+            table = kernels.offsets(
+                *(
+                    (*bank.board_offsets(a, "out")[:2], v.nbytes, kernels.address_in(image, v))
+                    for a, v in views.items()
+                )
+            )
+            torn = np.zeros(len(views), dtype=np.int64)
+            self._kernel_torn = torn
+            p = kernels.plan("seq_read", src=bank.raw, dst=image, table=table, torn=torn)
+            read = kernels.KERNELS.seq_read
+
+            def read_kernel() -> None:
+                # a board whose outputs are mid-write keeps its previous ones
+                read(p)
+
+            return read_kernel
+        return super().outputs_reader(views, image)
 
     def close(self) -> None:
         pass  # the bank is the plant's; it closes it

@@ -123,6 +123,32 @@ class RegisterBank:
             bytes(x).decode() for x in self.view["header"]["robot_names"][:n_robots]
         ]
 
+    @property
+    def raw(self) -> np.ndarray[Any, Any]:
+        """The whole mapping as bytes (for kernels that publish or read many
+        blocks in one call: see :meth:`block_offsets`)."""
+        return np.frombuffer(self.shm.buffer, dtype=np.uint8)
+
+    def _offsets(self, field: str, index: int | None = None) -> tuple[int, int, int]:
+        dt = self.view.dtype
+        assert dt.fields is not None
+        spec = dt.fields[field]
+        block_dt, at = spec[0], int(spec[1])
+        if index is not None:  # an array of blocks
+            block_dt = block_dt.base
+            at += index * block_dt.itemsize
+        f = block_dt.fields
+        data = f["data"][0]
+        return at + int(f["seq"][1]), at + int(f["data"][1]), int(data.itemsize)
+
+    def board_offsets(self, address: int, side: str) -> tuple[int, int, int]:
+        """(seq, payload, size) byte offsets in :attr:`raw` of a board's ``in`` or
+        ``out`` bank."""
+        return self._offsets(f"{side}{self.index[address]}")
+
+    def truth_offsets(self, robot: int) -> tuple[int, int, int]:
+        return self._offsets("truth", robot)
+
     def _block(self, view: np.ndarray[Any, Any], name: str) -> Block:
         b = Block(name, view)
         self._blocks.append(b)

@@ -16,10 +16,14 @@ class ModuleDriver:
 
     TYPE: BoardType = BoardType.NONE
 
-    def __init__(self, backplane: Backplane, address: int) -> None:
+    def __init__(
+        self, backplane: Backplane, address: int, out: np.ndarray[Any, Any] | None = None
+    ) -> None:
+        """out: where to keep the ``out`` bank (a 0-d record of the board
+        type's out dtype, e.g. a row of a register image); default its own."""
         self.backplane = backplane
         self.address = address
-        self.out: np.ndarray[Any, Any] = np.zeros((), BANKS[self.TYPE][1])
+        self.out: np.ndarray[Any, Any] = np.zeros((), BANKS[self.TYPE][1]) if out is None else out
 
     def flush(self) -> None:
         self.backplane.write(self.address, self.out)

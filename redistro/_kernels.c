@@ -1,0 +1,797 @@
+/*
+ * redistro._kernels: the per-cycle arithmetic of the I/O paths, fused.
+ *
+ * A cycle of the simulated chassis or of a robot-level driver is a few
+ * dozen tiny operations on 7-vectors and board registers. Written as numpy
+ * calls each costs about a microsecond of interpreter and call overhead,
+ * which a cold cache (the process wakes after others ran) doubles; the
+ * arithmetic itself is nanoseconds. These kernels do the same arithmetic in
+ * one call each.
+ *
+ * They know no layout. Every kernel works on a Plan: named buffers (numpy
+ * arrays, shared memory) and tables of byte offsets that the owning Python
+ * module builds once, in Initialization, from its own declared layouts
+ * (the register datasheet, the register bank, Local Data). Each kernel
+ * declares the names and element types it needs (``signature(kernel)``);
+ * ``Plan(kernel, {name: buffer})`` checks them once. The Python modules keep
+ * a numpy reference implementation of each kernel; the unit tests run both
+ * on the same inputs.
+ *
+ * Registers and records are packed: multi-byte values are loaded and stored
+ * with memcpy (no alignment is assumed).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define BARRIER() __asm__ __volatile__("" ::: "memory")
+
+/* -- unaligned loads and stores -- */
+
+static inline uint32_t ld_u32(const uint8_t *p) { uint32_t v; memcpy(&v, p, 4); return v; }
+static inline int32_t ld_i32(const uint8_t *p) { int32_t v; memcpy(&v, p, 4); return v; }
+static inline int16_t ld_i16(const uint8_t *p) { int16_t v; memcpy(&v, p, 2); return v; }
+static inline uint64_t ld_u64(const uint8_t *p) { uint64_t v; memcpy(&v, p, 8); return v; }
+static inline float ld_f32(const uint8_t *p) { float v; memcpy(&v, p, 4); return v; }
+static inline void st_u32(uint8_t *p, uint32_t v) { memcpy(p, &v, 4); }
+static inline void st_i32(uint8_t *p, int32_t v) { memcpy(p, &v, 4); }
+static inline void st_i16(uint8_t *p, int16_t v) { memcpy(p, &v, 2); }
+static inline void st_u64(uint8_t *p, uint64_t v) { memcpy(p, &v, 8); }
+
+/* -- kernel signatures: argument names and element types -- */
+
+typedef struct {
+    const char *name;
+    char type; /* d f8, q i8, B u1 */
+} Arg;
+
+typedef struct {
+    const char *name;
+    const Arg *args;
+    int nargs;
+} Signature;
+
+#define ARGS(...) (const Arg[]){__VA_ARGS__}, (int)(sizeof((const Arg[]){__VA_ARGS__}) / sizeof(Arg))
+
+/* plain batch copy: table rows (src_off, dst_off, size) */
+enum { CP_SRC, CP_DST, CP_TABLE };
+/* seqlock batch read: table rows (seq_off, payload_off, size, dst_off) */
+enum { SR_SRC, SR_DST, SR_TABLE, SR_TORN };
+/* seqlock batch publish: table rows (seq_off, payload_off, size, src_off) */
+enum { SW_DST, SW_SRC, SW_TABLE };
+
+enum {
+    CA_IMAGE, CA_BRAKE_OFF, CA_BRAKE_BIT, CA_DAC_OFF, CA_CUT, CA_AMPS, CA_IMAX, CA_NM,
+    CA_MOTOR_TAU, CA_BRAKE, CA_BRAKED, CA_COPY, CA_REQ, CA_SEEN
+};
+
+enum {
+    CS_IMAGE, CS_Q, CS_QD, CS_TAU, CS_APPLIED, CS_MOTOR_TAU, CS_BRAKED, CS_HELD, CS_STOPPED,
+    CS_CPR, CS_ENC_OFFSET, CS_COUNTS, CS_COUNTER_OFF, CS_CENTER, CS_ON, CS_OFF, CS_SWITCH,
+    CS_FORCE, CS_HOME, CS_LAST_HOME, CS_EDGES, CS_HOME_OFF, CS_DIO_CLEAR, CS_HOME_WORD,
+    CS_HOME_BIT, CS_ADC_SRC, CS_ADC_SCALE, CS_ADC_OFF, CS_WRENCH, CS_INVERSE, CS_NOISE,
+    CS_NOISE_AT, CS_STRAIN_OFF, CS_SAMPLE_OFF, CS_STEP_OFF, CS_STEP
+};
+
+enum {
+    DD_IMAGE, DD_STEP_OFF, DD_COUNTER_OFF, DD_LATCH_OFF, DD_LCOUNT_OFF, DD_LEDGE_OFF,
+    DD_TACH_OFF, DD_TORQUE_OFF, DD_READBACK_OFF, DD_HOME_WORD, DD_HOME_BIT, DD_BRAKE_WORD,
+    DD_BRAKE_BIT, DD_STRAIN_OFF, DD_CAL_OFF, DD_CPR, DD_TACH_SCALE, DD_TORQUE_SCALE,
+    DD_DAC_SCALE, DD_RAW, DD_ACC, DD_QREF, DD_PREV_Q, DD_STATE, DD_PARAMS, DD_Q, DD_QD,
+    DD_TAU, DD_WRENCH, DD_HOME, DD_BRAKES, DD_LCOUNT, DD_LEDGE, DD_LATCH_Q, DD_OUT
+};
+
+enum { DT_IMAGE, DT_TAU, DT_VOLTS_PER_NM, DT_CODE_OFF };
+
+enum {
+    GP_FB, GP_FB_OFF, GP_SRC, GP_SRC_OFF, GP_HOME, GP_HOME_OFF, GP_LIMITS, GP_ON,
+    GP_RELEASED, GP_TAU, GP_TRACE, GP_TRACE_AT
+};
+
+static const Signature SIGNATURES[] = {
+    {"copy", ARGS({"src", 'B'}, {"dst", 'B'}, {"table", 'q'})},
+    {"seq_read", ARGS({"src", 'B'}, {"dst", 'B'}, {"table", 'q'}, {"torn", 'q'})},
+    {"seq_write", ARGS({"dst", 'B'}, {"src", 'B'}, {"table", 'q'})},
+    {"chassis_apply",
+     ARGS({"image", 'B'}, {"brake_off", 'q'}, {"brake_bit", 'q'}, {"dac_off", 'q'},
+          {"cut", 'B'}, {"amps_per_code", 'd'}, {"max_current", 'd'}, {"nm_per_amp", 'd'},
+          {"motor_tau", 'd'}, {"brake", 'B'}, {"braked", 'B'}, {"copy", 'q'}, {"req_off", 'q'},
+          {"req_seen", 'B'})},
+    {"chassis_sample",
+     ARGS({"image", 'B'}, {"q", 'd'}, {"qd", 'd'}, {"tau", 'd'}, {"applied", 'd'},
+          {"motor_tau", 'd'}, {"braked", 'B'}, {"held", 'B'}, {"stopped", 'B'},
+          {"counts_per_rad", 'd'}, {"enc_offset", 'q'}, {"counts", 'q'}, {"counter_off", 'q'},
+          {"home_center", 'd'}, {"home_on", 'd'}, {"home_off", 'd'}, {"switch", 'B'},
+          {"force", 'B'}, {"home", 'B'}, {"last_home", 'B'}, {"edges", 'B'},
+          {"home_reg_off", 'q'}, {"dio_clear", 'q'}, {"home_word", 'q'}, {"home_bit", 'q'},
+          {"adc_src", 'q'}, {"adc_scale", 'd'}, {"adc_off", 'q'}, {"wrench", 'd'},
+          {"inverse", 'd'}, {"noise", 'd'}, {"noise_at", 'q'}, {"strain_off", 'q'},
+          {"sample_off", 'q'}, {"step_off", 'q'}, {"step", 'q'})},
+    {"driver_decode",
+     ARGS({"image", 'B'}, {"step_off", 'q'}, {"counter_off", 'q'}, {"latch_off", 'q'},
+          {"latch_count_off", 'q'}, {"latch_edge_off", 'q'}, {"tach_off", 'q'},
+          {"torque_off", 'q'}, {"readback_off", 'q'}, {"home_word", 'q'}, {"home_bit", 'q'},
+          {"brake_word", 'q'}, {"brake_bit", 'q'}, {"strain_off", 'q'}, {"cal_off", 'q'},
+          {"counts_per_rad", 'd'}, {"tach_scale", 'd'}, {"torque_scale", 'd'},
+          {"dac_scale", 'd'}, {"raw", 'q'}, {"acc", 'q'}, {"q_ref", 'd'}, {"prev_q", 'd'},
+          {"state", 'q'}, {"params", 'd'}, {"q", 'd'}, {"qd", 'd'}, {"tau", 'd'},
+          {"wrench", 'd'}, {"home", 'B'}, {"brakes", 'B'}, {"latch_count", 'B'},
+          {"latch_edge", 'B'}, {"latch_q", 'd'}, {"out", 'd'})},
+    {"driver_dac",
+     ARGS({"image", 'B'}, {"tau", 'd'}, {"volts_per_nm", 'd'}, {"code_off", 'q'})},
+    {"guard_prepare",
+     ARGS({"fb", 'B'}, {"fb_off", 'q'}, {"src", 'B'}, {"src_off", 'q'}, {"home", 'B'},
+          {"home_off", 'q'}, {"limits", 'd'}, {"on", 'B'}, {"released", 'B'}, {"tau", 'd'},
+          {"trace", 'd'}, {"trace_at", 'q'})},
+};
+#define NSIG ((int)(sizeof(SIGNATURES) / sizeof(SIGNATURES[0])))
+#define MAX_ARGS 40
+
+static int find_signature(const char *name) {
+    for (int i = 0; i < NSIG; i++)
+        if (strcmp(SIGNATURES[i].name, name) == 0)
+            return i;
+    return -1;
+}
+
+static Py_ssize_t itemsize_of(char type) {
+    switch (type) {
+    case 'd': return 8;
+    case 'q': return 8;
+    default: return 1;
+    }
+}
+
+/* -- Plan -- */
+
+typedef struct {
+    PyObject_HEAD
+    int kernel;
+    int nargs;
+    Py_buffer views[MAX_ARGS];
+    uint8_t *p[MAX_ARGS];
+    Py_ssize_t n[MAX_ARGS]; /* elements */
+} PlanObject;
+
+static void Plan_dealloc(PlanObject *self) {
+    for (int i = 0; i < self->nargs; i++)
+        PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int Plan_init(PlanObject *self, PyObject *args, PyObject *kwds) {
+    const char *kernel;
+    PyObject *bufs;
+    if (!PyArg_ParseTuple(args, "sO!", &kernel, &PyDict_Type, &bufs))
+        return -1;
+    int k = find_signature(kernel);
+    if (k < 0) {
+        PyErr_Format(PyExc_ValueError, "no kernel %s", kernel);
+        return -1;
+    }
+    const Signature *sig = &SIGNATURES[k];
+    for (int i = 0; i < self->nargs; i++)
+        PyBuffer_Release(&self->views[i]);
+    self->nargs = 0;
+    self->kernel = k;
+    for (int i = 0; i < sig->nargs; i++) {
+        PyObject *obj = PyDict_GetItemString(bufs, sig->args[i].name);
+        if (obj == NULL) {
+            PyErr_Format(PyExc_KeyError, "kernel %s: argument %s missing", kernel,
+                         sig->args[i].name);
+            return -1;
+        }
+        int flags = PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS | PyBUF_FORMAT;
+        if (PyObject_GetBuffer(obj, &self->views[i], flags) < 0)
+            return -1;
+        self->nargs = i + 1;
+        char type = sig->args[i].type;
+        Py_ssize_t size = itemsize_of(type);
+        if (type != 'B') {
+            const char *f = self->views[i].format ? self->views[i].format : "B";
+            char c = f[strlen(f) - 1];
+            int ok = self->views[i].itemsize == size &&
+                     (type == 'd' ? c == 'd' : (c == 'q' || c == 'l'));
+            if (!ok) {
+                PyErr_Format(PyExc_TypeError, "kernel %s: argument %s: format %s, expected %s",
+                             kernel, sig->args[i].name, f, type == 'd' ? "float64" : "int64");
+                return -1;
+            }
+            if ((uintptr_t)self->views[i].buf % 8) {
+                PyErr_Format(PyExc_TypeError, "kernel %s: argument %s: not 8-byte aligned",
+                             kernel, sig->args[i].name);
+                return -1;
+            }
+        }
+        self->p[i] = (uint8_t *)self->views[i].buf;
+        self->n[i] = self->views[i].len / size;
+    }
+    return 0;
+}
+
+static PyTypeObject PlanType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "redistro._kernels.Plan",
+    .tp_basicsize = sizeof(PlanObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Plan_init,
+    .tp_dealloc = (destructor)Plan_dealloc,
+    .tp_doc = "Named buffers a kernel works on: Plan(kernel, {name: buffer}).",
+};
+
+static PlanObject *plan_arg(PyObject *obj, const char *kernel) {
+    if (!PyObject_TypeCheck(obj, &PlanType)) {
+        PyErr_SetString(PyExc_TypeError, "expected a Plan");
+        return NULL;
+    }
+    PlanObject *plan = (PlanObject *)obj;
+    if (strcmp(SIGNATURES[plan->kernel].name, kernel) != 0) {
+        PyErr_Format(PyExc_ValueError, "a plan of %s, not %s", SIGNATURES[plan->kernel].name,
+                     kernel);
+        return NULL;
+    }
+    return plan;
+}
+
+#define F64(plan, i) ((double *)(plan)->p[i])
+#define I64(plan, i) ((int64_t *)(plan)->p[i])
+#define U8(plan, i) ((plan)->p[i])
+
+/* -- copies: many fields in one call -- */
+
+static PyObject *copy(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "copy");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *src = U8(pl, CP_SRC), *dst = U8(pl, CP_DST);
+    int64_t *t = I64(pl, CP_TABLE);
+    for (Py_ssize_t r = 0; r < pl->n[CP_TABLE] / 3; r++, t += 3)
+        memcpy(dst + t[1], src + t[0], t[2]);
+    Py_RETURN_NONE;
+}
+
+/* -- seqlocks: many blocks in one call -- */
+
+#define SCRATCH 2048
+#define ATTEMPTS 4
+
+/* Copy each table row's payload from src to dst: a consistent copy (the
+ * sequence counter even and unchanged across the copy) or none at all.
+ * torn[i] counts the rows that found no consistent copy in ATTEMPTS tries
+ * (their dst stays as it was); returns how many rows did not copy. */
+static PyObject *seq_read(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "seq_read");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *src = U8(pl, SR_SRC), *dst = U8(pl, SR_DST);
+    int64_t *t = I64(pl, SR_TABLE), *torn = I64(pl, SR_TORN);
+    Py_ssize_t rows = pl->n[SR_TABLE] / 4;
+    uint8_t scratch[SCRATCH];
+    long failed = 0;
+    for (Py_ssize_t r = 0; r < rows; r++, t += 4) {
+        volatile uint64_t *seq = (volatile uint64_t *)(src + t[0]);
+        Py_ssize_t size = t[2];
+        int ok = 0;
+        for (int a = 0; a < ATTEMPTS && !ok; a++) {
+            uint64_t s1 = *seq;
+            if (s1 & 1)
+                continue;
+            BARRIER();
+            memcpy(scratch, src + t[1], size);
+            BARRIER();
+            if (*seq == s1)
+                ok = 1;
+        }
+        if (ok)
+            memcpy(dst + t[3], scratch, size);
+        else {
+            torn[r] += 1;
+            failed += 1;
+        }
+    }
+    return PyLong_FromLong(failed);
+}
+
+/* Publish each table row's payload from src into its seqlocked block in dst
+ * (this process is the blocks' one writer). */
+static PyObject *seq_write(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "seq_write");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *dst = U8(pl, SW_DST), *src = U8(pl, SW_SRC);
+    int64_t *t = I64(pl, SW_TABLE);
+    Py_ssize_t rows = pl->n[SW_TABLE] / 4;
+    for (Py_ssize_t r = 0; r < rows; r++, t += 4) {
+        volatile uint64_t *seq = (volatile uint64_t *)(dst + t[0]);
+        uint64_t s = *seq;
+        s += s & 1; /* a writer that died mid-write: resume from even */
+        *seq = s + 1;
+        BARRIER();
+        memcpy(dst + t[1], src + t[3], t[2]);
+        BARRIER();
+        *seq = s + 2;
+    }
+    Py_RETURN_NONE;
+}
+
+/* -- the simulated chassis -- */
+
+/* Controller outputs -> joints: brakes (fail-safe: engaged unless the
+ * release bit is on, or the amplifiers' watchdog cut the robot), motor
+ * torques from the DAC codes (current saturated; none on a braked joint),
+ * the boards' readbacks (copy rows: src_off, dst_off, nbytes, mask where
+ * mask != 0 means a 32-bit word masked), new encoder requests.
+ * Returns bit 1: a brake changes; bit 2: an encoder request is new. */
+static PyObject *chassis_apply(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "chassis_apply");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *img = U8(pl, CA_IMAGE);
+    Py_ssize_t n = pl->n[CA_MOTOR_TAU];
+    int64_t *boff = I64(pl, CA_BRAKE_OFF), *bbit = I64(pl, CA_BRAKE_BIT);
+    int64_t *doff = I64(pl, CA_DAC_OFF);
+    uint8_t *cut = U8(pl, CA_CUT), *brake = U8(pl, CA_BRAKE), *braked = U8(pl, CA_BRAKED);
+    double *amps = F64(pl, CA_AMPS), *imax = F64(pl, CA_IMAX), *nm = F64(pl, CA_NM);
+    double *tau = F64(pl, CA_MOTOR_TAU);
+    long flags = 0;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        uint32_t word = ld_u32(img + boff[j]);
+        uint8_t b = ((word >> bbit[j]) & 1u) == 0 || cut[j];
+        brake[j] = b;
+        if (b != braked[j])
+            flags |= 1;
+        double cur = (double)ld_i16(img + doff[j]) * amps[j];
+        if (cur > imax[j])
+            cur = imax[j];
+        else if (cur < -imax[j])
+            cur = -imax[j];
+        tau[j] = b ? 0.0 : cur * nm[j];
+    }
+    int64_t *c = I64(pl, CA_COPY);
+    for (Py_ssize_t r = 0; r < pl->n[CA_COPY] / 4; r++, c += 4) {
+        if (c[3])
+            st_u32(img + c[1], ld_u32(img + c[0]) & (uint32_t)c[3]);
+        else
+            memcpy(img + c[1], img + c[0], c[2]);
+    }
+    int64_t *ro = I64(pl, CA_REQ);
+    uint8_t *seen = U8(pl, CA_SEEN);
+    for (Py_ssize_t r = 0; r < pl->n[CA_REQ]; r++)
+        if (memcmp(img + ro[r], seen + 32 * r, 32) != 0)
+            flags |= 2;
+    return PyLong_FromLong(flags);
+}
+
+/* Joint states -> the boards' in banks: the joint torque (a braked joint's
+ * is its brake's), stopped braked joints (to be held), encoder counters
+ * (24-bit, wrapping), home switches with hysteresis (force[j]: 0 as the
+ * switch, 1 stuck off, 2 stuck on), the encoder boards' home levels, the
+ * DIO home words, the ADC codes (torque sensors, tachometers: rounded,
+ * saturated), the wrist gauges (counts = inverse @ wrench + noise), the
+ * sample counters and every board's step.
+ * Returns bit 1: a braked joint stopped; bit 2: a home input changed;
+ * bit 4: the wrist noise block is used up (the next call needs a new one). */
+static PyObject *chassis_sample(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "chassis_sample");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *img = U8(pl, CS_IMAGE);
+    Py_ssize_t n = pl->n[CS_Q];
+    double *q = F64(pl, CS_Q), *qd = F64(pl, CS_QD), *tau = F64(pl, CS_TAU);
+    double *applied = F64(pl, CS_APPLIED), *mtau = F64(pl, CS_MOTOR_TAU);
+    uint8_t *braked = U8(pl, CS_BRAKED), *held = U8(pl, CS_HELD), *stopped = U8(pl, CS_STOPPED);
+    double *cpr = F64(pl, CS_CPR);
+    int64_t *eoff = I64(pl, CS_ENC_OFFSET), *counts = I64(pl, CS_COUNTS);
+    int64_t *coff = I64(pl, CS_COUNTER_OFF);
+    double *center = F64(pl, CS_CENTER), *on_w = F64(pl, CS_ON), *off_b = F64(pl, CS_OFF);
+    uint8_t *sw = U8(pl, CS_SWITCH), *force = U8(pl, CS_FORCE), *home = U8(pl, CS_HOME);
+    uint8_t *last = U8(pl, CS_LAST_HOME), *edges = U8(pl, CS_EDGES);
+    int64_t *hreg = I64(pl, CS_HOME_OFF), *hword = I64(pl, CS_HOME_WORD);
+    int64_t *hbit = I64(pl, CS_HOME_BIT);
+    long flags = 0;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        tau[j] = braked[j] ? applied[j] : mtau[j];
+        stopped[j] = braked[j] && !held[j] && fabs(qd[j]) < 1e-3;
+        if (stopped[j])
+            flags |= 1;
+        int64_t c = (int64_t)floor(q[j] * cpr[j]) + eoff[j];
+        c &= (int64_t)0xFFFFFF;
+        counts[j] = c;
+        st_u32(img + coff[j], (uint32_t)c);
+        double d = fabs(q[j] - center[j]);
+        uint8_t s = (sw[j] && d <= off_b[j]) || d < on_w[j];
+        sw[j] = s;
+        uint8_t h = force[j] ? force[j] == 2 : s;
+        home[j] = h;
+        edges[j] = h != last[j];
+        if (edges[j])
+            flags |= 2;
+        img[hreg[j]] = h;
+    }
+    int64_t *clear = I64(pl, CS_DIO_CLEAR);
+    for (Py_ssize_t r = 0; r < pl->n[CS_DIO_CLEAR]; r++)
+        st_u32(img + clear[r], 0);
+    for (Py_ssize_t j = 0; j < n; j++)
+        if (home[j])
+            st_u32(img + hword[j], ld_u32(img + hword[j]) | (1u << hbit[j]));
+    int64_t *src = I64(pl, CS_ADC_SRC), *aoff = I64(pl, CS_ADC_OFF);
+    double *scale = F64(pl, CS_ADC_SCALE);
+    for (Py_ssize_t i = 0; i < pl->n[CS_ADC_SRC]; i++) {
+        double v = src[i] < n ? tau[src[i]] : qd[src[i] - n];
+        v = nearbyint(v * scale[i]);
+        if (v > 32767.0)
+            v = 32767.0;
+        else if (v < -32768.0)
+            v = -32768.0;
+        st_i16(img + aoff[i], (int16_t)v);
+    }
+    Py_ssize_t wrists = pl->n[CS_STRAIN_OFF];
+    if (wrists) {
+        double *w = F64(pl, CS_WRENCH), *inv = F64(pl, CS_INVERSE);
+        int64_t *at = I64(pl, CS_NOISE_AT);
+        Py_ssize_t rows = pl->n[CS_NOISE] / (6 * wrists);
+        if (*at >= rows) {
+            PyErr_SetString(PyExc_IndexError, "chassis_sample: the wrist noise block is used up");
+            return NULL;
+        }
+        double *noise = F64(pl, CS_NOISE) + (*at) * 6 * wrists;
+        *at += 1;
+        if (*at >= rows)
+            flags |= 4; /* the noise block is used up: draw the next */
+        int64_t *soff = I64(pl, CS_STRAIN_OFF), *smp = I64(pl, CS_SAMPLE_OFF);
+        for (Py_ssize_t k = 0; k < wrists; k++) {
+            for (int i = 0; i < 6; i++) {
+                double v = noise[6 * k + i];
+                for (int m = 0; m < 6; m++)
+                    v += inv[36 * k + 6 * i + m] * w[6 * k + m];
+                v = nearbyint(v);
+                if (v > 8388607.0)
+                    v = 8388607.0;
+                else if (v < -8388608.0)
+                    v = -8388608.0;
+                st_i32(img + soff[k] + 4 * i, (int32_t)v);
+            }
+            st_u32(img + smp[k], ld_u32(img + smp[k]) + 1);
+        }
+    }
+    int64_t *stoff = I64(pl, CS_STEP_OFF);
+    uint64_t step = (uint64_t)I64(pl, CS_STEP)[0];
+    for (Py_ssize_t b = 0; b < pl->n[CS_STEP_OFF]; b++)
+        st_u64(img + stoff[b], step);
+    return PyLong_FromLong(flags);
+}
+
+/* -- the robot-level driver -- */
+
+static inline int64_t wrap24(int64_t d) { return ((d + (1 << 23)) & 0xFFFFFF) - (1 << 23); }
+
+/* The boards' snapshot -> robot units (see RobotDriver.read_feedback).
+ * state: [have_ref, prev_step (-1: none), step, coherent]; params:
+ * [jump_limit_rad_s (0: off), physics_hz, has_tach, has_torque, retry]:
+ * with retry != 0, a snapshot whose encoder boards come from different
+ * plant steps returns -1 at once (nothing decoded: take it again);
+ * out: [jump delta, jump limit, steps] of a refused counter change.
+ * Returns 0, or 1 + the joint whose counter jumped (nothing updated then). */
+static PyObject *driver_decode(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "driver_decode");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *img = U8(pl, DD_IMAGE);
+    Py_ssize_t n = pl->n[DD_Q];
+    int64_t *stoff = I64(pl, DD_STEP_OFF), *st = I64(pl, DD_STATE);
+    double *par = F64(pl, DD_PARAMS), *out = F64(pl, DD_OUT);
+    uint64_t lo = UINT64_MAX, hi = 0;
+    for (Py_ssize_t b = 0; b < pl->n[DD_STEP_OFF]; b++) {
+        uint64_t s = ld_u64(img + stoff[b]);
+        lo = s < lo ? s : lo;
+        hi = s > hi ? s : hi;
+    }
+    int64_t step = (int64_t)lo;
+    st[2] = step;
+    st[3] = lo == hi;
+    if (lo != hi && par[4] != 0)
+        return PyLong_FromLong(-1); /* boards of two plant steps: read again first */
+    int64_t *coff = I64(pl, DD_COUNTER_OFF), *raw = I64(pl, DD_RAW), *acc = I64(pl, DD_ACC);
+    double *cpr = F64(pl, DD_CPR), *qref = F64(pl, DD_QREF), *q = F64(pl, DD_Q);
+    int64_t now_raw[64];
+    if (n > 64) {
+        PyErr_SetString(PyExc_ValueError, "driver_decode: at most 64 joints");
+        return NULL;
+    }
+    for (Py_ssize_t j = 0; j < n; j++)
+        now_raw[j] = (int64_t)ld_u32(img + coff[j]);
+    if (!st[0]) {
+        for (Py_ssize_t j = 0; j < n; j++) {
+            int64_t s = now_raw[j] >= (1 << 23) ? now_raw[j] - (1 << 24) : now_raw[j];
+            qref[j] = (double)s / cpr[j];
+            acc[j] = 0;
+        }
+        st[0] = 1;
+    } else {
+        int64_t deltas[64];
+        for (Py_ssize_t j = 0; j < n; j++)
+            deltas[j] = wrap24(now_raw[j] - raw[j]);
+        if (par[0] > 0 && st[1] >= 0) {
+            int64_t steps = step - st[1];
+            if (steps < 1)
+                steps = 1;
+            for (Py_ssize_t j = 0; j < n; j++) {
+                double limit = par[0] * cpr[j] * (double)steps / par[1] + 2.0;
+                if (fabs((double)deltas[j]) > limit) {
+                    out[0] = (double)deltas[j];
+                    out[1] = limit;
+                    out[2] = (double)steps;
+                    return PyLong_FromLong((long)j + 1);
+                }
+            }
+        }
+        for (Py_ssize_t j = 0; j < n; j++)
+            acc[j] += deltas[j];
+    }
+    for (Py_ssize_t j = 0; j < n; j++) {
+        raw[j] = now_raw[j];
+        q[j] = qref[j] + (double)acc[j] / cpr[j];
+    }
+    /* latches: where each joint was at its last home edge */
+    int64_t *loff = I64(pl, DD_LATCH_OFF), *lcoff = I64(pl, DD_LCOUNT_OFF);
+    int64_t *leoff = I64(pl, DD_LEDGE_OFF);
+    uint8_t *lcount = U8(pl, DD_LCOUNT); /* uint32 each */
+    uint8_t *ledge = U8(pl, DD_LEDGE);
+    double *lq = F64(pl, DD_LATCH_Q);
+    for (Py_ssize_t j = 0; j < n; j++) {
+        int64_t back = wrap24((int64_t)ld_u32(img + loff[j]) - now_raw[j]);
+        lq[j] = q[j] + (double)back / cpr[j];
+        st_u32(lcount + 4 * j, ld_u32(img + lcoff[j]));
+        ledge[j] = img[leoff[j]];
+    }
+    /* speeds: tachometers, or the counters differentiated on the boards' clock */
+    double *qd = F64(pl, DD_QD), *prev_q = F64(pl, DD_PREV_Q);
+    if (par[2] != 0) {
+        int64_t *toff = I64(pl, DD_TACH_OFF);
+        double *ts = F64(pl, DD_TACH_SCALE);
+        for (Py_ssize_t j = 0; j < n; j++)
+            qd[j] = (double)ld_i16(img + toff[j]) * ts[j];
+    } else if (st[1] >= 0 && step > st[1]) {
+        double dt = (double)(step - st[1]) / par[1];
+        for (Py_ssize_t j = 0; j < n; j++)
+            qd[j] = (q[j] - prev_q[j]) / dt;
+    }
+    st[1] = step;
+    for (Py_ssize_t j = 0; j < n; j++)
+        prev_q[j] = q[j];
+    /* joint torques: torque sensors, or the DAC readback through the motor model */
+    double *tau = F64(pl, DD_TAU);
+    if (par[3] != 0) {
+        int64_t *toff = I64(pl, DD_TORQUE_OFF);
+        double *ts = F64(pl, DD_TORQUE_SCALE);
+        for (Py_ssize_t j = 0; j < n; j++)
+            tau[j] = (double)ld_i16(img + toff[j]) * ts[j];
+    } else {
+        int64_t *roff = I64(pl, DD_READBACK_OFF);
+        double *ds = F64(pl, DD_DAC_SCALE);
+        for (Py_ssize_t j = 0; j < n; j++)
+            tau[j] = (double)ld_i16(img + roff[j]) * ds[j];
+    }
+    int64_t *hw = I64(pl, DD_HOME_WORD), *hb = I64(pl, DD_HOME_BIT);
+    int64_t *bw = I64(pl, DD_BRAKE_WORD), *bb = I64(pl, DD_BRAKE_BIT);
+    uint8_t *home = U8(pl, DD_HOME), *brakes = U8(pl, DD_BRAKES);
+    for (Py_ssize_t j = 0; j < n; j++) {
+        home[j] = (ld_u32(img + hw[j]) >> hb[j]) & 1u;
+        brakes[j] = ((ld_u32(img + bw[j]) >> bb[j]) & 1u) == 0;
+    }
+    double *w = F64(pl, DD_WRENCH);
+    int64_t soff = I64(pl, DD_STRAIN_OFF)[0], caloff = I64(pl, DD_CAL_OFF)[0];
+    if (soff >= 0) {
+        for (int i = 0; i < 6; i++) {
+            double v = 0.0;
+            for (int k = 0; k < 6; k++)
+                v += (double)ld_f32(img + caloff + 4 * (6 * i + k)) *
+                     (double)ld_i32(img + soff + 4 * k);
+            w[i] = v;
+        }
+    } else {
+        for (int i = 0; i < 6; i++)
+            w[i] = 0.0;
+    }
+    return PyLong_FromLong(0);
+}
+
+/* Joint torques -> DAC codes (rounded, saturated) in the DAC boards' out
+ * banks. Returns 0, or 1 + the first joint whose torque is not finite
+ * (nothing is written then). */
+static PyObject *driver_dac(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "driver_dac");
+    if (pl == NULL)
+        return NULL;
+    uint8_t *img = U8(pl, DT_IMAGE);
+    double *tau = F64(pl, DT_TAU), *vpn = F64(pl, DT_VOLTS_PER_NM);
+    int64_t *off = I64(pl, DT_CODE_OFF);
+    Py_ssize_t n = pl->n[DT_TAU];
+    for (Py_ssize_t j = 0; j < n; j++)
+        if (!isfinite(tau[j]))
+            return PyLong_FromLong((long)j + 1);
+    for (Py_ssize_t j = 0; j < n; j++) {
+        double v = nearbyint(tau[j] * vpn[j] * 204.8); /* 2048 codes per 10 V */
+        if (v > 2047.0)
+            v = 2047.0;
+        else if (v < -2048.0)
+            v = -2048.0;
+        st_i16(img + off[j], (int16_t)v);
+    }
+    return PyLong_FromLong(0);
+}
+
+/* -- the sender's safety guard -- */
+
+static inline double ld_f64(const uint8_t *p) { double v; memcpy(&v, p, 8); return v; }
+
+/* One command, prepared and screened (see esc/sender.py):
+ * on[j]: the joint is under control (src joint_on, none once the session
+ * status says finished: src_off[2] >= 0 and status == 2); tau[j]: its
+ * commanded torque (0 for a joint off, NaN or not); a trace row (cycle
+ * trace_at[1], the boards' step, q, qd, tau, tau commanded) at row
+ * trace_at[0] % rows, trace_at[0] += 1. fb_off: offsets of q, qd, tau,
+ * wrench in the feedback record; src_off: of the torques, joints on and
+ * session status (-1: none) in the command; limits: qd_max[7], tau_max[7],
+ * force_max, moment_max.
+ * Returns bit 1: a figure is not finite or over its limit (the guard's
+ * check decides what); bit 2: the joints on differ from ``released``. */
+static PyObject *guard_prepare(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "guard_prepare");
+    if (pl == NULL)
+        return NULL;
+    const uint8_t *fb = U8(pl, GP_FB), *src = U8(pl, GP_SRC), *home = U8(pl, GP_HOME);
+    int64_t *fo = I64(pl, GP_FB_OFF), *so = I64(pl, GP_SRC_OFF), *at = I64(pl, GP_TRACE_AT);
+    double *lim = F64(pl, GP_LIMITS), *tau = F64(pl, GP_TAU), *trace = F64(pl, GP_TRACE);
+    uint8_t *on = U8(pl, GP_ON), *released = U8(pl, GP_RELEASED);
+    Py_ssize_t rows = pl->n[GP_TRACE] / 30;
+    int finished = so[2] >= 0 && src[so[2]] == 2;
+    long flags = 0;
+    double *row = trace + 30 * (at[0] % rows);
+    at[0] += 1;
+    row[0] = (double)at[1];
+    row[1] = (double)ld_u64(home + I64(pl, GP_HOME_OFF)[0]);
+    for (int j = 0; j < 7; j++) {
+        double q = ld_f64(fb + fo[0] + 8 * j), qd = ld_f64(fb + fo[1] + 8 * j);
+        double t = ld_f64(fb + fo[2] + 8 * j);
+        on[j] = !finished && src[so[1] + j] != 0;
+        double c = on[j] ? ld_f64(src + so[0] + 8 * j) : 0.0;
+        tau[j] = c;
+        row[2 + j] = q;
+        row[9 + j] = qd;
+        row[16 + j] = t;
+        row[23 + j] = c;
+        if (!isfinite(q) || !isfinite(qd) || !isfinite(t) || !isfinite(c))
+            flags |= 1;
+        if (fabs(qd) > lim[j] || fabs(t) > lim[7 + j] || fabs(c) > lim[7 + j])
+            flags |= 1;
+        if (on[j] != released[j])
+            flags |= 2;
+    }
+    double w[6];
+    for (int i = 0; i < 6; i++) {
+        w[i] = ld_f64(fb + fo[3] + 8 * i);
+        if (!isfinite(w[i]))
+            flags |= 1;
+    }
+    if (sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) > lim[14] ||
+        sqrt(w[3] * w[3] + w[4] * w[4] + w[5] * w[5]) > lim[15])
+        flags |= 1;
+    return PyLong_FromLong(flags);
+}
+
+/* -- PyBullet's joint states, unpacked -- */
+
+/* states: the list getJointStates returns (position, velocity, reaction,
+ * applied torque per joint); into q, qd, applied from index ``at``. */
+static PyObject *unpack_states(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "unpack_states(states, q, qd, applied, at)");
+        return NULL;
+    }
+    PyObject *states = args[0];
+    Py_ssize_t at = PyLong_AsSsize_t(args[4]);
+    if (at < 0 && PyErr_Occurred())
+        return NULL;
+    Py_buffer v[3];
+    int got = 0;
+    PyObject *result = NULL;
+    for (; got < 3; got++)
+        if (PyObject_GetBuffer(args[1 + got], &v[got], PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
+            goto done;
+    PyObject *seq = PySequence_Fast(states, "states must be a sequence");
+    if (seq == NULL)
+        goto done;
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    for (int k = 0; k < 3; k++)
+        if (v[k].itemsize != 8 || v[k].len / 8 < at + n) {
+            PyErr_SetString(PyExc_ValueError, "unpack_states: arrays of float64, long enough");
+            Py_DECREF(seq);
+            goto done;
+        }
+    for (Py_ssize_t j = 0; j < n; j++) {
+        PyObject *s = PySequence_Fast_GET_ITEM(seq, j);
+        if (!PyTuple_Check(s) || PyTuple_GET_SIZE(s) < 4) {
+            PyErr_SetString(PyExc_TypeError, "unpack_states: a joint state is a 4-tuple");
+            Py_DECREF(seq);
+            goto done;
+        }
+        ((double *)v[0].buf)[at + j] = PyFloat_AsDouble(PyTuple_GET_ITEM(s, 0));
+        ((double *)v[1].buf)[at + j] = PyFloat_AsDouble(PyTuple_GET_ITEM(s, 1));
+        ((double *)v[2].buf)[at + j] = PyFloat_AsDouble(PyTuple_GET_ITEM(s, 3));
+    }
+    Py_DECREF(seq);
+    if (!PyErr_Occurred()) {
+        Py_INCREF(Py_None);
+        result = Py_None;
+    }
+done:
+    for (int k = 0; k < got; k++)
+        PyBuffer_Release(&v[k]);
+    return result;
+}
+
+/* -- introspection -- */
+
+static PyObject *signature(PyObject *mod, PyObject *arg) {
+    const char *name = PyUnicode_AsUTF8(arg);
+    if (name == NULL)
+        return NULL;
+    int k = find_signature(name);
+    if (k < 0) {
+        PyErr_Format(PyExc_ValueError, "no kernel %s", name);
+        return NULL;
+    }
+    const Signature *sig = &SIGNATURES[k];
+    PyObject *out = PyTuple_New(sig->nargs);
+    if (out == NULL)
+        return NULL;
+    for (int i = 0; i < sig->nargs; i++) {
+        char t[2] = {sig->args[i].type, 0};
+        PyObject *pair = Py_BuildValue("(ss)", sig->args[i].name, t);
+        if (pair == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(out, i, pair);
+    }
+    return out;
+}
+
+static PyMethodDef METHODS[] = {
+    {"copy", copy, METH_O, "Copy many byte ranges from one buffer to another."},
+    {"seq_read", seq_read, METH_O, "Consistent copies of many seqlocked blocks."},
+    {"seq_write", seq_write, METH_O, "Publish many seqlocked blocks."},
+    {"chassis_apply", chassis_apply, METH_O, "The chassis: outputs -> joints."},
+    {"chassis_sample", chassis_sample, METH_O, "The chassis: joints -> boards."},
+    {"driver_decode", driver_decode, METH_O, "The driver: boards -> robot units."},
+    {"driver_dac", driver_dac, METH_O, "The driver: torques -> DAC codes."},
+    {"guard_prepare", guard_prepare, METH_O, "The sender: a command prepared and screened."},
+    {"unpack_states", (PyCFunction)(void (*)(void))unpack_states, METH_FASTCALL,
+     "PyBullet joint states -> q, qd, applied torque."},
+    {"signature", signature, METH_O, "A kernel's arguments: ((name, type), ...)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef MODULE = {
+    PyModuleDef_HEAD_INIT, "redistro._kernels",
+    "The per-cycle arithmetic of the I/O paths, fused (see the C source).", -1, METHODS,
+    NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__kernels(void) {
+    if (PyType_Ready(&PlanType) < 0)
+        return NULL;
+    PyObject *m = PyModule_Create(&MODULE);
+    if (m == NULL)
+        return NULL;
+    Py_INCREF(&PlanType);
+    if (PyModule_AddObject(m, "Plan", (PyObject *)&PlanType) < 0) {
+        Py_DECREF(&PlanType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}
