@@ -121,6 +121,8 @@ static const Signature SIGNATURES[] = {
           {"latch_edge", 'B'}, {"latch_q", 'd'}, {"out", 'd'})},
     {"driver_dac",
      ARGS({"image", 'B'}, {"tau", 'd'}, {"volts_per_nm", 'd'}, {"code_off", 'q'})},
+    {"cartesian_law",
+     ARGS({"kin", 'd'}, {"ref", 'd'}, {"cmd", 'd'}, {"gains", 'd'}, {"state", 'd'}, {"out", 'd'})},
     {"guard_prepare",
      ARGS({"fb", 'B'}, {"fb_off", 'q'}, {"src", 'B'}, {"src_off", 'q'}, {"home", 'B'},
           {"home_off", 'q'}, {"limits", 'd'}, {"on", 'B'}, {"released", 'B'}, {"tau", 'd'},
@@ -682,6 +684,468 @@ static PyObject *guard_prepare(PyObject *mod, PyObject *arg) {
     return PyLong_FromLong(flags);
 }
 
+/* -- the SSC's Cartesian law (see control/cartesian.py: the reference) -- */
+
+/* row-major 3x3 helpers */
+static void m3_mul(const double *a, const double *b, double *out) {
+    double t[9];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            t[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+    memcpy(out, t, sizeof t);
+}
+static void m3_mul_bt(const double *a, const double *b, double *out) { /* a @ b.T */
+    double t[9];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            t[3 * i + j] = a[3 * i] * b[3 * j] + a[3 * i + 1] * b[3 * j + 1] + a[3 * i + 2] * b[3 * j + 2];
+    memcpy(out, t, sizeof t);
+}
+static void m3_vec(const double *a, const double *v, double *out) {
+    double t[3];
+    for (int i = 0; i < 3; i++)
+        t[i] = a[3 * i] * v[0] + a[3 * i + 1] * v[1] + a[3 * i + 2] * v[2];
+    memcpy(out, t, sizeof t);
+}
+static void m3t_vec(const double *a, const double *v, double *out) { /* a.T @ v */
+    double t[3];
+    for (int i = 0; i < 3; i++)
+        t[i] = a[i] * v[0] + a[3 + i] * v[1] + a[6 + i] * v[2];
+    memcpy(out, t, sizeof t);
+}
+
+static void rotvec_to_matrix(const double *r, double *R) {
+    double x = r[0], y = r[1], z = r[2];
+    double angle = sqrt(x * x + y * y + z * z);
+    if (angle < 1e-12) {
+        static const double I[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+        memcpy(R, I, sizeof I);
+        return;
+    }
+    x /= angle, y /= angle, z /= angle;
+    double s = sin(angle), c = cos(angle), v = 1.0 - c;
+    R[0] = c + x * x * v, R[1] = x * y * v - z * s, R[2] = x * z * v + y * s;
+    R[3] = y * x * v + z * s, R[4] = c + y * y * v, R[5] = y * z * v - x * s;
+    R[6] = z * x * v - y * s, R[7] = z * y * v + x * s, R[8] = c + z * z * v;
+}
+
+static void matrix_to_rotvec(const double *R, double *r) {
+    double c = (R[0] + R[4] + R[8] - 1.0) / 2.0;
+    c = c > 1.0 ? 1.0 : (c < -1.0 ? -1.0 : c);
+    double angle = acos(c);
+    double wx = R[7] - R[5], wy = R[2] - R[6], wz = R[3] - R[1];
+    if (angle < 1e-9) {
+        r[0] = 0.5 * wx, r[1] = 0.5 * wy, r[2] = 0.5 * wz;
+        return;
+    }
+    if (M_PI - angle < 1e-6) { /* near pi: the axis from the symmetric part */
+        double M[9];
+        for (int i = 0; i < 9; i++)
+            M[i] = (R[i] + (i % 4 == 0 ? 1.0 : 0.0)) / 2.0;
+        double ax[3];
+        int k = 0;
+        for (int i = 0; i < 3; i++) {
+            ax[i] = sqrt(M[4 * i] > 0 ? M[4 * i] : 0.0);
+            if (ax[i] > ax[k])
+                k = i;
+        }
+        double d = ax[k] > 1e-12 ? ax[k] : 1e-12;
+        double a[3] = {M[k] / d, M[3 + k] / d, M[6 + k] / d};
+        double n = sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+        for (int i = 0; i < 3; i++)
+            r[i] = a[i] / n * angle;
+        return;
+    }
+    double scale = angle / (2.0 * sin(angle));
+    r[0] = wx * scale, r[1] = wy * scale, r[2] = wz * scale;
+}
+
+/* symmetric 3x3 eigen-decomposition (cyclic Jacobi): A = V diag(w) V^T */
+static void eig3(const double *A, double *w, double *V) {
+    double a[9];
+    memcpy(a, A, sizeof a);
+    static const double I[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+    memcpy(V, I, sizeof I);
+    for (int sweep = 0; sweep < 50; sweep++) {
+        double off = a[1] * a[1] + a[2] * a[2] + a[5] * a[5];
+        if (off < 1e-30 * (a[0] * a[0] + a[4] * a[4] + a[8] * a[8]) || off == 0.0)
+            break;
+        for (int p = 0; p < 2; p++)
+            for (int q = p + 1; q < 3; q++) {
+                double apq = a[3 * p + q];
+                if (apq == 0.0)
+                    continue;
+                double theta = (a[3 * q + q] - a[3 * p + p]) / (2.0 * apq);
+                double t = (theta >= 0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+                double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
+                for (int k = 0; k < 3; k++) { /* a = J^T a J */
+                    double akp = a[3 * k + p], akq = a[3 * k + q];
+                    a[3 * k + p] = c * akp - s * akq;
+                    a[3 * k + q] = s * akp + c * akq;
+                }
+                for (int k = 0; k < 3; k++) {
+                    double apk = a[3 * p + k], aqk = a[3 * q + k];
+                    a[3 * p + k] = c * apk - s * aqk;
+                    a[3 * q + k] = s * apk + c * aqk;
+                }
+                for (int k = 0; k < 3; k++) {
+                    double vkp = V[3 * k + p], vkq = V[3 * k + q];
+                    V[3 * k + p] = c * vkp - s * vkq;
+                    V[3 * k + q] = s * vkp + c * vkq;
+                }
+            }
+    }
+    w[0] = a[0], w[1] = a[4], w[2] = a[8];
+}
+
+/* V diag(f) V^T */
+static void from_eig3(const double *V, const double *f, double *out) {
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            out[3 * i + j] = V[3 * i] * f[0] * V[3 * j] + V[3 * i + 1] * f[1] * V[3 * j + 1] +
+                             V[3 * i + 2] * f[2] * V[3 * j + 2];
+}
+
+/* D = 2 zeta L^1/2 (L^-1/2 K L^-1/2)^1/2 L^1/2 (see damping_matrix) */
+static void damping3(const double *lam, const double *k, double zeta, double *D) {
+    double w[3], V[9], fs[3], fi[3], half[9], inv_half[9], B[9], t[9];
+    eig3(lam, w, V);
+    for (int i = 0; i < 3; i++) {
+        double x = w[i] > 1e-9 ? w[i] : 1e-9;
+        fs[i] = sqrt(x), fi[i] = 1.0 / sqrt(x);
+    }
+    from_eig3(V, fs, half);
+    from_eig3(V, fi, inv_half);
+    for (int i = 0; i < 3; i++) /* inv_half diag(k) inv_half */
+        for (int j = 0; j < 3; j++)
+            t[3 * i + j] = inv_half[3 * i + j] * k[j];
+    m3_mul(t, inv_half, B);
+    double aw[3], aV[9], af[3], ah[9];
+    eig3(B, aw, aV);
+    for (int i = 0; i < 3; i++)
+        af[i] = sqrt(aw[i] > 0 ? aw[i] : 0.0);
+    from_eig3(aV, af, ah);
+    m3_mul(half, ah, t);
+    m3_mul(t, half, D);
+    for (int i = 0; i < 9; i++)
+        D[i] *= 2.0 * zeta;
+}
+
+/* Cholesky of an n x n SPD matrix (row-major, lower L); 0 if not positive */
+static int cholesky(const double *A, double *L, int n) {
+    memset(L, 0, sizeof(double) * n * n);
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j <= i; j++) {
+            double s = A[n * i + j];
+            for (int k = 0; k < j; k++)
+                s -= L[n * i + k] * L[n * j + k];
+            if (i == j) {
+                if (!(s > 0))
+                    return 0;
+                L[n * i + i] = sqrt(s);
+            } else
+                L[n * i + j] = s / L[n * j + j];
+        }
+    return 1;
+}
+
+/* solve L L^T x = b in place (b: n values) */
+static void chol_solve(const double *L, double *b, int n) {
+    for (int i = 0; i < n; i++) {
+        double s = b[i];
+        for (int k = 0; k < i; k++)
+            s -= L[n * i + k] * b[k];
+        b[i] = s / L[n * i + i];
+    }
+    for (int i = n - 1; i >= 0; i--) {
+        double s = b[i];
+        for (int k = i + 1; k < n; k++)
+            s -= L[n * k + i] * b[k];
+        b[i] = s / L[n * i + i];
+    }
+}
+
+/* inverse of an SPD matrix through its Cholesky factor */
+static int spd_inverse(const double *A, double *out, int n) {
+    double L[36], e[6];
+    if (!cholesky(A, L, n))
+        return 0;
+    for (int j = 0; j < n; j++) {
+        for (int i = 0; i < n; i++)
+            e[i] = i == j ? 1.0 : 0.0;
+        chol_solve(L, e, n);
+        for (int i = 0; i < n; i++)
+            out[n * i + j] = e[i];
+    }
+    return 1;
+}
+
+static inline double clampd(double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); }
+
+enum { CL_KIN, CL_REF, CL_CMD, CL_GAINS, CL_STATE, CL_OUT };
+
+/* One cycle of the Cartesian law of one arm: its TCP from the tool frame,
+ * the reference pose and speeds of the segment's quintic, the task-space
+ * inertia, hybrid position/force control (see hybrid_update). The buffers'
+ * layouts are in control/cartesian.py (CartesianLaw). Returns 0, or 1 when
+ * the joint-space inertia is not positive definite (nothing written). */
+static PyObject *cartesian_law(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "cartesian_law");
+    if (pl == NULL)
+        return NULL;
+    double *kin = F64(pl, CL_KIN), *ref = F64(pl, CL_REF), *cmd = F64(pl, CL_CMD);
+    double *gn = F64(pl, CL_GAINS), *st = F64(pl, CL_STATE), *out = F64(pl, CL_OUT);
+    const double *J0 = kin, *R = kin + 42, *ft = kin + 51, *Mu = kin + 54, *g = kin + 103;
+    const double *q = kin + 110, *qd = kin + 117, *wr = kin + 124;
+    double seg_t = kin[130], dt = kin[131], t_s = kin[132];
+    int integrate = kin[133] != 0;
+    const double *sel = cmd, *goal_w = cmd + 6, *q_null = cmd + 12;
+    const double *k = gn, *dgain = gn + 6, *ki = gn + 12, *imax = gn + 18, *k_null = gn + 24;
+    const double *d_joint = gn + 31;
+    double zeta = gn[38], k_adm = gn[39], k_adm_rot = gn[40], v_max = gn[41], w_max = gn[42];
+    double a_max = gn[43], alpha_max = gn[44], contact_n = gn[45], ramp_s = gn[46];
+    double tcp_off = gn[47];
+    const double *base = gn + 48;
+    double *Rt = st, *xi = st + 9, *xi_v = st + 15, *a_st = st + 21, *integral = st + 27;
+    int i, j, c;
+
+    /* the TCP: the tool's far end on its z axis; J from the tool frame to the TCP */
+    double sensor[3], r[3], p[3], J[42];
+    for (i = 0; i < 3; i++) {
+        sensor[i] = ft[i] + base[i];
+        r[i] = R[3 * i + 2] * tcp_off;
+        p[i] = sensor[i] + r[i];
+    }
+    memcpy(J, J0, sizeof J);
+    for (c = 0; c < 7; c++) { /* v_tcp = v_tool + w x r: J_lin -= [r]x J_ang */
+        double wx = J0[21 + c], wy = J0[28 + c], wz = J0[35 + c];
+        J[c] -= r[1] * wz - r[2] * wy;
+        J[7 + c] -= r[2] * wx - r[0] * wz;
+        J[14 + c] -= r[0] * wy - r[1] * wx;
+    }
+
+    /* the reference: quintic in position, the same blend about one axis in rotation */
+    const double *start_p = ref, *goal_p = ref + 3, *start_R = ref + 6, *goal_R = ref + 15;
+    const double *axis = ref + 24;
+    double move_s = ref[27];
+    double s = clampd(seg_t / move_s, 0.0, 1.0), s2 = s * s, s3 = s2 * s;
+    double pos = 10 * s3 - 15 * s3 * s + 6 * s3 * s2;
+    double vel = (30 * s2 - 60 * s3 + 30 * s2 * s2) / move_s;
+    double acc = (60 * s - 180 * s2 + 120 * s3) / (move_s * move_s);
+    double p_ref[3], v_ref[6], a_ref[6], R_ref[9], rel[9], rv[3], Rs[9];
+    for (i = 0; i < 3; i++) {
+        double d = goal_p[i] - start_p[i];
+        p_ref[i] = start_p[i] + d * pos;
+        v_ref[i] = d * vel;
+        a_ref[i] = d * acc;
+    }
+    m3_mul_bt(goal_R, start_R, rel);
+    matrix_to_rotvec(rel, rv);
+    for (i = 0; i < 3; i++)
+        rv[i] *= pos;
+    rotvec_to_matrix(rv, Rs);
+    m3_mul(Rs, start_R, R_ref);
+    double sd = s < 1.0 ? vel : 0.0, sdd = s < 1.0 ? acc : 0.0;
+    for (i = 0; i < 3; i++) {
+        v_ref[3 + i] = axis[i] * sd;
+        a_ref[3 + i] = axis[i] * sdd;
+    }
+
+    /* task-space inertia: Lambda = (J M^-1 J^T)^-1, its translational part,
+     * the dynamically consistent null-space projector */
+    double M[49], L7[49], MinvJt[42], A[36], lam[36], A3[9], lam_lin[9], N[49];
+    for (i = 0; i < 7; i++)
+        for (j = 0; j < 7; j++)
+            M[7 * i + j] = j >= i ? Mu[7 * i + j] : Mu[7 * j + i];
+    if (!cholesky(M, L7, 7))
+        return PyLong_FromLong(1);
+    for (c = 0; c < 6; c++) {
+        double col[7];
+        for (i = 0; i < 7; i++)
+            col[i] = J[7 * c + i];
+        chol_solve(L7, col, 7);
+        for (i = 0; i < 7; i++)
+            MinvJt[6 * i + c] = col[i];
+    }
+    for (i = 0; i < 6; i++)
+        for (j = 0; j < 6; j++) {
+            double v = 0;
+            for (c = 0; c < 7; c++)
+                v += J[7 * i + c] * MinvJt[6 * c + j];
+            A[6 * i + j] = v + (i == j ? 1e-6 : 0.0);
+        }
+    for (i = 0; i < 6; i++) /* symmetric up to rounding: take the mean */
+        for (j = i + 1; j < 6; j++)
+            A[6 * i + j] = A[6 * j + i] = 0.5 * (A[6 * i + j] + A[6 * j + i]);
+    if (!spd_inverse(A, lam, 6))
+        return PyLong_FromLong(1);
+    for (i = 0; i < 3; i++)
+        for (j = 0; j < 3; j++)
+            A3[3 * i + j] = A[6 * i + j];
+    if (!spd_inverse(A3, lam_lin, 3))
+        return PyLong_FromLong(1);
+    {
+        double LMt[42]; /* lam @ MinvJt^T: 6 x 7 */
+        for (i = 0; i < 6; i++)
+            for (c = 0; c < 7; c++) {
+                double v = 0;
+                for (j = 0; j < 6; j++)
+                    v += lam[6 * i + j] * MinvJt[6 * c + j];
+                LMt[7 * i + c] = v;
+            }
+        for (i = 0; i < 7; i++)
+            for (c = 0; c < 7; c++) {
+                double v = 0;
+                for (j = 0; j < 6; j++)
+                    v += J[7 * j + i] * LMt[7 * j + c];
+                N[7 * i + c] = (i == c ? 1.0 : 0.0) - v;
+            }
+    }
+
+    /* the wrench the tool applies, task axes, moment about the TCP */
+    double f_w[3], m_w[3], applied[6], app_task[6];
+    m3_vec(R, wr, f_w);
+    m3_vec(R, wr + 3, m_w);
+    {
+        double rr[3] = {p[0] - sensor[0], p[1] - sensor[1], p[2] - sensor[2]};
+        double m_tcp[3] = {m_w[0] - (rr[1] * f_w[2] - rr[2] * f_w[1]),
+                           m_w[1] - (rr[2] * f_w[0] - rr[0] * f_w[2]),
+                           m_w[2] - (rr[0] * f_w[1] - rr[1] * f_w[0])};
+        for (i = 0; i < 3; i++) {
+            applied[i] = -f_w[i];
+            applied[3 + i] = -m_tcp[i];
+        }
+    }
+    m3t_vec(Rt, applied, app_task);
+    m3t_vec(Rt, applied + 3, app_task + 3);
+
+    /* force axes: contact, the goal's ramp, the admittance on the reference */
+    int any_force = 0;
+    for (i = 0; i < 6; i++)
+        any_force |= sel[i] != 0;
+    if (any_force) {
+        double fx = sel[0] * app_task[0], fy = sel[1] * app_task[1], fz = sel[2] * app_task[2];
+        if (st[33] == 0 && sqrt(fx * fx + fy * fy + fz * fz) >= contact_n) {
+            st[33] = 1;
+            st[34] = t_s;
+        }
+        if (st[33] != 0) {
+            double ramp = st[35] + dt / (ramp_s > 1e-9 ? ramp_s : 1e-9);
+            st[35] = ramp < 1.0 ? ramp : 1.0;
+        }
+        for (i = 0; i < 6; i++) {
+            double err = goal_w[i] - app_task[i];
+            double want = i < 3 ? clampd(k_adm * err, -v_max, v_max)
+                                : clampd(k_adm_rot * err, -w_max, w_max);
+            double dv = (i < 3 ? a_max : alpha_max) * dt;
+            double before = xi_v[i];
+            xi_v[i] = sel[i] * (xi_v[i] + clampd(want - xi_v[i], -dv, dv));
+            a_st[i] = (xi_v[i] - before) / (dt > 1e-9 ? dt : 1e-9);
+            xi[i] += xi_v[i] * dt;
+        }
+    }
+
+    /* the reference pose: position axes from the trajectory, force axes offset by xi */
+    double p_task[3], p_goal[3], R_goal[9], sx[3], rvx[3], Rx[9];
+    m3t_vec(Rt, p_ref, p_task);
+    for (i = 0; i < 3; i++)
+        if (sel[i] > 0)
+            p_task[i] += xi[i];
+    m3_vec(Rt, p_task, p_goal);
+    for (i = 0; i < 3; i++)
+        sx[i] = sel[3 + i] * xi[3 + i];
+    m3_vec(Rt, sx, rvx);
+    rotvec_to_matrix(rvx, Rx);
+    m3_mul(Rx, R_ref, R_goal);
+    double e[6], Rerr[9];
+    for (i = 0; i < 3; i++)
+        e[i] = p_goal[i] - p[i];
+    m3_mul_bt(R_goal, R, Rerr);
+    matrix_to_rotvec(Rerr, e + 3);
+
+    /* speeds: the TCP's, and the reference's on the position axes */
+    double v[6], vt[6], v_goal[6], ones[6], pm[6];
+    for (i = 0; i < 6; i++) {
+        double x = 0;
+        for (c = 0; c < 7; c++)
+            x += J[7 * i + c] * qd[c];
+        v[i] = x;
+    }
+    m3t_vec(Rt, v_ref, vt);
+    m3t_vec(Rt, v_ref + 3, vt + 3);
+    for (i = 0; i < 6; i++) {
+        vt[i] *= 1.0 - sel[i];
+        ones[i] = 1.0 - sel[i];
+    }
+    m3_vec(Rt, vt, v_goal);
+    m3_vec(Rt, vt + 3, v_goal + 3);
+    m3_vec(Rt, ones, pm);
+    m3_vec(Rt, ones + 3, pm + 3);
+
+    /* integral action on the position-controlled axes only */
+    if (integrate)
+        for (i = 0; i < 6; i++) {
+            double lim = ki[i] > 0 ? imax[i] / ki[i] : 0.0;
+            double mask = fabs(pm[i]) > 0.5 ? 1.0 : 0.0;
+            integral[i] = clampd(integral[i] + e[i] * dt * mask, -lim, lim);
+        }
+    double dvv[6], damp[6], F[6];
+    for (i = 0; i < 6; i++) {
+        dvv[i] = v_goal[i] - v[i];
+        damp[i] = dgain[i] * dvv[i];
+    }
+    if (zeta > 0) {
+        double D[9];
+        damping3(lam_lin, k, zeta, D);
+        m3_vec(D, dvv, damp);
+    }
+    for (i = 0; i < 6; i++)
+        F[i] = k[i] * e[i] + damp[i] + ki[i] * integral[i];
+    { /* the goal wrench, ramped in after contact */
+        double gw[6], rg[6];
+        for (i = 0; i < 6; i++)
+            gw[i] = sel[i] * st[35] * goal_w[i];
+        m3_vec(Rt, gw, rg);
+        m3_vec(Rt, gw + 3, rg + 3);
+        for (i = 0; i < 6; i++)
+            F[i] += rg[i];
+    }
+    { /* inertia feedforward of the reference's acceleration */
+        double at[6], aw[6];
+        m3t_vec(Rt, a_ref, at);
+        m3t_vec(Rt, a_ref + 3, at + 3);
+        for (i = 0; i < 6; i++)
+            at[i] = at[i] * (1.0 - sel[i]) + sel[i] * a_st[i];
+        m3_vec(Rt, at, aw);
+        m3_vec(Rt, at + 3, aw + 3);
+        for (i = 0; i < 6; i++) {
+            double x = 0;
+            for (j = 0; j < 6; j++)
+                x += lam[6 * i + j] * aw[j];
+            F[i] += x;
+        }
+    }
+    double post[7];
+    for (c = 0; c < 7; c++)
+        post[c] = k_null[c] * (q_null[c] - q[c]);
+    for (c = 0; c < 7; c++) {
+        double x = g[c] - d_joint[c] * qd[c];
+        for (i = 0; i < 6; i++)
+            x += J[7 * i + c] * F[i];
+        for (j = 0; j < 7; j++)
+            x += N[7 * c + j] * post[j];
+        out[c] = x;
+    }
+    for (i = 0; i < 6; i++)
+        out[7 + i] = app_task[i];
+    for (i = 0; i < 3; i++) {
+        out[13 + i] = p[i];
+        out[19 + i] = p_ref[i];
+    }
+    matrix_to_rotvec(R, out + 16);
+    return PyLong_FromLong(0);
+}
+
 /* -- PyBullet's joint states, unpacked -- */
 
 /* states: the list getJointStates returns (position, velocity, reaction,
@@ -768,6 +1232,7 @@ static PyMethodDef METHODS[] = {
     {"chassis_sample", chassis_sample, METH_O, "The chassis: joints -> boards."},
     {"driver_decode", driver_decode, METH_O, "The driver: boards -> robot units."},
     {"driver_dac", driver_dac, METH_O, "The driver: torques -> DAC codes."},
+    {"cartesian_law", cartesian_law, METH_O, "The SSC: one arm's Cartesian law, one cycle."},
     {"guard_prepare", guard_prepare, METH_O, "The sender: a command prepared and screened."},
     {"unpack_states", (PyCFunction)(void (*)(void))unpack_states, METH_FASTCALL,
      "PyBullet joint states -> q, qd, applied torque."},

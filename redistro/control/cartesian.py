@@ -299,3 +299,198 @@ def hybrid_update(
         N = np.eye(7) - J.T @ pinvT
     tau: F64 = J.T @ F + gravity_nm + N @ (gains.k_null * (q_null - q)) - gains.d_joint * qd
     return tau, applied
+
+
+class CartesianLaw:
+    """One arm's Cartesian law, cycle after cycle: the TCP from the tool
+    frame, the segment's reference (a quintic in position, the same blend
+    about one axis in rotation), the task-space inertia and
+    :func:`hybrid_update`, in one compiled kernel call
+    (``redistro._kernels.cartesian_law``) on preallocated buffers; the same
+    composed from this module's functions (``use_kernel=False``) is its
+    reference. Buffers (float64, filled in place):
+
+    - ``kin``: the rigid-body terms of this cycle: J (6x7, the tool frame's
+      Jacobian, LOCAL_WORLD_ALIGNED), R (3x3) and t (3) of the tool frame,
+      M (7x7, upper triangle as CRBA leaves it), g (7), q, qd (7), the
+      wrist wrench (6, sensor frame), then seg_t, dt, t (task) [s] and
+      integrate (0/1);
+    - ``ref``: start_p (3), goal_p (3), start_R (3x3), goal_R (3x3), the
+      rotation's axis (rotation vector of goal_R start_R^T), move_s;
+    - ``cmd``: selection (6), goal wrench (6), q_null (7);
+    - ``gains``: k, d, ki, i_max (6 each), k_null, d_joint (7 each), zeta,
+      the force parameters (8), the TCP offset [m], the base (3);
+    - ``state``: R_task (3x3), xi, xi_v, a_ref, integral (6 each), contact,
+      contact_t, ramp (what :class:`HybridState` holds);
+    - ``out``: tau (7), the applied wrench in task axes (6), TCP position
+      (3), TCP rotation vector (3), the position reference (3).
+    """
+
+    def __init__(
+        self,
+        gains: ImpedanceGains,
+        force: ForceParams,
+        tcp_offset_m: float,
+        base_xyz_m: F64,
+        *,
+        use_kernel: bool | None = None,
+    ) -> None:
+        from redistro import kernels
+
+        self.kin = np.zeros(134)
+        self.ref = np.zeros(28)
+        self.cmd = np.zeros(19)
+        self.gains = np.zeros(51)
+        self.state = np.zeros(36)
+        self.out = np.zeros(22)
+        g = self.gains
+        g[0:6], g[6:12], g[12:18], g[18:24] = gains.k, gains.d, gains.ki, gains.i_max
+        g[24:31], g[31:38], g[38] = gains.k_null, gains.d_joint, gains.zeta
+        g[39:47] = (
+            force.k_adm,
+            force.k_adm_rot,
+            force.v_max,
+            force.w_max,
+            force.a_max,
+            force.alpha_max,
+            force.contact_n,
+            force.ramp_s,
+        )
+        g[47], g[48:51] = tcp_offset_m, base_xyz_m
+        self.impedance, self.force, self.tcp_offset = gains, force, tcp_offset_m
+        self.base = np.asarray(base_xyz_m, dtype=np.float64)
+        k = self.kin
+        self.J, self.R, self.t = k[0:42].reshape(6, 7), k[42:51].reshape(3, 3), k[51:54]
+        self.M, self.g = k[54:103].reshape(7, 7), k[103:110]
+        self.q, self.qd, self.wrench = k[110:117], k[117:124], k[124:130]
+        self.tau, self.applied = self.out[0:7], self.out[7:13]
+        self.tcp_p, self.tcp_rot, self.ref_p = self.out[13:16], self.out[16:19], self.out[19:22]
+        self.use_kernel = kernels.AVAILABLE if use_kernel is None else use_kernel
+        self._run: Any = self._update_numpy
+        if self.use_kernel:
+            plan = kernels.plan(
+                "cartesian_law",
+                kin=self.kin,
+                ref=self.ref,
+                cmd=self.cmd,
+                gains=self.gains,
+                state=self.state,
+                out=self.out,
+            )
+            law = kernels.KERNELS.cartesian_law
+            self._run = lambda: law(plan)
+
+    def start(
+        self,
+        cmd: TaskFrameCommand,
+        start_p: F64,
+        start_R: F64,
+        move_s: float,
+        q_null: F64,
+        integral: F64 | None = None,
+    ) -> None:
+        """A new segment: its command, where it starts (the TCP's pose and the
+        joints' posture), its move time; the integral to carry over (None:
+        a fresh one)."""
+        r = self.ref
+        r[0:3], r[3:6] = start_p, cmd.goal_p
+        r[6:15], r[15:24] = np.asarray(start_R).reshape(9), cmd.goal_R.reshape(9)
+        r[24:27] = matrix_to_rotvec(cmd.goal_R @ np.asarray(start_R).T)
+        r[27] = move_s
+        c = self.cmd
+        c[0:6], c[6:12], c[12:19] = cmd.selection_vector, cmd.force_xyz_torque_xyz, q_null
+        s = self.state
+        s[:] = 0.0
+        s[0:9] = (np.asarray(start_R) if cmd.frame == "tool" else np.eye(3)).reshape(9)
+        if integral is not None:
+            s[27:33] = integral
+
+    @property
+    def integral(self) -> F64:
+        out: F64 = self.state[27:33]
+        return out
+
+    @property
+    def contact(self) -> bool:
+        return bool(self.state[33])
+
+    def update(self, seg_t: float, dt: float, t_s: float, integrate: bool) -> None:
+        """One cycle, the rigid-body terms already in ``kin``: fills ``out``."""
+        k = self.kin
+        k[130], k[131], k[132], k[133] = seg_t, dt, t_s, 1.0 if integrate else 0.0
+        if self._run():
+            raise ValueError("the arm's joint-space inertia is not positive definite")
+
+    def _update_numpy(self) -> int:
+        """The kernel's arithmetic, composed from this module's functions."""
+        from redistro.control.dynamics import Kinematics, TaskInertia
+
+        k, r, c, st = self.kin, self.ref, self.cmd, self.state
+        seg_t, dt, t_s, integrate = float(k[130]), float(k[131]), float(k[132]), bool(k[133])
+        R = self.R.copy()
+        sensor = self.t + self.base
+        off = R[:, 2] * self.tcp_offset
+        J = self.J.copy()
+        J[:3] -= _skew3(off) @ J[3:]
+        kin = Kinematics(p=sensor + off, R=R, J=J, sensor_p=sensor)
+        start_p, goal_p = r[0:3], r[3:6]
+        start_R, goal_R = r[6:15].reshape(3, 3), r[15:24].reshape(3, 3)
+        axis, move_s = r[24:27], float(r[27])
+        from redistro.control.trajectory import quintic
+
+        p_ref, v_lin, a_lin = quintic(start_p, goal_p, move_s, seg_t)
+        s = min(max(seg_t / move_s, 0.0), 1.0)
+        blend = 10 * s**3 - 15 * s**4 + 6 * s**5
+        R_ref = slerp(start_R, goal_R, blend)
+        sd = (30 * s**2 - 60 * s**3 + 30 * s**4) / move_s if s < 1.0 else 0.0
+        sdd = (60 * s - 180 * s**2 + 120 * s**3) / move_s**2 if s < 1.0 else 0.0
+        v6 = np.concatenate([v_lin, axis * sd])
+        a6 = np.concatenate([a_lin, axis * sdd])
+        upper = self.M
+        M = np.triu(upper) + np.triu(upper, 1).T
+        MinvJt = np.linalg.solve(M, J.T)
+        A = J @ MinvJt
+        lam = np.asarray(np.linalg.inv(A + 1e-6 * np.eye(6)), dtype=np.float64)
+        lam_lin = np.asarray(np.linalg.inv(A[:3, :3] + 1e-6 * np.eye(3)), dtype=np.float64)
+        null = np.eye(7) - J.T @ (lam @ MinvJt.T)
+        inertia = TaskInertia(lam=lam, lam_lin=lam_lin, null=null)
+        cmd = TaskFrameCommand(np.zeros(6), c[6:12].copy(), c[0:6].copy())
+        hs = HybridState(
+            R_task=st[0:9].reshape(3, 3).copy(),
+            xi=st[9:15].copy(),
+            xi_v=st[15:21].copy(),
+            a_ref=st[21:27].copy(),
+            integral=st[27:33].copy(),
+            contact=bool(st[33]),
+            contact_t_s=float(st[34]),
+            ramp=float(st[35]),
+        )
+        tau, applied = hybrid_update(
+            self.impedance,
+            self.force,
+            hs,
+            cmd,
+            kin,
+            self.q,
+            self.qd,
+            self.g,
+            p_ref,
+            R_ref,
+            v6,
+            self.wrench,
+            c[12:19],
+            t_s,
+            dt,
+            integrate=integrate,
+            a_ref=a6,
+            inertia=inertia,
+        )
+        st[9:15], st[15:21], st[21:27], st[27:33] = hs.xi, hs.xi_v, hs.a_ref, hs.integral
+        st[33], st[34], st[35] = float(hs.contact), hs.contact_t_s, hs.ramp
+        self.tau[...], self.applied[...] = tau, applied
+        self.tcp_p[...], self.tcp_rot[...], self.ref_p[...] = kin.p, matrix_to_rotvec(R), p_ref
+        return 0
+
+
+def _skew3(v: F64) -> F64:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])

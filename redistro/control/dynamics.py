@@ -89,6 +89,30 @@ class ArmModel:
         null = np.eye(J.shape[1]) - J.T @ (lam @ MinvJt.T)
         return TaskInertia(lam=lam, lam_lin=lam_lin, null=null)
 
+    def terms_into(self, q: F64, J: F64, R: F64, t: F64, M: F64, g: F64) -> None:
+        """The rigid-body terms a Cartesian law needs at ``q``, into the given
+        arrays: the tool frame's Jacobian J (6x7, LOCAL_WORLD_ALIGNED; not
+        yet moved to the TCP), its rotation R and position t (the base not
+        added), the joint-space inertia M (7x7: its upper triangle, as CRBA
+        fills it) and gravity g (7). Pinocchio once per quantity."""
+        pin, model, data = self._pin, self.model, self.data
+        J[...] = pin.computeFrameJacobian(
+            model, data, q, self.tool_frame, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        )
+        oMf = data.oMf[self.tool_frame]
+        R[...] = oMf.rotation
+        t[...] = oMf.translation
+        M[...] = pin.crba(model, data, q)
+        g[...] = pin.computeGeneralizedGravity(model, data, q)
+
+    def pose_into(self, q: F64, R: F64, t: F64) -> None:
+        """The tool frame's rotation and position at ``q`` (base not added)."""
+        pin, model, data = self._pin, self.model, self.data
+        pin.forwardKinematics(model, data, q)
+        oMf = pin.updateFramePlacement(model, data, self.tool_frame)
+        R[...] = oMf.rotation
+        t[...] = oMf.translation
+
     def kinematics(self, q: F64) -> Kinematics:
         """TCP pose and Jacobian at ``q`` (world frame)."""
         pin = self._pin

@@ -284,6 +284,8 @@ class RobotDriver:
         self.read_feedback()
 
     def close(self) -> None:
+        # the batch reader and writer hold views of the backplane's mapping
+        self._read = self._write_dac = None
         self.bp.close()
 
     # -- feedback --

@@ -43,8 +43,13 @@ class Record:
     and nested fields are reached through ``rec.array``.
     """
 
-    def __init__(self, dtype: np.dtype[Any]) -> None:
-        self.array: np.ndarray[Any, Any] = np.zeros((), dtype)
+    def __init__(self, dtype: np.dtype[Any], buffer: Any = None, offset: int = 0) -> None:
+        """buffer, offset: where the record lies (default: its own memory)."""
+        self.array: np.ndarray[Any, Any] = (
+            np.zeros((), dtype)
+            if buffer is None
+            else np.ndarray((), dtype=dtype, buffer=buffer, offset=offset)
+        )
         self.bytes = _bytes_of(self.array)
         fields = dtype.fields
         assert fields is not None

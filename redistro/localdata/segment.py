@@ -192,6 +192,22 @@ class LocalData:
             )
         return self.block(name, index)
 
+    @property
+    def raw(self) -> np.ndarray[Any, Any]:
+        """The whole segment as bytes, for kernels that copy many blocks in one
+        call (read-only use; a block is written through its writer handle)."""
+        return np.frombuffer(self.shm.buffer, dtype=np.uint8)
+
+    def block_offsets(self, name: str, index: int | None = None) -> tuple[int, int, int]:
+        """(seq, payload, payload size) byte offsets of a block in :attr:`raw`."""
+        view = self._block_view(name, index)
+        base = np.frombuffer(self.shm.buffer, dtype=np.uint8).__array_interface__["data"][0]
+        at = view.__array_interface__["data"][0] - base
+        fields = view.dtype.fields
+        assert fields is not None
+        payload = fields["data"][0]
+        return at + int(fields["seq"][1]), at + int(fields["data"][1]), int(payload.itemsize)
+
     def msgbox(self, proc_index: int) -> MessageBox:
         if not 0 <= proc_index < self.n_procs:
             raise LayoutError(f"no process {proc_index}")

@@ -1,17 +1,22 @@
 """The recording side of the session log, inside a node's logging worker.
 
-Each cycle the worker calls :meth:`CycleRecorder.record`: the blocks it logs
-are snapshot (seqlocked reads straight into one frame buffer), the node's
-timing is added, and the frame goes into a pipe with one non-blocking
-write. A separate, non-real-time writer process (:mod:`redistro.log.writer`)
-drains the pipe into ``<node>.mcap`` in the run folder. So recording never
-waits on the file: when the writer falls behind and the pipe is full, the
-frame is dropped and counted. The cycles the worker itself did not run
-(a late wake-up coalesces syncs) are counted the same way: at the end,
-``dropped = the manager's cycles - frames recorded``.
+The manager captures every cycle's logged blocks and the processes' status
+rows into the node's log ring (:mod:`redistro.log.ring`). Whenever the
+logging worker runs, :meth:`CycleRecorder.drain` takes every cycle of the
+ring it has not recorded yet and sends each as one frame into a pipe, one
+non-blocking write each. A separate, non-real-time writer process
+(:mod:`redistro.log.writer`) drains the pipe into ``<node>.mcap`` in the run
+folder: it cuts each frame into one message per channel and turns the
+status rows into the timing message. So recording never waits on the file,
+and a logging worker held off for a while loses nothing (up to the ring's
+length): when the writer falls behind and the pipe is full, the frame is
+dropped and counted; a cycle overwritten in the ring before it was drained
+is missing from the count of frames recorded. At the end, ``dropped = the
+manager's cycles - frames recorded``.
 
-Events (segment changes, e-stop, message-box text, the node's fault) go
-through the same pipe as JSON.
+Events (segment changes, message-box text, the node's fault) go through the
+same pipe as JSON; e-stops and process state changes the writer finds in
+the frames.
 """
 
 from __future__ import annotations
@@ -21,7 +26,6 @@ import fcntl
 import json
 import logging
 import os
-import struct
 import subprocess
 import sys
 import time
@@ -31,10 +35,11 @@ from typing import Any
 import numpy as np
 
 from redistro.localdata import LocalData, MessageBox
-from redistro.localdata.block import Block, Record
+from redistro.localdata.block import Record
 from redistro.localdata.layout import BLOCKS, MANAGER, PROC_STATUS
 from redistro.log import schema
 from redistro.log.frames import FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
+from redistro.log.ring import FRAME_HEAD, LogRing, RingLayout
 from redistro.process.spawn import THREAD_ENV
 from redistro.process.spec import NodeSpec
 
@@ -43,18 +48,42 @@ log = logging.getLogger(__name__)
 PIPE_BUF = 4096  # a pipe write up to this size is all-or-nothing
 PIPE_BYTES = 1 << 20  # asked for; the kernel may give less (fs.pipe-max-size)
 WRITER_WAIT_S = 10.0
+RECORDERS = ("recorder", "logger")  # the logging workers' roles
+
+
+def log_topics(spec: NodeSpec) -> list[tuple[str, str, int | None]]:
+    """The channels a node logs, (topic, block, robot index); [] when it has
+    no logging worker (or no run folder to log into)."""
+    roles = {w.role: w for w in spec.workers}
+    if "logger" in roles and roles["logger"].params.get("run_dir"):  # the SSC
+        topics: list[tuple[str, str, int | None]] = []
+        for i, r in enumerate(spec.robots):
+            topics += [
+                (f"/{r}/feedback", "feedback", i),
+                (f"/{r}/command", "command", i),
+                (f"/{r}/plan", "plan", i),
+            ]
+        return topics
+    if "recorder" in roles and spec.robots:  # an ESC of an ESC-only session
+        r = spec.robots[0]
+        return [
+            (f"/{r}/feedback", "feedback", 0),
+            (f"/{r}/setpoint", "setpoint", 0),
+            (f"/{r}/control", "control", 0),
+            (f"/{r}/guard", "guard", 0),
+        ]
+    return []
 
 
 @dataclass
 class Channel:
     topic: str
-    block: Block | None  # None: the timing channel
-    dtype: np.dtype[Any]
-    offset: int  # of the message in the frame payload
+    dtype: np.dtype[Any]  # the message: log_cycle, then the block's fields
+    offset: int  # of the block's payload in the frame payload
 
     @property
     def size(self) -> int:
-        return int(self.dtype.itemsize)
+        return int(self.dtype.itemsize) - 8
 
 
 class CycleRecorder:
@@ -72,41 +101,33 @@ class CycleRecorder:
         self.spec = spec
         self.node = spec.node
         self.path = os.path.join(run_dir, f"{spec.node}.mcap")
-        self.channels: list[Channel] = []
-        offset = 0
-        for topic, name, index in topics:
-            payload = BLOCKS[name][0]
-            dt = schema.with_cycle(payload)
-            self.channels.append(Channel(topic, ld.block(name, index), dt, offset))
-            offset += dt.itemsize
         n = len(spec.workers)
-        tdt = schema.timing_dtype(n)
-        self.timing = Channel(f"/{spec.node}/timing", None, tdt, offset)
-        self.channels.append(self.timing)
-        offset += tdt.itemsize
-        self.frame = bytearray(FRAME.size + offset)
+        self.layout = RingLayout.of(topics, n)
+        self.channels = [
+            Channel(topic, schema.with_cycle(BLOCKS[name][0]), at)
+            for (topic, name, _i), (_n, _x, at, _size) in zip(
+                topics, self.layout.blocks, strict=True
+            )
+        ]
+        self.timing_dtype = schema.timing_dtype(n)
+        self.frame = bytearray(FRAME.size + self.layout.payload)
         if len(self.frame) > PIPE_BUF:
             raise ValueError(
                 f"a cycle frame of {len(self.frame)} bytes does not fit one pipe write"
             )
-        FRAME.pack_into(self.frame, 0, offset, KIND_CYCLE, 0)
+        FRAME.pack_into(self.frame, 0, self.layout.payload, KIND_CYCLE, 0)
         self.mv = memoryview(self.frame)
-        self.trec = np.zeros((), tdt)
-        self.tbytes = memoryview(self.trec.reshape(1).view(np.uint8))  # type: ignore[arg-type]
+        self.payload = self.mv[FRAME.size :]
+        self.ring: LogRing | None = None
         self.manager = ld.block("manager")
         self.mrec = Record(MANAGER)
-        self.rows = [ld.block("proc", j) for j in range(n)]
-        self.row_recs = [Record(PROC_STATUS) for _ in range(n)]
-        self.on_cycle = [w.on_cycle for w in spec.workers]
         self.boxes: list[MessageBox] = [ld.msgbox(j) for j in range(n)]
         self.names = [w.name for w in spec.workers]
-        self.states = [0] * n
-        self.estop = 0
         self.realtime_offset_ns = time.time_ns() - time.monotonic_ns()
         self.recorded = 0
         self.dropped_full = 0
-        self.repeated = 0
-        self.seen_cycle = 0
+        self.overwritten = 0
+        self.next = 1  # the next cycle to record
         self.events = 0
         self.events_dropped = 0
         self.first_cycle = 0
@@ -114,6 +135,11 @@ class CycleRecorder:
         self.meta = meta
         self.fd = -1
         self.proc: subprocess.Popen[bytes] | None = None
+
+    def view(self, topic: int, dtype: np.dtype[Any]) -> Record:
+        """Channel ``topic``'s block in the frame being recorded, as a record
+        in place (what :meth:`drain`'s ``on_cycle`` reads)."""
+        return Record(dtype, self.frame, FRAME.size + self.channels[topic].offset)
 
     # -- start / end --
 
@@ -144,6 +170,8 @@ class CycleRecorder:
         finally:
             os.close(rfd)
         self.fd = wfd
+        rows = PROC_STATUS.fields
+        assert rows is not None
         header = {
             "node": self.node,
             "session": self.spec.session_id,
@@ -151,6 +179,7 @@ class CycleRecorder:
             "processes": self.names,
             "roles": [w.role for w in self.spec.workers],
             "meta": self.meta,
+            "frame": {"head": FRAME_HEAD.format, "cycle": 0, "due": 8, "tick": 16, "estop": 24},
             "channels": [
                 {
                     "topic": c.topic,
@@ -161,9 +190,29 @@ class CycleRecorder:
                 }
                 for c in self.channels
             ],
+            "timing": {
+                "topic": f"/{self.node}/timing",
+                "schema": f"redistro/{self.node}_timing",
+                "definition": schema.ros1_definition(self.timing_dtype),
+                "rows_offset": self.layout.rows_offset,
+                "row_size": PROC_STATUS.itemsize,
+                "fields": {
+                    name: [int(rows[name][1]), rows[name][0].str]
+                    for name in (
+                        "heartbeat_cycle",
+                        "wake_ns",
+                        "done_ns",
+                        "overruns",
+                        "skipped",
+                        "state",
+                    )
+                },
+                "on_cycle": [w.on_cycle for w in self.spec.workers],
+            },
         }
         self._send_blocking(KIND_HEADER, json.dumps(header).encode())
         os.set_blocking(wfd, False)
+        self.ring = LogRing.attach(self.spec.session_id, self.node, self.layout)
 
     def close(self) -> dict[str, Any]:
         """Send the counters and the node's fault, close the pipe, wait for the writer."""
@@ -171,6 +220,7 @@ class CycleRecorder:
             return {}
         final = self.last_cycle
         with contextlib.suppress(Exception):
+            self.drain()  # what the manager captured since the last cycle we ran
             self.manager.read_into(self.mrec.bytes)
             final = max(final, int(self.mrec["cycle"]))
             self._messages(final)
@@ -181,7 +231,7 @@ class CycleRecorder:
             "recorded": self.recorded,
             "dropped": max(0, final - self.recorded),
             "dropped_pipe_full": self.dropped_full,
-            "repeated": self.repeated,
+            "overwritten": self.overwritten,
             "first_cycle": self.first_cycle,
             "last_cycle": self.last_cycle,
             "events": self.events,
@@ -195,6 +245,9 @@ class CycleRecorder:
         finally:
             os.close(self.fd)
             self.fd = -1
+            if self.ring is not None:
+                self.ring.close()
+                self.ring = None
         if self.proc is not None:
             try:
                 self.proc.wait(WRITER_WAIT_S)
@@ -206,75 +259,46 @@ class CycleRecorder:
 
     # -- every cycle --
 
-    def record(self, cycle: int, due_ns: int = 0) -> None:
-        """Snapshot this cycle's blocks and timing into one frame; send it or count it dropped.
-
-        due_ns: when the cycle's tick was due (the worker's ``due_ns``); the
-        manager block may already show a later cycle when this one runs late.
-        """
-        if cycle <= self.seen_cycle:
-            # a late wake-up that read the manager's next cycle, then that
-            # cycle's own sync: the step runs twice for one cycle, logged once
-            self.repeated += 1
-            return
-        self.seen_cycle = cycle
-        mv = self.mv
-        base = FRAME.size
-        self.manager.read_into(self.mrec.bytes)
-        m = self.mrec
-        current = int(m["cycle"]) == cycle
-        due = due_ns or int(m["tick_due_ns"])
-        struct.pack_into("<q", self.frame, 5, due + self.realtime_offset_ns)
-        for c in self.channels:
-            if c.block is None:
-                continue
-            o = base + c.offset
-            struct.pack_into("<Q", self.frame, o, cycle)
-            c.block.read_into(mv[o + 8 : o + c.size])
-        self._timing(cycle, due, int(m["tick_ns"]) if current else 0)
-        o = base + self.timing.offset
-        mv[o : o + self.timing.size] = self.tbytes
-        try:
-            os.write(self.fd, self.frame)
-        except BlockingIOError:
-            self.dropped_full += 1
-        else:
-            self.recorded += 1
-            if not self.first_cycle:
-                self.first_cycle = cycle
-            self.last_cycle = cycle
-        if int(m["estop"]) and not self.estop:
-            self.estop = 1
-            self.event("events", cycle, event="estop", text="e-stop raised in the node")
-        self._messages(cycle)
-
-    def _timing(self, cycle: int, due: int, tick_ns: int) -> None:
-        t = self.trec
-        t["log_cycle"] = cycle
-        t["tick_due_ns"] = due
-        t["tick_late_us"] = (tick_ns - due) / 1e3 if tick_ns else np.nan
-        hb, late, busy = t["heartbeat_cycle"], t["late_us"], t["busy_us"]
-        over, skip, state = t["overruns"], t["skipped"], t["state"]
-        for j, (row, rec) in enumerate(zip(self.rows, self.row_recs, strict=True)):
-            try:
-                row.read_into(rec.bytes)
-            except Exception:
-                continue  # a row held mid-write: last cycle's figures stay
-            wake, done = int(rec["wake_ns"]), int(rec["done_ns"])
-            hb[j] = rec["heartbeat_cycle"]
-            late[j] = (
-                (wake - due) / 1e3
-                if self.on_cycle[j] and rec["heartbeat_cycle"] == cycle
-                else np.nan
-            )
-            busy[j] = (done - wake) / 1e3 if done >= wake > 0 else np.nan
-            over[j] = rec["overruns"]
-            skip[j] = rec["skipped"]
-            s = int(rec["state"])
-            state[j] = s
-            if s != self.states[j]:
-                self.states[j] = s
-                self.event("events", cycle, event="state", process=self.names[j], state=s)
+    def drain(self, on_cycle: Any = None) -> int:
+        """Record every cycle the manager has captured and this recorder has
+        not: one frame each into the pipe (a full pipe drops and counts it).
+        ``on_cycle(cycle)`` runs for each cycle recorded, its blocks then in
+        the frame (see :meth:`view`). Returns how many cycles it took."""
+        ring = self.ring
+        if ring is None:
+            return 0
+        captured = ring.captured
+        c = self.next
+        if captured - c >= ring.slots:  # held off longer than the ring: those are gone
+            self.overwritten += captured - ring.slots + 1 - c
+            c = captured - ring.slots + 1
+        taken = 0
+        frame, payload = self.frame, self.payload
+        while c <= captured:
+            if ring.read(c, payload):
+                due = FRAME_HEAD.unpack_from(payload, 0)[1]
+                FRAME.pack_into(
+                    frame, 0, self.layout.payload, KIND_CYCLE, due + self.realtime_offset_ns
+                )
+                try:
+                    os.write(self.fd, frame)
+                except BlockingIOError:
+                    self.dropped_full += 1
+                else:
+                    self.recorded += 1
+                    if not self.first_cycle:
+                        self.first_cycle = c
+                    self.last_cycle = c
+                if on_cycle is not None:
+                    on_cycle(c)
+                taken += 1
+            else:
+                self.overwritten += 1
+            c += 1
+        self.next = c
+        if taken:
+            self._messages(captured)
+        return taken
 
     def _messages(self, cycle: int = 0) -> None:
         for name, box in zip(self.names, self.boxes, strict=True):

@@ -9,9 +9,8 @@ strategy session is logged by the SSC's logger instead.
 from __future__ import annotations
 
 from redistro.esc.common import EscContext
-from redistro.localdata.block import Record
 from redistro.localdata.layout import GUARD, SETPOINT
-from redistro.log.recorder import CycleRecorder, robots_meta
+from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
 from redistro.process.worker import Worker
 
 
@@ -23,25 +22,20 @@ class EscRecorder(Worker):
         meta = robots_meta(ctx.cfg, [r])
         meta["task"] = str(self.params.get("task_name", ""))
         meta["segments"] = {r: self.segments}
-        topics: list[tuple[str, str, int | None]] = [
-            (f"/{r}/feedback", "feedback", 0),
-            (f"/{r}/setpoint", "setpoint", 0),
-            (f"/{r}/control", "control", 0),
-            (f"/{r}/guard", "guard", 0),
-        ]
+        topics = log_topics(self.spec)  # the manager captures the same
         self.robot = r
         self.rec = CycleRecorder(self.ld, self.spec, topics, str(self.params["run_dir"]), meta)
-        self.sp_block = self.ld.block("setpoint", 0)
-        self.guard_block = self.ld.block("guard", 0)
-        self.sp = Record(SETPOINT)
-        self.guard = Record(GUARD)
+        self.sp = self.rec.view(1, SETPOINT)  # the recorded cycle's, in the frame
+        self.guard = self.rec.view(3, GUARD)
         self.segment = 0
         self.tripped = 0
         self.rec.start()
 
     def step(self, cycle: int) -> None:
-        self.rec.record(cycle, self.due_ns)
-        self.sp_block.read_into(self.sp.bytes)
+        self.rec.drain(self._cycle)
+
+    def _cycle(self, cycle: int) -> None:
+        """Segment changes and a guard trip, as events, from a recorded cycle."""
         k = int(self.sp["segment"])
         if k != self.segment:
             self.segment = k
@@ -54,7 +48,6 @@ class EscRecorder(Worker):
                 name=name,
                 done=bool(self.sp["done"]),
             )
-        self.guard_block.read_into(self.guard.bytes)
         if int(self.guard["tripped"]) and not self.tripped:
             self.tripped = 1
             text = bytes(self.guard.array["trip_text"]).decode(errors="replace")

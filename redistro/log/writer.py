@@ -12,7 +12,9 @@ the file is finished: summary, indexes, the counters as metadata, and a
 from __future__ import annotations
 
 import json
+import math
 import os
+import struct
 from typing import IO, Any
 
 from redistro.log.frames import FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
@@ -38,6 +40,7 @@ def run_writer(fd: int, out: str) -> int:
     writer = Writer(sink, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
     writer.start(profile="", library="redistro")
     cuts: list[tuple[int, int, int]] = []  # channel id, offset, size
+    timing: Timing | None = None
     json_schema = writer.register_schema("redistro/Event", "jsonschema", JSON_SCHEMA)
     json_channels: dict[str, int] = {}
     header: dict[str, Any] = {}
@@ -54,12 +57,21 @@ def run_writer(fd: int, out: str) -> int:
         body = _read_exact(src, size)
         if body is None:
             break
-        if kind == KIND_CYCLE and cuts:
-            seq = int.from_bytes(body[cuts[0][1] : cuts[0][1] + 8], "little")
+        if kind == KIND_CYCLE and timing is not None:
+            cycle_bytes = body[0:8]
+            seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
             for cid, off, n in cuts:
-                writer.add_message(cid, log_ns, body[off : off + n], log_ns, seq & 0xFFFFFFFF)
+                writer.add_message(cid, log_ns, cycle_bytes + body[off : off + n], log_ns, seq)
                 messages += 1
+            writer.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
+            messages += 1
             frames += 1
+            for doc in timing.events(body):
+                topic = str(doc.pop("topic"))
+                if topic not in json_channels:
+                    json_channels[topic] = writer.register_channel(topic, "json", json_schema)
+                writer.add_message(json_channels[topic], log_ns, json.dumps(doc).encode(), log_ns)
+                messages += 1
         elif kind == KIND_EVENT:
             doc = json.loads(body)
             topic = str(doc.pop("topic", "/events"))
@@ -69,15 +81,20 @@ def run_writer(fd: int, out: str) -> int:
             messages += 1
         elif kind == KIND_HEADER:
             header = json.loads(body)
-            for ch in header["channels"]:
+            for ch in [*header["channels"], header["timing"]]:
                 sid = writer.register_schema(
                     ch["schema"], SCHEMA_ENCODING, ch["definition"].encode()
                 )
                 cid = writer.register_channel(
                     ch["topic"], MESSAGE_ENCODING, sid, {"node": header["node"]}
                 )
-                cuts.append((cid, int(ch["offset"]), int(ch["size"])))
-            node = {k: v for k, v in header.items() if k not in ("channels", "meta")}
+                if ch is header["timing"]:
+                    timing = Timing(header, cid)
+                else:
+                    cuts.append((cid, int(ch["offset"]), int(ch["size"])))
+            node = {
+                k: v for k, v in header.items() if k not in ("channels", "meta", "timing", "frame")
+            }
             writer.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
             writer.add_metadata(
                 "redistro.meta", {k: json.dumps(v) for k, v in header.get("meta", {}).items()}
@@ -101,3 +118,81 @@ def run_writer(fd: int, out: str) -> int:
         json.dump(stats, f, indent=1)
     os.replace(side + ".tmp", side)
     return 0
+
+
+class Timing:
+    """A cycle frame's timing message and events, from its tick and the
+    processes' status rows (no numpy here: struct)."""
+
+    def __init__(self, header: dict[str, Any], channel: int) -> None:
+        t = header["timing"]
+        self.channel = channel
+        self.node = header["node"]
+        self.names = list(header["processes"])
+        n = self.n = len(self.names)
+        self.on_cycle = [bool(v) for v in t["on_cycle"]]
+        self.rows_at, self.row_size = int(t["rows_offset"]), int(t["row_size"])
+        self.head = struct.Struct(header["frame"]["head"])
+        self.fields = {name: (int(off), _code(code)) for name, (off, code) in t["fields"].items()}
+        # log_cycle, tick_due_ns, tick_late_us, then per process: heartbeat
+        # cycle, lateness, busy time, overruns, skipped, state
+        self.out = struct.Struct(f"<Qqf{n}Q{n}f{n}f{n}I{n}I{n}B")
+        self.states = [-1] * n
+        self.estop = False
+
+    def _row(self, body: bytes, j: int, name: str) -> Any:
+        off, st = self.fields[name]
+        return st.unpack_from(body, self.rows_at + j * self.row_size + off)[0]
+
+    def message(self, body: bytes) -> bytes:
+        cycle, due, tick, _estop = self.head.unpack_from(body, 0)
+        nan = math.nan
+        hb, late, busy, over, skip, state = [], [], [], [], [], []
+        for j in range(self.n):
+            h = self._row(body, j, "heartbeat_cycle")
+            wake, done = self._row(body, j, "wake_ns"), self._row(body, j, "done_ns")
+            hb.append(h)
+            late.append((wake - due) / 1e3 if self.on_cycle[j] and h == cycle else nan)
+            busy.append((done - wake) / 1e3 if done >= wake > 0 else nan)
+            over.append(self._row(body, j, "overruns") & 0xFFFFFFFF)
+            skip.append(self._row(body, j, "skipped") & 0xFFFFFFFF)
+            state.append(self._row(body, j, "state") & 0xFF)
+        late_tick = (tick - due) / 1e3 if tick else nan
+        return self.out.pack(cycle, due, late_tick, *hb, *late, *busy, *over, *skip, *state)
+
+    def events(self, body: bytes) -> list[dict[str, Any]]:
+        """An e-stop raised, processes changing state: JSON events of this cycle."""
+        cycle, _due, _tick, estop = self.head.unpack_from(body, 0)
+        out: list[dict[str, Any]] = []
+        if estop and not self.estop:
+            self.estop = True
+            out.append(
+                {
+                    "topic": f"/{self.node}/events",
+                    "cycle": cycle,
+                    "event": "estop",
+                    "text": "e-stop raised in the node",
+                }
+            )
+        for j in range(self.n):
+            s = self._row(body, j, "state")
+            if s != self.states[j]:
+                self.states[j] = s
+                out.append(
+                    {
+                        "topic": f"/{self.node}/events",
+                        "cycle": cycle,
+                        "event": "state",
+                        "process": self.names[j],
+                        "state": s,
+                    }
+                )
+        return out
+
+
+def _code(dtype_str: str) -> struct.Struct:
+    """A struct for one numpy scalar dtype string (``<u8``, ``|u1`` ...)."""
+    kind, size = dtype_str[-2], int(dtype_str[-1])
+    codes = {("u", 1): "B", ("u", 4): "I", ("u", 8): "Q", ("i", 4): "i", ("i", 8): "q"}
+    codes.update({("f", 4): "f", ("f", 8): "d", ("i", 1): "b", ("i", 2): "h", ("u", 2): "H"})
+    return struct.Struct("<" + codes[(kind, size)])

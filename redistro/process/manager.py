@@ -118,6 +118,10 @@ class Manager:
         self.granted: sched.Granted | None = None
         self.block: Block | None = None
         self._due_ns = 0
+        self._tick_ns = 0
+        self._estop = False
+        self.ring: Any = None  # the session log's ring, when the node logs
+        self.capture: Any = None
 
     # -- hooks --
 
@@ -205,6 +209,16 @@ class Manager:
             self.sems.append(
                 Semaphore.create(names.object_name(spec.session_id, spec.node, f"go{j}"), manifest)
             )
+
+        from redistro.log.recorder import log_topics
+
+        topics = log_topics(spec)
+        if topics:  # every cycle's logged blocks into the ring, for the logging worker
+            from redistro.log.ring import Capture, LogRing, RingLayout
+
+            layout = RingLayout.of(topics, len(spec.workers))
+            self.ring = LogRing.create(spec.session_id, spec.node, layout, manifest=manifest)
+            self.capture = Capture(self.ring, ld)
 
         self.initialize()
         # real-time priority for the routine only: the set-up above (imports,
@@ -302,6 +316,8 @@ class Manager:
                     self.overruns += 1
                     self.missed_ticks += missed
                 if self.cycle:
+                    if self.capture is not None:  # the cycle that ended, for the session log
+                        self.capture(self.cycle, self._due_ns, self._tick_ns, self._estop)
                     self._check_heartbeats()
                 self._drain_messages()
                 if spec.cycles and self.cycle >= spec.cycles:
@@ -324,6 +340,7 @@ class Manager:
                 for child in self.on_cycle:
                     signals.send(child.pidfd, signals.SIG_SYNC)
                 self._due_ns = due
+                self._tick_ns = now
                 self.tick_work.add(time.monotonic_ns() - now)
         finally:
             self.timer.stop()
@@ -456,6 +473,7 @@ class Manager:
             fault_cycle=self.cycle,
         )
         # act first (e-stop for the workers, the ESC freezes its robot), then tell
+        self._estop = True
         if self.block is not None:
             with self.block.write() as d:
                 d["estop"] = 1
@@ -495,6 +513,10 @@ class Manager:
             for sem in self.sems:
                 sem.close()
                 sem.unlink()
+            if self.ring is not None:
+                self.capture = None  # its kernel plans hold views of the mappings
+                self.ring.close()
+                self.ring.unlink()
             if self.ld is not None:
                 self.ld.close()
                 self.ld.unlink()

@@ -13,6 +13,7 @@ wrench in task axes), the SSC's timing, and segment changes as events.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,7 +25,7 @@ from redistro.config.task import load_task
 from redistro.control.cartesian import pose_error, rotvec_to_matrix
 from redistro.localdata.block import Record
 from redistro.localdata.layout import PLAN
-from redistro.log.recorder import CycleRecorder, robots_meta
+from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
 from redistro.process.worker import Worker
 from redistro.ssc.plan import segment_plans
 from redistro.ssc.worker import AFTER
@@ -73,11 +74,11 @@ class SscLogger(Worker):
         task = load_task(self.params["task"], cfg)
         self.plans = segment_plans(task, cfg)
         self.robots = list(self.spec.robots)
-        self.blocks = [self.ld.block("plan", i) for i in range(len(self.robots))]
-        self.recs = [Record(PLAN) for _ in self.robots]
         self.figures = [SegmentFigures(p.name, p.robot, p.scheme) for p in self.plans]
+        # per segment: the plan of its robot at the segment's last cycle
+        self.last_plan = [np.zeros((), PLAN) for _ in self.plans]
         hole = cfg.plant.hole
-        self.hole = np.asarray(hole.xyz_m, dtype=np.float64)
+        self.hole = [float(v) for v in hole.xyz_m]
         self.hole_depth = hole.depth_m
         self.hole_half = (cfg.plant.peg.side_m + hole.clearance_m) / 2
         pegs = [r for r in self.robots if cfg.robots[r].peg]
@@ -89,6 +90,7 @@ class SscLogger(Worker):
         self.cycles = 0
         self.recorder: CycleRecorder | None = None
         self.segment = [0] * len(self.robots)
+        self.recs: list[Record] = []
         if run_dir:
             meta = robots_meta(cfg, self.robots)
             meta["task"] = task.task
@@ -96,41 +98,78 @@ class SscLogger(Worker):
                 {"name": p.name, "robot": p.robot, "scheme": p.scheme, "duration_s": p.duration_s}
                 for p in self.plans
             ]
-            topics: list[tuple[str, str, int | None]] = []
-            for i, r in enumerate(self.robots):
-                topics += [
-                    (f"/{r}/feedback", "feedback", i),
-                    (f"/{r}/command", "command", i),
-                    (f"/{r}/plan", "plan", i),
-                ]
+            topics = log_topics(self.spec)  # the manager captures the same
             self.recorder = CycleRecorder(self.ld, self.spec, topics, run_dir, meta)
+            plan_topics = [k for k, (_t, name, _i) in enumerate(topics) if name == "plan"]
+            # the recorded cycle's plans, in place in the frame
+            self.recs = [self.recorder.view(k, PLAN) for k in plan_topics]
             self.recorder.start()
+        else:  # no session log: the plans straight from Local Data
+            self.blocks = [self.ld.block("plan", i) for i in range(len(self.robots))]
+            self.recs = [Record(PLAN) for _ in self.robots]
+        self.tcp = [rec.array["tcp_xyz_m"] for rec in self.recs]
+        self.wrench_task = [rec.array["wrench_task"] for rec in self.recs]
+        self.goal3 = [p.force[:3].tolist() for p in self.plans]
+        self.sel3 = [p.selection[:3].tolist() for p in self.plans]
 
     def step(self, cycle: int) -> None:
+        if self.recorder is not None:
+            self.recorder.drain(self._cycle)
+            return
         for block, rec in zip(self.blocks, self.recs, strict=True):
             block.read_into(rec.bytes)
+        self._cycle(cycle)
+
+    def _cycle(self, cycle: int) -> None:
+        """One cycle's plans: segment events, the segments' figures, the depth."""
         self.cycles += 1
-        if self.recorder is not None:
-            self._record(cycle)
-        if self.peg_index >= 0:
-            pl = self.recs[self.peg_index].array
-            if int(pl["segment"]) != 0:
-                tip = pl["tcp_xyz_m"]
-                inside = bool(np.all(np.abs(tip[:2] - self.hole[:2]) <= self.hole_half + 1e-4))
-                d = float(self.hole[2] - tip[2])
-                if inside and d > self.depth:
+        for i, rec in enumerate(self.recs):
+            k = rec["segment"]
+            moving = rec["moving"]
+            if k != self.segment[i] and (moving or k in (0, AFTER)):
+                self.segment[i] = k
+                if self.recorder is not None:
+                    name = self.plans[k - 1].name if 1 <= k <= len(self.plans) else ""
+                    self.recorder.event(
+                        "segments",
+                        cycle,
+                        robot=self.robots[i],
+                        segment=k,
+                        name=name,
+                        t_s=round(float(rec["t_s"]), 4),
+                        done=bool(rec["done"]),
+                    )
+            if i == self.peg_index and k != 0:
+                x, y, z = self.tcp[i].tolist()
+                hx, hy, hz = self.hole
+                d = hz - z
+                if d > self.depth and max(abs(x - hx), abs(y - hy)) <= self.hole_half + 1e-4:
                     self.depth = d
-                    self.depth_t = float(pl["t_s"])
-        for rec in self.recs:
-            pl = rec.array
-            k = int(pl["segment"])
-            if not pl["moving"] or k in (0, AFTER) or k > len(self.figures):
+                    self.depth_t = float(rec["t_s"])
+            if not moving or k in (0, AFTER) or k > len(self.figures):
                 continue
             fig = self.figures[k - 1]
-            plan = self.plans[k - 1]
             fig.samples += 1
-            fig.duration_s = float(pl["segment_t_s"])
-            # the goal pose of a joint segment is the TCP pose at the joint goal
+            fig.duration_s = rec["segment_t_s"]
+            self.last_plan[k - 1][...] = rec.array
+            if fig.scheme == "force" and rec["contact"]:
+                if fig.contact_t_s is None:
+                    fig.contact_t_s = fig.duration_s
+                w = self.wrench_task[i].tolist()
+                g, s = self.goal3[k - 1], self.sel3[k - 1]
+                e0, e1, e2 = (g[0] - w[0]) * s[0], (g[1] - w[1]) * s[1], (g[2] - w[2]) * s[2]
+                fig.force_n += 1
+                fig.force_sum += (e0, e1, e2)
+                n2 = e0 * e0 + e1 * e1 + e2 * e2
+                fig.force_sq += n2
+                fig.force_max = max(fig.force_max, math.sqrt(n2))
+
+    def _final_errors(self) -> None:
+        """Each segment's final pose error, from its last plan (the goal pose of
+        a joint segment is the TCP pose at the joint goal)."""
+        for fig, pl in zip(self.figures, self.last_plan, strict=True):
+            if not fig.samples:
+                continue
             e = pose_error(
                 pl["tcp_xyz_m"],
                 rotvec_to_matrix(pl["tcp_rot_xyz"]),
@@ -143,41 +182,13 @@ class SscLogger(Worker):
                 "position_xyz_m": [round(float(v), 6) for v in e[:3]],
                 "orientation_xyz_rad": [round(float(v), 6) for v in e[3:]],
             }
-            if plan.scheme == "force" and pl["contact"]:
-                if fig.contact_t_s is None:
-                    fig.contact_t_s = float(pl["segment_t_s"])
-                err = ((plan.force - pl["wrench_task"]) * plan.selection)[:3]
-                fig.force_n += 1
-                fig.force_sum += err
-                n2 = float(err @ err)
-                fig.force_sq += n2
-                fig.force_max = max(fig.force_max, float(np.sqrt(n2)))
-
-    def _record(self, cycle: int) -> None:
-        rec = self.recorder
-        assert rec is not None
-        rec.record(cycle, self.due_ns)
-        for i, pr in enumerate(self.recs):
-            pl = pr.array
-            k = int(pl["segment"])
-            if k != self.segment[i] and (pl["moving"] or k in (0, AFTER)):
-                self.segment[i] = k
-                name = self.plans[k - 1].name if 1 <= k <= len(self.plans) else ""
-                rec.event(
-                    "segments",
-                    cycle,
-                    robot=self.robots[i],
-                    segment=k,
-                    name=name,
-                    t_s=round(float(pl["t_s"]), 4),
-                    done=bool(pl["done"]),
-                )
 
     def cleanup(self) -> None:
         if self.recorder is not None:
             self.recorder.close()
         if not self.out_path:
             return
+        self._final_errors()
         doc = {
             "cycles": self.cycles,
             "segments": [f.as_dict() for f in self.figures],

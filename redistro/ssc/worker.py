@@ -8,37 +8,43 @@ segment's robot, a joint PID hold for the others, every joint on, and the
 session status. It computes nothing before every robot has reported (the
 datum: feedback from each ESC). After the last segment and ``settle_s`` the
 commands say the session is finished and the plan says done.
+
+The hot path works in place: the feedback, command and plan records' fields
+are views made once; a Cartesian segment is one call of
+:class:`~redistro.control.cartesian.CartesianLaw` (a compiled kernel) on the
+rigid-body terms Pinocchio gives once per quantity; what is constant over a
+segment (its goal, wrench and selection in the plan) is written when it
+begins.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from redistro import kernels
 from redistro.config import load_config
 from redistro.config.task import load_task
 from redistro.control.cartesian import (
+    CartesianLaw,
     ForceParams,
-    HybridState,
     ImpedanceGains,
     TaskFrameCommand,
-    hybrid_update,
     matrix_to_rotvec,
     pose_error,
     rotvec_to_matrix,
-    slerp,
-    start_state,
 )
 from redistro.control.dynamics import ArmModel
-from redistro.control.pid import PidGains, PidState, pid_update
-from redistro.control.trajectory import quintic
+from redistro.control.pid import PidGains, PidState, PidWork, pid_update_into
+from redistro.control.trajectory import quintic_into
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
 from redistro.process.worker import Worker
-from redistro.robotmodel import Peg
+from redistro.robotmodel import PLATE, Peg
 from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
 
 DOF = 7
@@ -48,18 +54,98 @@ AFTER = 255  # plan.segment once every segment is over
 
 @dataclass
 class RobotState:
+    """One robot of the group: its model, its law, its records' views."""
+
     name: str
     model: ArmModel
-    hold_q: np.ndarray[Any, Any]
+    law: CartesianLaw
+    tcp_offset_m: float
+    base: np.ndarray[Any, Any]
+    fb: Record
+    cmd: Record
+    plan: Record
+    hold_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
     pid: PidState = field(default_factory=PidState)
-    hybrid: HybridState | None = None
-    cmd: TaskFrameCommand | None = None
+    work: PidWork = field(default_factory=PidWork)
+    cartesian: bool = False  # the running segment drives it through the law
     start_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
-    start_p: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
-    start_R: np.ndarray[Any, Any] = field(default_factory=lambda: np.eye(3))
+    d_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))  # joint goal - start
     short_move: bool = False  # the goal is where the segment starts (within 2 mm)
-    goal_p: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
-    goal_rot: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
+    # per-cycle scratch
+    g: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
+    qd_ref: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
+    qdd_ref: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
+    R: np.ndarray[Any, Any] = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
+    views: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)
+    to_records: Any = None  # the law's outputs -> plan and command records
+
+    def __post_init__(self) -> None:
+        fb, cmd, pl = self.fb.array, self.cmd.array, self.plan.array
+        self.views = {
+            "q": fb["q_rad"],
+            "qd": fb["qd_rad_s"],
+            "wrench": fb["wrench"],
+            "tau": cmd["tau_nm"],
+            "q_cmd": cmd["q_cmd_rad"],
+            "tcp": pl["tcp_xyz_m"],
+            "rot": pl["tcp_rot_xyz"],
+            "goal": pl["goal_xyz_m"],
+            "goal_rot": pl["goal_rot_xyz"],
+            "ref": pl["ref_xyz_m"],
+            "wrench_task": pl["wrench_task"],
+            "wrench_goal": pl["wrench_goal"],
+            "selection": pl["selection"],
+            "q_goal": pl["q_goal_rad"],
+        }
+        cmd["joint_on"] = ON
+        self.to_records = _LawCopier(self.law, self.cmd, self.plan)
+
+    def hold_plan(self) -> None:
+        """The plan's constant fields while the robot holds its pose."""
+        self.plan["scheme"] = SCHEMES["hold"]
+        self.plan["contact"] = 0
+        v = self.views
+        v["q_goal"][...] = self.hold_q
+        v["wrench_task"][...] = 0.0
+        v["wrench_goal"][...] = 0.0
+        v["selection"][...] = 0
+
+
+class _LawCopier:
+    """Copies the law's outputs into the command (torques) and the plan (the
+    applied wrench, the TCP pose, the reference): two kernel calls."""
+
+    def __init__(self, law: CartesianLaw, cmd: Record, plan: Record) -> None:
+        out = law.out.view(np.uint8)
+        parts = []
+        for rec, fields in (
+            (cmd, [(law.tau, "tau_nm")]),
+            (plan, [(law.applied, "wrench_task"), (law.tcp_p, "tcp_xyz_m")]),
+        ):
+            spec = rec.array.dtype.fields
+            assert spec is not None
+            rows = [
+                (kernels.address_in(law.out, v), int(spec[name][1]), v.nbytes) for v, name in fields
+            ]
+            if rec is plan:
+                for v, name in ((law.tcp_rot, "tcp_rot_xyz"), (law.ref_p, "ref_xyz_m")):
+                    rows.append((kernels.address_in(law.out, v), int(spec[name][1]), v.nbytes))
+            parts.append((out, rec.array.reshape(1).view(np.uint8), kernels.copy_table(rows)))
+        self.runs: list[Any] = []
+        for src, dst, table in parts:
+            if kernels.AVAILABLE:
+                p = kernels.plan("copy", src=src, dst=dst, table=table)
+                run = kernels.KERNELS.copy
+                self.runs.append(lambda p=p, run=run: run(p))
+            else:
+                self.runs.append(
+                    lambda src=src, dst=dst, table=table: kernels.copy_rows(src, dst, table)
+                )
+
+    def __call__(self) -> None:
+        for run in self.runs:
+            run()
 
 
 def f64(values: list[float]) -> np.ndarray[Any, Any]:
@@ -99,21 +185,26 @@ class SscWorker(Worker):
         p = cfg.ssc.pid
         self.pid = PidGains(f64(p.kp), f64(p.ki), f64(p.kd), f64(p.i_max_nm))
         peg = cfg.plant.peg
-        self.states: list[RobotState] = []
-        for r in self.robots:
-            rc = cfg.robots[r]
-            model = ArmModel(
-                Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None, rc.base_xyz_m
-            )
-            self.states.append(RobotState(r, model, np.zeros(DOF)))
         ld = self.ld
         n = len(self.robots)
         self.fb_blocks = [ld.block("feedback", i) for i in range(n)]
         self.cmd_blocks = [ld.writer("command", i, role="worker") for i in range(n)]
         self.plan_blocks = [ld.writer("plan", i, role="worker") for i in range(n)]
-        self.fbs = [Record(FEEDBACK) for _ in range(n)]
-        self.cmds = [Record(COMMAND) for _ in range(n)]
-        self.plan_recs = [Record(PLAN) for _ in range(n)]
+        self.states: list[RobotState] = []
+        for r in self.robots:
+            rc = cfg.robots[r]
+            tool = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
+            model = ArmModel(tool, rc.base_xyz_m)
+            offset = peg.length_m if tool is not None else PLATE[1]
+            base = f64(rc.base_xyz_m)
+            law = CartesianLaw(self.gains, self.force, offset, base)
+            self.states.append(
+                RobotState(
+                    r, model, law, offset, base, Record(FEEDBACK), Record(COMMAND), Record(PLAN)
+                )
+            )
+        self.fbs = [st.fb for st in self.states]
+        self.plan_recs = [st.plan for st in self.states]
         self.started = False
         self.t0_step = 0
         self.last_t = 0.0
@@ -126,16 +217,17 @@ class SscWorker(Worker):
     # -- the cycle --
 
     def step(self, cycle: int) -> None:
-        for block, rec in zip(self.fb_blocks, self.fbs, strict=True):
+        fbs = self.fbs
+        for block, rec in zip(self.fb_blocks, fbs, strict=True):
             block.read_into(rec.bytes)
-        if any(int(rec["seq_src"]) == 0 for rec in self.fbs):
+        if not all(rec["seq_src"] for rec in fbs):
             return  # the datum: not every robot has reported yet
-        step_now = max(int(rec["step"]) for rec in self.fbs)
+        step_now = max(rec["step"] for rec in fbs)
         if not self.started:
             self.started = True
             self.t0_step = step_now
-            for st, rec in zip(self.states, self.fbs, strict=True):
-                st.hold_q = rec.array["q_rad"].copy()
+            for st in self.states:
+                st.hold_q = st.views["q"].copy()
             self.post(f"every robot reported; task starts ({len(self.plans)} segments)")
             self._begin(0, 0.0)
         t = (step_now - self.t0_step) / self.physics_hz
@@ -145,35 +237,30 @@ class SscWorker(Worker):
         seg_t = t - self.seg_start_t
         plan = self.plans[self.k] if self.k < len(self.plans) else None
         status = SessionStatus.FINISHED if self.done else SessionStatus.IN_PROGRESS
+        segment = AFTER if self.k >= len(self.plans) else self.k + 1
+        done = 1 if self.done else 0
         now = time.monotonic_ns()
         self.produced += 1
-        for i, (st, rec) in enumerate(zip(self.states, self.fbs, strict=True)):
-            fb = rec.array
-            q = fb["q_rad"].astype(np.float64)
-            qd = fb["qd_rad_s"].astype(np.float64)
-            moving = plan is not None and plan.robot == st.name and not self.done
-            pl = self.plan_recs[i].array
+        for i, st in enumerate(self.states):
+            pl = st.plan
             pl["stamp_ns"] = now
             pl["cycle"] = cycle
             pl["t_s"] = t
-            pl["segment"] = AFTER if self.k >= len(self.plans) else self.k + 1
+            pl["segment"] = segment
             pl["segment_t_s"] = seg_t
-            pl["moving"] = 1 if moving else 0
-            pl["done"] = 1 if self.done else 0
-            if moving:
-                assert plan is not None
-                tau, q_ref = self._law(st, plan, q, qd, fb["wrench"], seg_t, dt, pl)
+            pl["done"] = done
+            if plan is not None and plan.robot == st.name and not self.done:
+                pl["moving"] = 1
+                self._law(st, plan, seg_t, dt, t)
             else:
-                tau, q_ref = self._hold(st, q, qd, dt, pl)
-            c = self.cmds[i].array
+                pl["moving"] = 0
+                self._hold(st, dt)
+            c = st.cmd
             c["stamp_ns"] = time.monotonic_ns()
             c["seq_src"] = self.produced
-            c["tau_nm"] = tau
-            c["q_cmd_rad"] = q_ref
-            c["joint_on"] = ON
             c["session_status"] = status
-            self.plan_blocks[i].publish(self.plan_recs[i].bytes)
-            self.cmd_blocks[i].publish(self.cmds[i].bytes)
+            self.plan_blocks[i].publish(pl.bytes)
+            self.cmd_blocks[i].publish(c.bytes)
 
     # -- task planning --
 
@@ -183,47 +270,62 @@ class SscWorker(Worker):
         self.seg_start_t = t
         self.cond_since = None
         if k >= len(self.plans):
-            for st, rec in zip(self.states, self.fbs, strict=True):
-                st.hold_q = rec.array["q_rad"].copy()
+            for st in self.states:
+                st.hold_q = st.views["q"].copy()
                 st.pid.reset()
+                st.cartesian = False
+                st.hold_plan()
             self.post(f"every segment done at t={t:.2f} s; settling {self.settle_s} s")
             return
         plan = self.plans[k]
         prev = self.plans[k - 1].robot if k > 0 else None
-        for st, rec in zip(self.states, self.fbs, strict=True):
-            q = rec.array["q_rad"].astype(np.float64)
+        for st in self.states:
+            q = st.views["q"].astype(np.float64)
+            v = st.views
             if st.name != plan.robot:
                 if prev == st.name or k == 0:
                     st.hold_q = q.copy()  # it was moving: it holds where it is now
                     st.pid.reset()
-                st.hybrid = None
+                st.cartesian = False
+                st.hold_plan()
                 continue
             st.pid.reset()
             st.start_q = q.copy()
             kin = st.model.kinematics(q)
-            st.start_p, st.start_R = kin.p.copy(), kin.R.copy()
+            st.plan["scheme"] = SCHEMES[plan.scheme]
+            v["q_goal"][...] = plan.q_goal
             if plan.scheme in ("position", "force"):
-                st.cmd = TaskFrameCommand(
+                force = plan.scheme == "force"
+                cmd = TaskFrameCommand(
                     plan.pose,
                     plan.force,
-                    plan.selection if plan.scheme == "force" else np.zeros(6),
+                    plan.selection if force else np.zeros(6),
                     "tool" if plan.frame == "tool" else "world",
                 )
-                carried = st.hybrid.integral.copy() if st.hybrid is not None else None
-                st.hybrid = start_state(st.cmd, kin)
-                if carried is not None:
-                    # the same robot stays under Cartesian control: keep what
-                    # the integral learned (a fresh one would let the pose sag
-                    # back to its uncompensated error at every segment start)
-                    st.hybrid.integral = carried
+                # the same robot staying under Cartesian control keeps what the
+                # integral learned (a fresh one would let the pose sag back to
+                # its uncompensated error at every segment start)
+                carried = st.law.integral.copy() if st.cartesian else None
+                st.law.start(cmd, kin.p, kin.R, plan.move_s, st.start_q, carried)
+                st.cartesian = True
                 st.short_move = bool(
-                    np.linalg.norm(st.cmd.goal_p - kin.p) < 0.002
-                    and np.linalg.norm(matrix_to_rotvec(st.cmd.goal_R @ kin.R.T)) < 0.01
+                    np.linalg.norm(cmd.goal_p - kin.p) < 0.002
+                    and np.linalg.norm(matrix_to_rotvec(cmd.goal_R @ kin.R.T)) < 0.01
                 )
+                v["goal"][...] = plan.pose[:3]
+                v["goal_rot"][...] = plan.pose[3:]
+                v["wrench_goal"][...] = plan.force if force else 0.0
+                v["selection"][...] = plan.selection if force else 0
             else:
-                st.hybrid = None
+                st.cartesian = False
+                st.d_q = plan.q_goal - st.start_q
                 goal = st.model.kinematics(plan.q_goal)
-                st.goal_p, st.goal_rot = goal.p.copy(), matrix_to_rotvec(goal.R)
+                v["goal"][...] = goal.p
+                v["goal_rot"][...] = matrix_to_rotvec(goal.R)
+                v["wrench_task"][...] = 0.0
+                v["wrench_goal"][...] = 0.0
+                v["selection"][...] = 0
+                st.plan["contact"] = 0
         self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {plan.robot} {plan.scheme}")
 
     def _advance(self, t: float) -> None:
@@ -269,100 +371,75 @@ class SscWorker(Worker):
 
     # -- control laws --
 
-    def _hold(
-        self, st: RobotState, q: np.ndarray[Any, Any], qd: np.ndarray[Any, Any], dt: float, pl: Any
-    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        g = st.model.gravity(q)
-        zero = np.zeros(DOF)
-        tau = pid_update(self.pid, st.pid, q, qd, st.hold_q, zero, g, ON, dt)
-        self._pose_into(st, q, pl)
-        pl["scheme"] = SCHEMES["hold"]
-        pl["q_goal_rad"] = st.hold_q
-        pl["contact"] = 0
-        return tau, st.hold_q
-
-    def _law(
-        self,
-        st: RobotState,
-        plan: SegmentPlan,
-        q: np.ndarray[Any, Any],
-        qd: np.ndarray[Any, Any],
-        wrench: np.ndarray[Any, Any],
-        seg_t: float,
-        dt: float,
-        pl: Any,
-    ) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-        pl["scheme"] = SCHEMES[plan.scheme]
-        g = st.model.gravity(q)
-        if plan.scheme == "joint":
-            q_ref, qd_ref, _ = quintic(st.start_q, plan.q_goal, plan.move_s, seg_t)
-            tau = pid_update(self.pid, st.pid, q, qd, q_ref, qd_ref, g, ON, dt)
-            self._pose_into(st, q, pl)
-            pl["goal_xyz_m"] = st.goal_p
-            pl["goal_rot_xyz"] = st.goal_rot
-            pl["q_goal_rad"] = plan.q_goal
-            pl["contact"] = 0
-            return tau, q_ref
-        assert st.cmd is not None and st.hybrid is not None
-        kin = st.model.kinematics(q)
-        p_ref, v_ref, a_lin = quintic(st.start_p, st.cmd.goal_p, plan.move_s, seg_t)
-        s = min(max(seg_t / plan.move_s, 0.0), 1.0)
-        blend = 10 * s**3 - 15 * s**4 + 6 * s**5
-        R_ref = slerp(st.start_R, st.cmd.goal_R, blend)
-        # angular reference speed: the rotation's axis times the blend's rate
-        axis = matrix_to_rotvec(st.cmd.goal_R @ st.start_R.T)
-        sd = (30 * s**2 - 60 * s**3 + 30 * s**4) / plan.move_s if s < 1.0 else 0.0
-        sdd = (60 * s - 180 * s**2 + 120 * s**3) / plan.move_s**2 if s < 1.0 else 0.0
-        v6 = np.concatenate([v_ref, axis * sd])
-        a6 = np.concatenate([a_lin, axis * sdd])
-        inertia = st.model.task_inertia(q, kin.J)
-        tau, applied = hybrid_update(
-            self.gains,
-            self.force,
-            st.hybrid,
-            st.cmd,
-            kin,
-            q,
-            qd,
-            g,
-            p_ref,
-            R_ref,
-            v6,
-            np.asarray(wrench, dtype=np.float64),
-            st.start_q,
-            seg_t,
-            dt,
-            # the integral learns in free space, once the reference stands
-            # still: in position segments, and in force segments until the
-            # first contact (the descent to the hole: the arm's posture
-            # changes and, held, the approach's integral let the tip drift
-            # 0.3-0.4 mm sideways, onto the mouth's edge); then it is held:
-            # in contact a wall takes whatever it pushes, and a wound-up
-            # integral jams the peg
-            integrate=(st.short_move or seg_t >= plan.move_s)
-            and (plan.scheme == "position" or (plan.scheme == "force" and not st.hybrid.contact)),
-            a_ref=a6,
-            inertia=inertia,
+    def _hold(self, st: RobotState, dt: float) -> None:
+        """A joint PID holding ``hold_q`` (gravity compensated)."""
+        v = st.views
+        q = v["q"]
+        st.g[...] = st.model.gravity(q)
+        st.qd_ref[...] = 0.0
+        pid_update_into(
+            self.pid, st.pid, st.work, q, v["qd"], st.hold_q, st.qd_ref, st.g, ON, dt, v["tau"]
         )
-        pl["tcp_xyz_m"] = kin.p
-        pl["tcp_rot_xyz"] = matrix_to_rotvec(kin.R)
-        pl["goal_xyz_m"] = plan.pose[:3]
-        pl["goal_rot_xyz"] = plan.pose[3:]
-        pl["ref_xyz_m"] = p_ref
-        pl["wrench_task"] = applied
-        pl["wrench_goal"] = plan.force if plan.scheme == "force" else np.zeros(6)
-        pl["selection"] = plan.selection if plan.scheme == "force" else np.zeros(6)
-        pl["contact"] = 1 if st.hybrid.contact else 0
-        return tau, q
+        v["q_cmd"][...] = st.hold_q
+        self._pose(st, q, goal=True)
+
+    def _law(self, st: RobotState, plan: SegmentPlan, seg_t: float, dt: float, t: float) -> None:
+        v = st.views
+        q = v["q"]
+        if not st.cartesian:  # a joint segment: a quintic in joint space, a joint PID
+            quintic_into(st.start_q, st.d_q, plan.move_s, seg_t, v["q_cmd"], st.qd_ref, st.qdd_ref)
+            st.g[...] = st.model.gravity(q)
+            pid_update_into(
+                self.pid, st.pid, st.work, q, v["qd"], v["q_cmd"], st.qd_ref, st.g, ON, dt, v["tau"]
+            )
+            self._pose(st, q, goal=False)
+            return
+        law = st.law
+        st.model.terms_into(q, law.J, law.R, law.t, law.M, law.g)
+        law.q[...] = q
+        law.qd[...] = v["qd"]
+        law.wrench[...] = v["wrench"]
+        # the integral learns in free space, once the reference stands still:
+        # in position segments, and in force segments until the first
+        # contact (the descent to the hole: the arm's posture changes and,
+        # held, the approach's integral let the tip drift 0.3-0.4 mm
+        # sideways, onto the mouth's edge); then it is held: in contact a
+        # wall takes whatever it pushes, and a wound-up integral jams the peg
+        integrate = (st.short_move or seg_t >= plan.move_s) and (
+            plan.scheme == "position" or not law.contact
+        )
+        law.update(seg_t, dt, seg_t, integrate)
+        st.to_records()
+        v["q_cmd"][...] = q
+        st.plan["contact"] = 1 if law.contact else 0
 
     @staticmethod
-    def _pose_into(st: RobotState, q: np.ndarray[Any, Any], pl: Any) -> None:
-        kin = st.model.kinematics(q)
-        pl["tcp_xyz_m"] = kin.p
-        pl["tcp_rot_xyz"] = matrix_to_rotvec(kin.R)
-        pl["goal_xyz_m"] = kin.p
-        pl["goal_rot_xyz"] = matrix_to_rotvec(kin.R)
-        pl["ref_xyz_m"] = kin.p
-        pl["wrench_task"] = 0.0
-        pl["wrench_goal"] = 0.0
-        pl["selection"] = 0
+    def _pose(st: RobotState, q: np.ndarray[Any, Any], goal: bool) -> None:
+        """The TCP's pose into the plan (and, holding, as the goal and reference)."""
+        st.model.pose_into(q, st.R, st.t)
+        R, v = st.R, st.views
+        off = st.tcp_offset_m
+        tcp = v["tcp"]
+        tcp[...] = st.t
+        tcp += st.base
+        x, y, z = R[0, 2] * off, R[1, 2] * off, R[2, 2] * off
+        tcp[0] += x
+        tcp[1] += y
+        tcp[2] += z
+        v["rot"][...] = _rotvec(R)
+        v["ref"][...] = tcp
+        if goal:
+            v["goal"][...] = tcp
+            v["goal_rot"][...] = v["rot"]
+
+
+def _rotvec(R: np.ndarray[Any, Any]) -> tuple[float, float, float]:
+    """The rotation vector of R, in plain floats (:func:`matrix_to_rotvec`)."""
+    (a, b, c_), (d, e, f), (g, h, i) = R.tolist()
+    c = max(-1.0, min(1.0, (a + e + i - 1.0) / 2.0))
+    angle = math.acos(c)
+    if angle < 1e-9 or math.pi - angle < 1e-6:
+        x, y, z = matrix_to_rotvec(R).tolist()
+        return x, y, z
+    scale = angle / (2.0 * math.sin(angle))
+    return (h - f) * scale, (c_ - g) * scale, (d - b) * scale

@@ -1,6 +1,7 @@
-"""The recorder against real Local Data and a real writer process: what goes
-in comes back out of the MCAP file, and a writer that falls behind makes the
-recorder drop and count, never wait."""
+"""The recorder against real Local Data, a real log ring and a real writer
+process: what goes in comes back out of the MCAP file, a recorder held off
+catches up from the ring, and a writer that falls behind makes the recorder
+drop and count, never wait."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from redistro.localdata import LocalData
 from redistro.localdata.layout import BLOCKS
 from redistro.log.mcapfile import SESSION_LOG, finish_run_log, read_log
 from redistro.log.recorder import CycleRecorder
+from redistro.log.ring import Capture, LogRing, RingLayout
 from redistro.log.schema import dtype_from_ros1, ros1_definition, with_cycle
 from redistro.process.spec import NodeSpec, WorkerSpec
 
@@ -63,6 +65,20 @@ TOPICS: list[tuple[str, str, int | None]] = [
 ]
 
 
+@pytest.fixture
+def ring(node: tuple[LocalData, NodeSpec]) -> Iterator[Capture]:
+    """The manager's part: the ring, and the capture at every tick."""
+    ld, spec = node
+    r = LogRing.create(spec.session_id, spec.node, RingLayout.of(TOPICS, len(ROLES)), slots=64)
+    cap = Capture(r, ld)
+    try:
+        yield cap
+    finally:
+        del cap
+        r.close()
+        r.unlink()
+
+
 def _started(node: tuple[LocalData, NodeSpec], tmp_path: Path) -> tuple[LocalData, CycleRecorder]:
     """A recorder on the node's Local Data with its writer process running."""
     ld, spec = node
@@ -71,7 +87,11 @@ def _started(node: tuple[LocalData, NodeSpec], tmp_path: Path) -> tuple[LocalDat
     return ld, rec
 
 
-def _drive(ld: LocalData, rec: CycleRecorder, cycles: range) -> None:
+def _drive(
+    ld: LocalData, rec: CycleRecorder, cap: Capture, cycles: range, drain_every: int = 1
+) -> None:
+    """Cycles as a node runs them: the blocks written, the manager's capture
+    at the next tick, the recorder draining (every ``drain_every`` cycles)."""
     mgr = ld.writer("manager", role="manager")
     fb = ld.writer("feedback", 0, role="acquisition")
     row = ld.writer("proc", 1, role="pid", proc_index=1)
@@ -92,7 +112,9 @@ def _drive(ld: LocalData, rec: CycleRecorder, cycles: range) -> None:
             d["done_ns"] = due + 350_000
         if c == 3:
             box.post("a message from the sender", 40)
-        rec.record(c)
+        cap(c, due, due + 40_000, False)
+        if c % drain_every == 0:
+            rec.drain()
 
 
 def test_every_block_has_a_ros1_definition_that_reads_back() -> None:
@@ -104,10 +126,10 @@ def test_every_block_has_a_ros1_definition_that_reads_back() -> None:
 
 
 def test_recorded_cycles_read_back_exactly(
-    node: tuple[LocalData, NodeSpec], tmp_path: Path
+    node: tuple[LocalData, NodeSpec], ring: Capture, tmp_path: Path
 ) -> None:
     ld, rec = _started(node, tmp_path)
-    _drive(ld, rec, range(1, 401))
+    _drive(ld, rec, ring, range(1, 401))
     rec.event("segments", 200, robot="r1", segment=2, name="counter_clockwise")
     stats = rec.close()
     assert stats["recorded"] == 400 and stats["dropped"] == 0
@@ -130,15 +152,32 @@ def test_recorded_cycles_read_back_exactly(
     assert sl.robots()["r1"]["base_xyz_m"] == [0, 0.45, 0]
 
 
+def test_a_recorder_held_off_catches_up_from_the_ring(
+    node: tuple[LocalData, NodeSpec], ring: Capture, tmp_path: Path
+) -> None:
+    """Held off for 40 cycles of a 64-slot ring, the recorder records every
+    cycle once it runs; held off for 100, it counts the 36 it lost."""
+    ld, rec = _started(node, tmp_path)
+    _drive(ld, rec, ring, range(1, 401), drain_every=40)
+    assert rec.recorded == 400 and rec.overwritten == 0
+    _drive(ld, rec, ring, range(401, 501), drain_every=100)
+    assert rec.recorded == 464 and rec.overwritten == 36
+    stats = rec.close()
+    assert stats["dropped"] == 36
+    finish_run_log(tmp_path)
+    cycles = read_log(tmp_path / SESSION_LOG).arrays["/r1/feedback"]["log_cycle"]
+    assert np.array_equal(cycles, np.r_[1:401, 437:501])
+
+
 def test_a_stalled_writer_makes_the_recorder_drop_and_count(
-    node: tuple[LocalData, NodeSpec], tmp_path: Path
+    node: tuple[LocalData, NodeSpec], ring: Capture, tmp_path: Path
 ) -> None:
     ld, rec = _started(node, tmp_path)
     assert rec.proc is not None
     os.kill(rec.proc.pid, signal.SIGSTOP)  # the writer stops draining the pipe
     try:
         t0 = time.monotonic()
-        _drive(ld, rec, range(1, 6001))
+        _drive(ld, rec, ring, range(1, 6001))
         spent = time.monotonic() - t0
     finally:
         os.kill(rec.proc.pid, signal.SIGCONT)

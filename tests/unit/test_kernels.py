@@ -276,3 +276,65 @@ def test_the_guard_screen_flags_whatever_the_guard_refuses() -> None:
         row = trace[k % TRACE_CYCLES]
         assert row[0] == k and row[1] == k and np.array_equal(row[23:], tau, equal_nan=True)
     assert 2000 < refused < 18000  # both kinds of case were tried
+
+
+def test_the_cartesian_law_kernel_matches_its_numpy_composition() -> None:
+    from redistro.control.cartesian import (
+        CartesianLaw,
+        ForceParams,
+        ImpedanceGains,
+        TaskFrameCommand,
+        rotvec_to_matrix,
+    )
+    from redistro.control.dynamics import ArmModel
+    from redistro.robotmodel import Peg
+
+    imp = CFG.ssc.impedance
+    gains = ImpedanceGains(
+        *(
+            np.asarray(v, dtype=float)
+            for v in (imp.k, imp.d, imp.ki, imp.i_max, imp.k_null, imp.d_joint)
+        ),
+        zeta=imp.zeta,
+    )
+    fc = CFG.ssc.force
+    force = ForceParams(
+        fc.k_adm, fc.k_adm_rot, fc.v_max, fc.w_max, fc.a_max, fc.alpha_max, fc.contact_n, fc.ramp_s
+    )
+    peg = CFG.plant.peg
+    model = ArmModel(Peg(peg.side_m, peg.length_m, peg.mass_kg), [0.0, -0.45, 0.0])
+    base = np.array([0.0, -0.45, 0.0])
+    laws = [CartesianLaw(gains, force, peg.length_m, base, use_kernel=k) for k in (True, False)]
+    rng = np.random.default_rng(11)
+    for case in range(40):
+        q0 = np.array([0, 0.5, 0, -1.2, 0, 1.0, 0]) + rng.normal(size=7) * 0.3
+        frame = "tool" if case % 3 == 0 else "world"
+        sel = [
+            np.zeros(6),
+            np.array([0, 0, 1.0, 0, 0, 0]),
+            np.array([1.0, 1, 0, 0, 0, 0]),
+            np.array([0, 0, 1.0, 1, 1, 0]),
+        ][case % 4]
+        goal = np.concatenate(
+            [rng.normal(size=3) * 0.1 + [0.5, -0.3, 0.2], rng.normal(size=3) * 0.3 + [0, 3.1, 0]]
+        )
+        cmd = TaskFrameCommand(goal, rng.normal(size=6) * [5, 5, 20, 0.5, 0.5, 0.5], sel, frame)
+        start_R = rotvec_to_matrix(rng.normal(size=3) * 0.4 + [0, 3.0, 0])
+        start_p = rng.normal(size=3) * 0.05 + [0.5, -0.3, 0.3]
+        integral = rng.normal(size=6) * 0.01
+        for law in laws:
+            law.start(cmd, start_p, start_R, 2.0 + case % 3, q0, integral)
+        for k in range(30):
+            q = q0 + rng.normal(size=7) * 0.05
+            qd = rng.normal(size=7) * 0.2
+            w = rng.normal(size=6) * [5, 5, 15, 0.5, 0.5, 0.5]
+            for law in laws:
+                model.terms_into(q, law.J, law.R, law.t, law.M, law.g)
+                law.q[...], law.qd[...], law.wrench[...] = q, qd, w
+                law.update(0.1 * k * (case % 5), 0.005, 0.1 * k, integrate=bool(k % 2))
+            a, b = laws
+            assert np.allclose(a.out, b.out, rtol=1e-7, atol=1e-8), (
+                f"case {case} cycle {k}: {a.out - b.out}"
+            )
+            assert np.allclose(a.state, b.state, rtol=1e-9, atol=1e-10), f"case {case} cycle {k}"
+    assert laws[0].contact  # the force axes met their contact threshold somewhere
