@@ -238,6 +238,11 @@ def run_session(
         )
 
 
+def ddm_pace(cfg: Config) -> str:
+    """How the ddms run, for people."""
+    return f"at {cfg.ddm.rate_hz:g} Hz" if cfg.ddm.rate_hz > 0 else "on data"
+
+
 def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
     """True once every ESC's acquisition has published its first feedback."""
     from redistro.localdata import LocalData
@@ -326,7 +331,7 @@ def _run_task(
                     say(
                         f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz; "
                         f"ssc at {cfg.ssc.rate_hz:g} Hz once every ESC has published its "
-                        f"robot's state; ddm {cfg.ddm.transport} at {cfg.ddm.rate_hz:g} Hz"
+                        f"robot's state; ddm {cfg.ddm.transport} {ddm_pace(cfg)}"
                     )
                 else:
                     say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
@@ -485,6 +490,7 @@ def build_summary(
                         "stage_timeouts",
                         "lateness_us",
                         "compute_us",
+                        "step_cpu_us",
                         "cpu_s",
                         "cpu_percent",
                         "scheduling",

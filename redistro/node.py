@@ -31,6 +31,7 @@ from redistro.config.task import load_task
 from redistro.decision import (
     Progress,
     build_summary,
+    ddm_pace,
     positions_file,
     unknown_positions,
     wall_budget_s,
@@ -115,7 +116,7 @@ def run_node(
         say(f"session {s.id}")
         say(
             f"node {spec.node} of task {task.task} ({where}); link {link!r}; "
-            f"ddm {cfg.ddm.transport} at {cfg.ddm.rate_hz:g} Hz; run folder {run_dir}"
+            f"ddm {cfg.ddm.transport} {ddm_pace(cfg)}; run folder {run_dir}"
         )
         progress = Progress(s.id, [spec], say)
         progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]

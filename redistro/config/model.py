@@ -240,7 +240,10 @@ class DdmConfig:
     transport: ``socket`` (TCP send/receive/reply: the SSC's ddm connects to
         each ESC's ddm) or ``reflective`` (simulated reflective memory: a
         SysV memory card per node, writes broadcast by UDP multicast).
-    rate_hz: each ddm's own timer [Hz] (paper: 1000).
+    rate_hz: 0 (the default): each ddm moves data when there is data (woken
+        by its transport, its node's producer, its manager's e-stop; at
+        least once a node period); > 0: it polls on a timer of its own at
+        this rate [Hz] instead (paper: 1000), for comparison.
     starving_limit_cycles: an ESC whose sender has sent this many commands
         since the last fresh one ends ``starving`` (the SSC likewise, counted
         in its own cycles without fresh feedback from a robot).
@@ -255,7 +258,7 @@ class DdmConfig:
     """
 
     transport: Literal["socket", "reflective"] = "socket"
-    rate_hz: float = field(default=1000.0, metadata={"gt": 0, "le": 10000})
+    rate_hz: float = field(default=0.0, metadata={"ge": 0, "le": 10000})
     starving_limit_cycles: int = field(default=40, metadata={"ge": 2, "le": 100000})
     connect_timeout_s: float = field(default=30.0, metadata={"gt": 0, "le": 3600})
     listen_host: str = "127.0.0.1"

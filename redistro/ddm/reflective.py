@@ -114,6 +114,9 @@ class ReflectiveTransport(Transport):
                 self._write_card(self._slot(data, data[7]), data)
             out.append(data)
 
+    def fds(self) -> list[int]:
+        return [self.sock.fileno()]
+
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self.sock.close()

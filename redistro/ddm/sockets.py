@@ -205,6 +205,21 @@ class SocketTransport(Transport):
             raise TransportError(self.lost)
         return out
 
+    @property
+    def replies(self) -> bool:  # type: ignore[override]
+        """The listening side (an ESC) answers each command with its feedback."""
+        return self.server is not None
+
+    def fds(self) -> list[int]:
+        out = []
+        if self.server is not None:
+            out.append(self.server.fileno())
+            if self.peer is not None:
+                out.append(self.peer.sock.fileno())
+        else:
+            out += [link.sock.fileno() for link in self.links.values()]
+        return out
+
     def lost_links(self) -> dict[int, str]:
         return self.lost_robots
 

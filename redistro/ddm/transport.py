@@ -1,6 +1,7 @@
 """The DDM transport interface: move whole wire records between nodes.
 
-Every call is non-blocking: ``send`` queues one record for the peer that
+Every call is non-blocking (a ddm waits on the transport's ``fds()`` for
+records to come): ``send`` queues one record for the peer that
 handles ``robot`` (the SSC's ddm talks to one ESC per robot; an ESC's ddm to
 the SSC); ``receive`` returns the records that have arrived since the last
 call (whole records, not yet validated: the DDM decodes and admits them). A
@@ -16,6 +17,11 @@ from typing import Any
 
 
 class Transport(ABC):
+    # the receiving side answers each record it gets with its own (the paper's
+    # send/receive/reply): an ESC's ddm then sends its feedback as the reply
+    # to each command, not on its own
+    replies = False
+
     @abstractmethod
     def send(self, record: bytes, robot: int) -> None: ...
 
@@ -24,6 +30,11 @@ class Transport(ABC):
 
     @abstractmethod
     def close(self) -> None: ...
+
+    def fds(self) -> list[int]:
+        """File descriptors that become readable when records arrive (or a
+        link breaks): what a ddm waits on, beside its wake event."""
+        return []
 
     def lost_links(self) -> dict[int, str]:
         """Robots whose own link was lost while the others' still work

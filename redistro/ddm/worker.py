@@ -1,13 +1,20 @@
-"""The Distributed Data Manager: one per node, on its own timer (paper: 1 kHz).
+"""The Distributed Data Manager: one per node, moving data when there is data.
 
-It is the only door between nodes. Each tick it drains what the transport
-received, decodes and admits every record (a malformed, duplicate,
-out-of-order or stale record is counted in the exchange block and dropped),
-writes the fresh ones into Local Data, and sends what this node produced
-since the last tick:
+It is the only door between nodes. It sleeps until records arrive (its
+transport's sockets), its node produces something to send (the SSC worker
+wakes it after each command, an ESC's acquisition after each feedback,
+through the node's wake event), its manager raises the e-stop, or a node
+period passes (so a silent peer is still seen, and its heartbeat signed).
+Then it drains what the transport received, decodes and admits every record
+(a malformed, duplicate, out-of-order or stale record is counted in the
+exchange block and dropped), writes the fresh ones into Local Data, and
+sends what this node produced since:
 
 - in an ESC: commands in (``command[0]``; the starving index is paid back),
-  feedback out (each new sample of the acquisition);
+  feedback out: over a transport that replies (the socket DDM: the paper's
+  send/receive/reply), as the answer to each command that brings a new
+  sample, and on its own only until the first command (the start-up datum)
+  and with an e-stop; otherwise each new sample of the acquisition;
 - in the SSC: feedback in (``feedback[i]`` per robot), commands out (each
   new command the worker wrote, one record per robot).
 
@@ -115,10 +122,15 @@ class Ddm(Worker):
             self.out_blocks = [ld.block("command", i) for i in range(n)]
             self.out_recs = [Record(COMMAND) for _ in range(n)]
         self.last_out = [0] * n  # seq_src of the last record sent, per robot
+        self.in_size = wire.PAYLOADS[self.in_kind].itemsize
+        self.encoders = [
+            wire.Encoder(self.out_kind, self.gid[r], self.spec.node) for r in self.robots
+        ]
         self.seq = [0] * n
         self.admission = wire.Admission()
         self.latency = Samples()
         self.estop_sent = False
+        self.commanded = False  # an ESC: the first command has come
         self.lost = False
         self.dirty = True  # exchange records not yet published
         self.transport: Transport = open_transport(
@@ -130,6 +142,7 @@ class Ddm(Worker):
             self.robots,
         )
         self._arm_injections()
+        self.replying = self.kind == "esc" and self.transport.replies
 
     def _arm_injections(self) -> None:
         """The fault harness's points in this ddm (none in a normal run)."""
@@ -149,14 +162,19 @@ class Ddm(Worker):
 
     # -- one tick --
 
+    def fds(self) -> list[int]:
+        return [] if self.lost else self.transport.fds()
+
     def step(self, cycle: int) -> None:
         if self.lost:
             return  # the managers see the data go stale (starving)
         self.manager_block.read_into(self.mgr.bytes)
         estop = bool(self.mgr["estop"])
         try:
-            self._receive()
-            self._send(estop)
+            fresh = self._receive()
+            new_estop = estop and not self.estop_sent
+            if not (self.replying and self.commanded and not fresh and not new_estop):
+                self._send(estop)  # (replying, feedback goes out with a command only)
             self._check_links()
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the
@@ -197,37 +215,40 @@ class Ddm(Worker):
         rec = self.out_recs[i]
         return int(rec["seq_src"]) > 0 and int(rec["session_status"]) == SessionStatus.FINISHED
 
-    def _receive(self) -> None:
+    def _receive(self) -> int:
+        """Admit what came; the number of fresh records."""
+        fresh = 0
         for raw in self.transport.receive():
             self.dirty = True
             try:
-                d = wire.decode(raw)
+                kind, robot, source, seq, stamp, estop = wire.check(raw)
             except WireError:
                 for ex in self.ex:
                     ex["malformed"] += 1
                     ex["dropped"] += 1
                 continue
-            i = self.local.get(d.robot)
-            if d.kind != self.in_kind or i is None:
+            i = self.local.get(robot)
+            if kind != self.in_kind or i is None:
                 continue  # another node's traffic on a broadcast medium
             ex = self.ex[i]
-            before = dict(self.admission.dropped)
-            if not self.admission.admit(d):
-                for why, count in self.admission.dropped.items():
-                    if count != before[why]:
-                        ex[why] += 1
+            why = self.admission.refuse(source, kind, robot, seq, stamp)
+            if why:
+                ex[why] += 1
                 ex["dropped"] += 1
                 continue
             now = time.monotonic_ns()
-            if d.estop and not ex["estop_in"]:
+            if estop and not ex["estop_in"]:
+                name = source.rstrip(b"\0")
                 ex["estop_in"] = 1
-                ex.array["estop_source"] = d.source.rstrip("\0").encode()[:16]
-                self.post(f"e-stop from {d.source.rstrip(chr(0))}", logging.ERROR)
+                ex.array["estop_source"] = name[:16]
+                self.post(f"e-stop from {name.decode(errors='replace')}", logging.ERROR)
                 self.estop_request = True
-            payload = d.payload
+            payload: Any = memoryview(raw)[wire.PAYLOAD_AT : wire.PAYLOAD_AT + self.in_size]
             if self.cmd_inj is not None and self.cmd_inj.live():
                 payload = self._corrupt_command(payload)
             self.in_blocks[i].publish(payload)
+            fresh += 1
+            self.commanded = True
             ex["updates"] += 1
             ex["last_update_ns"] = now
             ex["fresh"] = 1
@@ -238,15 +259,16 @@ class Ddm(Worker):
                 self.delivered_rec["count"] = self.sent_rec["count"]
                 self.delivered_rec["stamp_ns"] = now
                 self.delivered_block.publish(self.delivered_rec.bytes)
-                stamp = int(d.payload["stamp_ns"])
+                stamp = wire.payload_stamp(raw)
                 if 0 < stamp <= now:
                     self.latency.add(now - stamp)
+        return fresh
 
     def _corrupt_command(self, payload: Any) -> Any:
         """The harness's bad command: ``arg`` (NaN, inf or a torque) on joint 1
         of every command from the trigger on, the joint under control."""
         assert self.cmd_inj is not None
-        bad = np.array(payload, copy=True)
+        bad = np.frombuffer(bytes(payload), dtype=COMMAND).copy().reshape(())
         bad["tau_nm"][0] = self.cmd_inj.arg
         bad["joint_on"][0] = 1
         return bad
@@ -266,17 +288,8 @@ class Ddm(Worker):
 
     def _send_one(self, i: int, rec: Record, estop: bool) -> None:
         self.seq[i] += 1
-        robot = self.gid[self.robots[i]]
-        data = wire.encode(
-            self.out_kind,
-            robot,
-            self.source,
-            self.seq[i],
-            time.monotonic_ns(),
-            bytes(rec.bytes),
-            estop=estop,
-        )
-        self.transport.send(data, robot)
+        data = self.encoders[i].encode(self.seq[i], time.monotonic_ns(), rec.bytes, estop)
+        self.transport.send(data, self.gid[self.robots[i]])
         self.ex[i]["sent"] += 1
         self.dirty = True
 

@@ -35,6 +35,7 @@ class Acquisition(Worker):
         self.offset_seq = 0
         self.samples = 0
         self.calibrating = bool(self.params.get("calibrates", False))
+        self.to_ddm = self.params.get("commands") == "ssc"  # a strategy session: a ddm
         # the driver's decoded figures -> the two records, one table each
         fb_fields = {
             "stamp_ns": "stamp_ns",
@@ -73,6 +74,8 @@ class Acquisition(Worker):
         self._to_fb()
         self.fb["seq_src"] = self.samples
         self.feedback_block.publish(self.fb.bytes)
+        if self.to_ddm:
+            self.wake_ddm()  # a new sample for the group
         self._to_home()
         self.home_block.publish(self.home.bytes)
 

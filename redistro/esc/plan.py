@@ -47,7 +47,8 @@ def worker_specs(
     cfg: Config, roles: tuple[tuple[str, int], ...], params: dict[str, Any]
 ) -> list[WorkerSpec]:
     """One WorkerSpec per (role, stage), at the role's configured priority; an
-    off-cycle worker (negative stage: the ddm) runs on its own timer at ddm.rate_hz;
+    off-cycle worker (negative stage: the ddm) runs on data (ddm.rate_hz 0) or on its
+    own timer at ddm.rate_hz;
     the recorders get the log's heartbeat limit."""
     prio = cfg.scheduling.priorities
     return [

@@ -91,6 +91,13 @@ class InjectedTransport(Transport):
     def lost_links(self) -> dict[int, str]:
         return {} if self.closed else self.inner.lost_links()
 
+    @property
+    def replies(self) -> bool:  # type: ignore[override]
+        return self.inner.replies
+
+    def fds(self) -> list[int]:
+        return [] if self.closed else self.inner.fds()
+
     def close(self) -> None:
         if not self.closed:
             self.closed = True

@@ -61,6 +61,42 @@ def send(pidfd: int, sig: int) -> bool:
     return True
 
 
+_SFD_NONBLOCK = os.O_NONBLOCK
+_SFD_CLOEXEC = os.O_CLOEXEC
+SIGINFO_BYTES = 128  # struct signalfd_siginfo
+
+
+def signalfd(sigs: frozenset[int] | set[int]) -> int:
+    """A file descriptor that becomes readable when one of ``sigs`` (blocked,
+    as every runtime signal is) is pending: a process that waits on sockets
+    with poll can take its signals in the same wait. Read them with
+    :func:`read_signalfd`."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    mask = bytearray(128)  # sigset_t: 1024 bits
+    for sig in sigs:
+        n = int(sig) - 1
+        mask[n // 8] |= 1 << (n % 8)
+    buf = (ctypes.c_ubyte * 128).from_buffer(mask)
+    fd = int(libc.signalfd(-1, ctypes.byref(buf), _SFD_NONBLOCK | _SFD_CLOEXEC))
+    if fd < 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+    return fd
+
+
+def read_signalfd(fd: int) -> list[int]:
+    """The signals taken from a :func:`signalfd` (each consumed), oldest first."""
+    out: list[int] = []
+    while True:
+        try:
+            data = os.read(fd, SIGINFO_BYTES)
+        except BlockingIOError:
+            return out
+        if len(data) < SIGINFO_BYTES:
+            return out
+        out.append(int.from_bytes(data[:4], "little"))
+
+
 def _prctl(option: int, value: int) -> None:
     libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
     if libc.prctl(option, value, 0, 0, 0) != 0:

@@ -143,7 +143,8 @@ PROC_STATUS = np.dtype(
         ("torn_reads", "<u8"),  # snapshot attempts that had to be retried
         ("cpu_s", "<f8"),  # CPU time spent in Routine (written at Cleanup)
         ("lateness_us", "<f4", (3,)),  # p50, p99, max over the run (written at Cleanup)
-        ("compute_us", "<f4", (3,)),
+        ("compute_us", "<f4", (3,)),  # per step, wall time (preemption included)
+        ("step_cpu_us", "<f4", (3,)),  # per step, this thread's CPU time: what a step costs
     ]
 )
 

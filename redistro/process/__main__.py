@@ -28,6 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--spec", required=True)
     w.add_argument("--index", type=int, required=True)
     w.add_argument("--manager-pid", type=int, required=True)
+    w.add_argument("--wake-fd", type=int, default=-1)
     p = sub.add_parser("plant")
     p.add_argument("--session", required=True)
     p.add_argument("--config")
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         return run_manager(args.spec)
     from redistro.process.worker import run_worker
 
-    return run_worker(args.spec, args.index, args.manager_pid)
+    return run_worker(args.spec, args.index, args.manager_pid, args.wake_fd)
 
 
 if __name__ == "__main__":

@@ -120,6 +120,7 @@ class Manager:
         self._due_ns = 0
         self._tick_ns = 0
         self._estop = False
+        self.wake_fd = -1
         self.ring: Any = None  # the session log's ring, when the node logs
         self.capture: Any = None
 
@@ -229,7 +230,10 @@ class Manager:
         )
 
         lock_fd = os.environ.get(LOCK_FD_ENV)
-        pass_fds = (int(lock_fd),) if lock_fd else ()
+        # the node's wake event: what its event-driven worker (the ddm) waits on
+        # beside its sockets; a producer (or this manager, on a fault) writes it
+        self.wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        pass_fds = ((int(lock_fd),) if lock_fd else ()) + (self.wake_fd,)
         for j, w in enumerate(spec.workers):
             proc = spawn(
                 [
@@ -240,6 +244,8 @@ class Manager:
                     str(j),
                     "--manager-pid",
                     str(os.getpid()),
+                    "--wake-fd",
+                    str(self.wake_fd),
                 ],
                 pass_fds=pass_fds,
             )
@@ -479,6 +485,9 @@ class Manager:
                 d["estop"] = 1
                 d["fault_reason"] = reason.encode()[:16]
                 d["fault_text"] = message.encode("utf-8", "replace")[:MSG_TEXT]
+        if self.wake_fd >= 0:  # the ddm carries the e-stop to the group now
+            with contextlib.suppress(OSError):
+                os.eventfd_write(self.wake_fd, 1)
         try:
             self.on_fault(reason, message)
         except Exception:
@@ -510,6 +519,9 @@ class Manager:
         finally:
             for child in self.children:
                 os.close(child.pidfd)
+            if self.wake_fd >= 0:
+                os.close(self.wake_fd)
+                self.wake_fd = -1
             for sem in self.sems:
                 sem.close()
                 sem.unlink()
@@ -570,6 +582,7 @@ class Manager:
                     "torn_reads": int(row["torn_reads"]),
                     "lateness_us": _triple(row["lateness_us"]),
                     "compute_us": _triple(row["compute_us"]),
+                    "step_cpu_us": _triple(row["step_cpu_us"]),
                     "cpu_s": round(float(row["cpu_s"]), 3),
                     "cpu_percent": round(100 * float(row["cpu_s"]) / routine_s, 2)
                     if routine_s

@@ -19,10 +19,12 @@ class WorkerSpec:
     role: registry key of the worker class (redistro.process.registry).
     stage: position in the cycle; workers of one stage run in parallel and a
         collecting point waits for all of them before the next stage starts.
-        A negative stage takes the worker off the cycle: it keeps its own
-        timer at ``rate_hz`` (a DDM runs at its own rate), still signs its
-        heartbeat (with the newest manager cycle) and is watched like any.
-    rate_hz: the own timer's rate of an off-cycle worker.
+        A negative stage takes the worker off the cycle: it runs when its
+        data comes (``rate_hz`` 0: it waits on its file descriptors and the
+        node's wake event, at most a node period at a time: a DDM), or on a
+        timer of its own at ``rate_hz``; it still signs its heartbeat (with
+        the newest manager cycle) and is watched like any.
+    rate_hz: the own timer's rate of an off-cycle worker (0: event-driven).
     cpus: CPUs to pin this worker to (empty: the node's CPUs).
     priority: paper priority (higher runs first).
     heartbeat_limit_cycles: missed heartbeats that make this worker hung

@@ -50,6 +50,25 @@ class Worker:
         # set when the manager must look now (a guard trip): it gets SIG_WAKE
         # after this cycle's heartbeat, once
         self.wake_manager = False
+        self.wake_fd = -1  # the node's wake event (the runner sets it)
+
+    def wake_ddm(self) -> None:
+        """Tell the node's ddm there is data to move (a fresh command or
+        feedback): it waits on this event beside its sockets."""
+        if self.wake_fd >= 0:
+            os.eventfd_write(self.wake_fd, 1)
+
+    # -- event-driven workers (off the cycle, rate 0) --
+
+    def fds(self) -> list[int]:
+        """File descriptors whose data this worker waits for (besides the
+        node's wake event); asked again after every step."""
+        return []
+
+    def wait_s(self) -> float:
+        """The longest an event-driven worker waits for data before it steps
+        anyway (its heartbeat and its peers' silence are seen that often)."""
+        return self.period_ns / 1e9
 
     # -- hooks for subclasses --
 
@@ -70,10 +89,11 @@ class Worker:
 class _Runner:
     """Drives a Worker through its four states."""
 
-    def __init__(self, spec: NodeSpec, index: int, manager_pid: int) -> None:
+    def __init__(self, spec: NodeSpec, index: int, manager_pid: int, wake_fd: int = -1) -> None:
         self.spec = spec
         self.index = index
         self.manager_pid = manager_pid
+        self.wake_fd = wake_fd
         self.period_ns = 0  # the manager's timer period, read from Local Data
         self.overruns = 0
         self.skipped = 0
@@ -81,6 +101,7 @@ class _Runner:
         self.cycles = 0
         self.lateness = Samples()
         self.compute = Samples()
+        self.step_cpu = Samples()
         self.cpu_start_s = 0.0
         self.estop_woken = False
         self.manager_fd = -1
@@ -124,6 +145,7 @@ class _Runner:
             # initialization (imports, opening drivers) runs at the default
             # priority: real-time priority is for the cycles
             worker = worker_class(me.role)(spec, i, ld)
+            worker.wake_fd = self.wake_fd
             try:
                 worker.initialize()
             except Exception as exc:
@@ -148,8 +170,10 @@ class _Runner:
                 reason = self._routine(
                     worker, row, manager_block, rows, preds, succs, go, manager_fd
                 )
-            else:
+            elif me.rate_hz > 0:
                 reason = self._routine_timed(worker, row, manager_block, me.rate_hz, manager_fd)
+            else:
+                reason = self._routine_events(worker, row, manager_block, manager_fd)
             if reason:
                 worker.post(reason, logging.WARNING)
             with row.write() as d:
@@ -244,6 +268,7 @@ class _Runner:
     def _step(self, worker: Worker, cycle: int, due_ns: int) -> None:
         """One step of the worker, timed and counted."""
         t0 = time.monotonic_ns()
+        c0 = time.thread_time_ns()
         worker.due_ns = due_ns
         try:
             worker.step(cycle)
@@ -260,6 +285,7 @@ class _Runner:
             with contextlib.suppress(OSError):
                 signals.send(self.manager_fd, signals.SIG_WAKE)
             raise WorkerFailed(str(exc)) from exc
+        self.step_cpu.add(time.thread_time_ns() - c0)
         self.compute.add(time.monotonic_ns() - t0)
         self.cycles += 1
 
@@ -332,6 +358,75 @@ class _Runner:
         finally:
             timer.stop()
 
+    def _routine_events(self, worker: Worker, row: Any, manager_block: Any, manager_fd: int) -> str:
+        """The loop of an event-driven worker: it sleeps in one poll on its own
+        file descriptors (``worker.fds()``), the node's wake event, its
+        signals (a signalfd) and its manager's pidfd, at most
+        ``worker.wait_s()``; it steps when woken by data or by that deadline,
+        and signs its heartbeat with the newest manager cycle each time."""
+        import gc
+        import select
+
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self.cpu_start_s = time.process_time()
+        sigfd = signals.signalfd(WAIT_SET)
+        poller = select.epoll()
+        poller.register(sigfd, select.EPOLLIN)
+        poller.register(manager_fd, select.EPOLLIN)
+        if self.wake_fd >= 0:
+            poller.register(self.wake_fd, select.EPOLLIN)
+        watched: list[int] = []
+        mine = Record(PROC_STATUS)
+        row.read_into(mine.bytes)
+        tick = Record(MANAGER)
+        wait_s = worker.wait_s()
+        wait_ns = int(wait_s * 1e9)
+        wake_fd = self.wake_fd
+        last_ns = time.monotonic_ns()
+        try:
+            while True:
+                fds = worker.fds()
+                if fds != watched:
+                    for fd in watched:
+                        with contextlib.suppress(OSError):
+                            poller.unregister(fd)
+                    for fd in fds:
+                        poller.register(fd, select.EPOLLIN)
+                    watched = list(fds)
+                events = poller.poll(wait_s)
+                wake_ns = time.monotonic_ns()
+                for fd, _ev in events:
+                    if fd == sigfd:
+                        for sig in signals.read_signalfd(sigfd):
+                            if sig == signals.SIG_END:
+                                return ""
+                            if sig == signals.SIG_ORPHAN:
+                                return "manager died; stopping"
+                            if sig in signals.STOP_SIGNALS:
+                                return f"stopped by {signal.Signals(sig).name}"
+                    elif fd == manager_fd:
+                        return "manager vanished; stopping"
+                    elif fd == wake_fd:
+                        with contextlib.suppress(BlockingIOError):
+                            os.eventfd_read(wake_fd)
+                if not events:  # woken by the deadline: how late past it
+                    self.lateness.add(max(0, wake_ns - last_ns - wait_ns))
+                last_ns = wake_ns
+                try:
+                    manager_block.read_into(tick.bytes)
+                except TornReadTimeout:
+                    self.stage_timeouts += 1  # no cycle to sign: the next wake will
+                    continue
+                cycle = tick["cycle"]
+                self._step(worker, cycle, wake_ns)
+                self._sign(mine, row, cycle, wake_ns, worker.estop_request)
+                self._wake_for_estop(worker, manager_fd)
+        finally:
+            poller.close()
+            os.close(sigfd)
+
     def _wait_stage(
         self, cycle: int, preds: list[tuple[Any, Record]], my_go: Semaphore, deadline_ns: int
     ) -> bool:
@@ -364,6 +459,8 @@ class _Runner:
             with row.write() as d:
                 d["lateness_us"] = [lat["p50"], lat["p99"], lat["max"]]
                 d["compute_us"] = [comp["p50"], comp["p99"], comp["max"]]
+                c = self.step_cpu.summary_us()
+                d["step_cpu_us"] = [c["p50"], c["p99"], c["max"]]
                 d["torn_reads"] = torn
                 d["cpu_s"] = time.process_time() - self.cpu_start_s if self.cpu_start_s else 0.0
                 d["cycles"] = self.cycles
@@ -375,9 +472,9 @@ class _Runner:
             log.debug("could not publish final status", exc_info=True)
 
 
-def run_worker(spec_path: str, index: int, manager_pid: int) -> int:
+def run_worker(spec_path: str, index: int, manager_pid: int, wake_fd: int = -1) -> int:
     spec = NodeSpec.load(spec_path)
     try:
-        return _Runner(spec, index, manager_pid).run()
+        return _Runner(spec, index, manager_pid, wake_fd).run()
     except WorkerFailed:
         return EXIT_FAILED  # the reason is in the message box; the manager reports it

@@ -261,6 +261,7 @@ class SscWorker(Worker):
             c["session_status"] = status
             self.plan_blocks[i].publish(pl.bytes)
             self.cmd_blocks[i].publish(c.bytes)
+            self.wake_ddm()  # this robot's command goes out now
 
     # -- task planning --
 

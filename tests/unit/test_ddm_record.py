@@ -98,3 +98,41 @@ def test_admission_drops_duplicates_old_and_replayed_records() -> None:
     assert adm.admit(rec(1, 50, robot=1))
     assert adm.dropped == {"duplicate": 1, "out_of_order": 1, "stale": 1}
     assert adm.accepted == 5
+
+
+def test_the_ddm_fast_path_agrees_with_encode_and_decode() -> None:
+    """Encoder and check() (the ddm's per-record path, no numpy) write and
+    read exactly the records encode() and decode() do; check() refuses what
+    decode() refuses, for the same reason."""
+    from redistro.ddm.record import PAYLOAD_AT, Encoder, check, payload_stamp
+
+    enc = Encoder(KIND_FEEDBACK, 1, "esc.r2")
+    for seq in range(1, 50):
+        fb = _feedback(seq * 0.01)
+        fb["stamp_ns"] = 1000 + seq
+        fast = enc.encode(seq, 7 * seq, memoryview(fb.reshape(1).view(np.uint8)), seq % 3 == 0)
+        assert fast == encode(KIND_FEEDBACK, 1, "esc.r2", seq, 7 * seq, fb, estop=seq % 3 == 0)
+        kind, robot, source, s, stamp, estop = check(fast)
+        d = decode(fast)
+        assert (kind, robot, source.rstrip(b"\0").decode(), s, stamp, bool(estop)) == (
+            d.kind,
+            d.robot,
+            d.source.rstrip("\0"),
+            d.seq,
+            d.stamp_ns,
+            d.estop,
+        )
+        assert fast[PAYLOAD_AT : PAYLOAD_AT + FEEDBACK.itemsize] == fb.tobytes()
+        assert payload_stamp(fast) == 1000 + seq
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        bad = bytearray(fast)
+        bad[int(rng.integers(SIZE))] ^= 1 << int(rng.integers(8))
+        reasons = []
+        for fn in (check, decode):
+            try:
+                fn(bytes(bad))
+                reasons.append("")
+            except WireError as exc:
+                reasons.append(exc.args[0])
+        assert reasons[0] == reasons[1] != ""
