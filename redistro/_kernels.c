@@ -85,6 +85,9 @@ enum {
 
 enum { DT_IMAGE, DT_TAU, DT_VOLTS_PER_NM, DT_CODE_OFF };
 
+enum { JP_Q, JP_QD, JP_QREF, JP_QDREF, JP_G, JP_ON, JP_TAU, JP_INTEGRAL, JP_GAINS, JP_DT };
+enum { QU_Q0, QU_D, QU_Q, QU_QD, QU_QDD, QU_TIME };
+
 enum {
     GP_FB, GP_FB_OFF, GP_SRC, GP_SRC_OFF, GP_HOME, GP_HOME_OFF, GP_LIMITS, GP_ON,
     GP_RELEASED, GP_TAU, GP_TRACE, GP_TRACE_AT
@@ -121,6 +124,10 @@ static const Signature SIGNATURES[] = {
           {"latch_edge", 'B'}, {"latch_q", 'd'}, {"out", 'd'})},
     {"driver_dac",
      ARGS({"image", 'B'}, {"tau", 'd'}, {"volts_per_nm", 'd'}, {"code_off", 'q'})},
+    {"joint_pid",
+     ARGS({"q", 'd'}, {"qd", 'd'}, {"q_ref", 'd'}, {"qd_ref", 'd'}, {"g", 'd'}, {"on", 'B'},
+          {"tau", 'd'}, {"integral", 'd'}, {"gains", 'd'}, {"dt", 'd'})},
+    {"quintic", ARGS({"q0", 'd'}, {"d", 'd'}, {"q", 'd'}, {"qd", 'd'}, {"qdd", 'd'}, {"time", 'd'})},
     {"cartesian_law",
      ARGS({"kin", 'd'}, {"ref", 'd'}, {"cmd", 'd'}, {"gains", 'd'}, {"state", 'd'}, {"out", 'd'})},
     {"guard_prepare",
@@ -623,6 +630,54 @@ static PyObject *driver_dac(PyObject *mod, PyObject *arg) {
         st_i16(img + off[j], (int16_t)v);
     }
     return PyLong_FromLong(0);
+}
+
+static inline double clampd(double x, double lo, double hi);
+
+/* -- joint control -- */
+
+/* Joint PID with gravity compensation (see control/pid.py: pid_update):
+ * gains: kp[n], ki[n], kd[n], i_lim[n]; the integral (state) clamped to
+ * +-i_lim and zeroed on joints off; tau = (g + kp e + kd (qd_ref - qd) +
+ * ki integral) on joints on, 0 off. */
+static PyObject *joint_pid(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "joint_pid");
+    if (pl == NULL)
+        return NULL;
+    const double *q = F64(pl, JP_Q), *qd = F64(pl, JP_QD), *qr = F64(pl, JP_QREF);
+    const double *qdr = F64(pl, JP_QDREF), *g = F64(pl, JP_G), *gn = F64(pl, JP_GAINS);
+    const uint8_t *on = U8(pl, JP_ON);
+    double *tau = F64(pl, JP_TAU), *I = F64(pl, JP_INTEGRAL), dt = F64(pl, JP_DT)[0];
+    Py_ssize_t n = pl->n[JP_TAU];
+    const double *kp = gn, *ki = gn + n, *kd = gn + 2 * n, *lim = gn + 3 * n;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        double e = qr[j] - q[j];
+        double integ = clampd(I[j] + e * dt, -lim[j], lim[j]);
+        double m = on[j] ? 1.0 : 0.0;
+        I[j] = integ * m;
+        tau[j] = (kp[j] * e + kd[j] * (qdr[j] - qd[j]) + ki[j] * I[j] + g[j]) * m;
+    }
+    Py_RETURN_NONE;
+}
+
+/* The quintic from q0 over d (= q1 - q0) in T seconds at t (time: [T, t]),
+ * clamped to its ends: q, qd, qdd (see control/trajectory.py). */
+static PyObject *quintic(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "quintic");
+    if (pl == NULL)
+        return NULL;
+    const double *q0 = F64(pl, QU_Q0), *d = F64(pl, QU_D), *tm = F64(pl, QU_TIME);
+    double *q = F64(pl, QU_Q), *qd = F64(pl, QU_QD), *qdd = F64(pl, QU_QDD);
+    double T = tm[0], s = clampd(tm[1] / T, 0.0, 1.0), s2 = s * s, s3 = s2 * s;
+    double pos = 10 * s3 - 15 * s3 * s + 6 * s3 * s2;
+    double vel = (30 * s2 - 60 * s3 + 30 * s2 * s2) / T;
+    double acc = (60 * s - 180 * s2 + 120 * s3) / (T * T);
+    for (Py_ssize_t j = 0; j < pl->n[QU_Q]; j++) {
+        q[j] = q0[j] + d[j] * pos;
+        qd[j] = d[j] * vel;
+        qdd[j] = d[j] * acc;
+    }
+    Py_RETURN_NONE;
 }
 
 /* -- the sender's safety guard -- */
@@ -1232,6 +1287,8 @@ static PyMethodDef METHODS[] = {
     {"chassis_sample", chassis_sample, METH_O, "The chassis: joints -> boards."},
     {"driver_decode", driver_decode, METH_O, "The driver: boards -> robot units."},
     {"driver_dac", driver_dac, METH_O, "The driver: torques -> DAC codes."},
+    {"joint_pid", joint_pid, METH_O, "A joint PID with gravity compensation, one cycle."},
+    {"quintic", quintic, METH_O, "A quintic's reference at one time."},
     {"cartesian_law", cartesian_law, METH_O, "The SSC: one arm's Cartesian law, one cycle."},
     {"guard_prepare", guard_prepare, METH_O, "The sender: a command prepared and screened."},
     {"unpack_states", (PyCFunction)(void (*)(void))unpack_states, METH_FASTCALL,

@@ -100,7 +100,14 @@ def figures(summary: dict[str, Any]) -> dict[str, Any]:
         writers += float(rec.get("writer_cpu_percent") or 0.0)
         log_nodes[node] = {
             k: rec.get(k)
-            for k in ("cycles", "recorded", "dropped", "dropped_pipe_full", "writer_cpu_percent")
+            for k in (
+                "cycles",
+                "recorded",
+                "dropped",
+                "overwritten",
+                "pipe_full",
+                "writer_cpu_percent",
+            )
         }
     group_cpu += writers
     ddm: dict[str, Any] = {}

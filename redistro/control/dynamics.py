@@ -75,6 +75,10 @@ class ArmModel:
         out: F64 = self._pin.computeGeneralizedGravity(self.model, self.data, q).copy()
         return out
 
+    def gravity_into(self, q: F64, out: F64) -> None:
+        """g(q) into ``out`` [N m]."""
+        out[...] = self._pin.computeGeneralizedGravity(self.model, self.data, q)
+
     def task_inertia(self, q: F64, J: F64) -> TaskInertia:
         """The TCP's task-space inertia at q (regularized near singularities)
         and the dynamically consistent null-space projector."""

@@ -111,3 +111,60 @@ def pid_update_into(
     tau += d
     tau += gravity_nm
     tau *= mask
+
+
+class PidLoop:
+    """A joint PID bound once to its arrays (views into the records a worker
+    reads and writes), run each cycle in one compiled kernel call; the numpy
+    :func:`pid_update_into` is its reference. q, qd, q_ref, qd_ref, g: inputs
+    (float64, aligned); on: joints under control (bool or uint8); tau: output."""
+
+    def __init__(
+        self,
+        gains: PidGains,
+        state: PidState,
+        q: F64,
+        qd: F64,
+        q_ref: F64,
+        qd_ref: F64,
+        g: F64,
+        on: np.ndarray[Any, Any],
+        tau: F64,
+        *,
+        use_kernel: bool | None = None,
+    ) -> None:
+        from redistro import kernels
+
+        self.gains, self.state = gains, state
+        self.args = (q, qd, q_ref, qd_ref, g, on)
+        self.tau = tau
+        self.dt = np.zeros(1)
+        self.work = PidWork(len(tau))
+        self.use_kernel = kernels.AVAILABLE if use_kernel is None else use_kernel
+        if self.use_kernel:
+            table = np.concatenate([gains.kp, gains.ki, gains.kd, gains.i_lim]).astype(np.float64)
+            self._plan = kernels.plan(
+                "joint_pid",
+                q=q,
+                qd=qd,
+                q_ref=q_ref,
+                qd_ref=qd_ref,
+                g=g,
+                on=on.view(np.uint8),
+                tau=tau,
+                integral=state.integral,
+                gains=table,
+                dt=self.dt,
+            )
+            self._run = kernels.KERNELS.joint_pid
+
+    def update(self, dt_s: float) -> None:
+        """One cycle: ``tau`` from the bound arrays' present values."""
+        if self.use_kernel:
+            self.dt[0] = dt_s
+            self._run(self._plan)
+        else:
+            q, qd, q_ref, qd_ref, g, on = self.args
+            pid_update_into(
+                self.gains, self.state, self.work, q, qd, q_ref, qd_ref, g, on, dt_s, self.tau
+            )

@@ -73,3 +73,39 @@ def quintic_into(
     q += q0
     np.multiply(d, (30 * s2 - 60 * s3 + 30 * s2 * s2) / T, out=qd)
     np.multiply(d, (60 * s - 180 * s2 + 120 * s3) / (T * T), out=qdd)
+
+
+class QuinticRef:
+    """A quintic's reference written into bound arrays (views into a record),
+    one compiled kernel call per cycle; :func:`quintic_into` is its
+    reference. ``start(q0, q1, T)`` a new move; ``at(t)`` the reference."""
+
+    def __init__(
+        self, q: F64, qd: F64, qdd: F64, n: int = 7, *, use_kernel: bool | None = None
+    ) -> None:
+        from redistro import kernels
+
+        self.q, self.qd, self.qdd = q, qd, qdd
+        self.q0 = np.zeros(n)
+        self.d = np.zeros(n)
+        self.time = np.array([1.0, 0.0])  # duration, time
+        self.use_kernel = kernels.AVAILABLE if use_kernel is None else use_kernel
+        if self.use_kernel:
+            self._plan = kernels.plan(
+                "quintic", q0=self.q0, d=self.d, q=q, qd=qd, qdd=qdd, time=self.time
+            )
+            self._run = kernels.KERNELS.quintic
+
+    def start(self, q0: F64, q1: F64, duration_s: float) -> None:
+        if not duration_s > 0:
+            raise ValueError(f"duration_s must be > 0, got {duration_s}")
+        self.q0[...] = q0
+        np.subtract(q1, q0, out=self.d)
+        self.time[0] = duration_s
+
+    def at(self, t_s: float) -> None:
+        if self.use_kernel:
+            self.time[1] = t_s
+            self._run(self._plan)
+        else:
+            quintic_into(self.q0, self.d, float(self.time[0]), t_s, self.q, self.qd, self.qdd)

@@ -14,7 +14,7 @@ import numpy as np
 from redistro import kernels
 from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
-from redistro.localdata.layout import FEEDBACK, HOME, SETPOINT
+from redistro.localdata.layout import EXCHANGE, FEEDBACK, HOME, SETPOINT
 from redistro.process.worker import Worker
 
 
@@ -36,6 +36,9 @@ class Acquisition(Worker):
         self.samples = 0
         self.calibrating = bool(self.params.get("calibrates", False))
         self.to_ddm = self.params.get("commands") == "ssc"  # a strategy session: a ddm
+        if self.to_ddm:
+            self.exchange_block = self.ld.block("exchange", 0)
+            self.exchange = Record(EXCHANGE)
         # the driver's decoded figures -> the two records, one table each
         fb_fields = {
             "stamp_ns": "stamp_ns",
@@ -75,7 +78,9 @@ class Acquisition(Worker):
         self.fb["seq_src"] = self.samples
         self.feedback_block.publish(self.fb.bytes)
         if self.to_ddm:
-            self.wake_ddm()  # a new sample for the group
+            self.exchange_block.read_into(self.exchange.bytes)
+            if self.exchange["feedback_wanted"]:
+                self.wake_ddm()  # a new sample for the group
         self._to_home()
         self.home_block.publish(self.home.bytes)
 

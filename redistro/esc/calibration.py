@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from redistro.control.trajectory import quintic_into
+from redistro.control.trajectory import QuinticRef
 from redistro.drivers.io.registers import EDGE_FALLING, EDGE_RISING
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Record
@@ -118,7 +118,7 @@ class Calibration(Worker):
         self.latch_count = self.home.array["latch_count"]
         sp = self.sp.array
         self.sp_q, self.sp_qd, self.sp_qdd = sp["q_rad"], sp["qd_rad_s"], sp["qdd_rad_s2"]
-        self.seg_d = np.zeros(DOF)  # the running segment's goal - start
+        self.quintic = QuinticRef(self.sp_q, self.sp_qd, self.sp_qdd)
         self._new = np.zeros(DOF, dtype=bool)
 
     # -- the cycle --
@@ -154,7 +154,7 @@ class Calibration(Worker):
                 self.post("all segments done")
             return
         t = (self.now_ns - self.seg_t0_ns) / 1e9
-        quintic_into(self.seg_q0, self.seg_d, seg.duration_s, t, self.sp_q, self.sp_qd, self.sp_qdd)
+        self.quintic.at(t)
         self.ref = self.sp_q
         self._publish(cycle)
         if t >= seg.duration_s:
@@ -173,7 +173,7 @@ class Calibration(Worker):
         if index < len(self.segments):
             self.seg_t0_ns = self.now_ns
             seg = self.segments[index]
-            self.seg_d = self._goal(seg) - self.seg_q0
+            self.quintic.start(self.seg_q0, self._goal(seg), seg.duration_s)
             self.sp["segment"] = index + 1
             self.post(f"segment {index + 1} {seg.name} ({seg.kind}, {seg.duration_s:g} s)")
         else:  # settling: the last segment's clock runs on (segment_t_s past its duration)

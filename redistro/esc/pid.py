@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from redistro.control.dynamics import ArmModel
-from redistro.control.pid import PidGains, PidState, PidWork, pid_update_into
+from redistro.control.pid import PidGains, PidLoop, PidState
 from redistro.esc.common import EscContext
 from redistro.localdata.block import Record
 from redistro.localdata.layout import CONTROL, FEEDBACK, HOME, SETPOINT
@@ -53,7 +53,18 @@ class Pid(Worker):
         self.sp_on = sp["joint_on"].view(np.bool_)
         self.on = o["joint_on"].view(np.bool_)
         self.tau = o["tau_nm"]
-        self.work = PidWork()
+        self.g = np.zeros(7)
+        self.loop = PidLoop(
+            self.gains,
+            self.state,
+            self.q,
+            self.qd,
+            self.q_ref,
+            self.qd_ref,
+            self.g,
+            self.on,
+            self.tau,
+        )
 
     def step(self, cycle: int) -> None:
         self.feedback_block.read_into(self.fb.bytes)
@@ -68,19 +79,8 @@ class Pid(Worker):
             on[:] = False  # no reference yet
         else:
             on[...] = self.sp_on
-        pid_update_into(
-            self.gains,
-            self.state,
-            self.work,
-            self.q,
-            self.qd,
-            self.q_ref,
-            self.qd_ref,
-            self.model.gravity(self.q),
-            on,
-            min(max(dt, 0.0), 10 * self.period_ns / 1e9),
-            self.tau,
-        )
+        self.model.gravity_into(self.q, self.g)
+        self.loop.update(min(max(dt, 0.0), 10 * self.period_ns / 1e9))
         self.out["stamp_ns"] = self.due_ns
         self.out["cycle"] = cycle
         self.control_block.publish(self.out.bytes)

@@ -177,6 +177,8 @@ EXCHANGE = np.dtype(  # data exchange status, per robot: the data from the other
         ("link_lost", "u1"),
         ("latency_us", "<f4", (3,)),  # command: SSC Local Data write -> here (p50, p99, max)
         ("latency_n", "<u8"),
+        # an ESC's ddm: wake it for each new sample (0 while it only replies to commands)
+        ("feedback_wanted", "u1"),
     ]
 )
 COUNTER = np.dtype([("count", "<u8"), ("stamp_ns", "<i8")])

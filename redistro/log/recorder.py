@@ -8,10 +8,10 @@ non-blocking write each. A separate, non-real-time writer process
 (:mod:`redistro.log.writer`) drains the pipe into ``<node>.mcap`` in the run
 folder: it cuts each frame into one message per channel and turns the
 status rows into the timing message. So recording never waits on the file,
-and a logging worker held off for a while loses nothing (up to the ring's
-length): when the writer falls behind and the pipe is full, the frame is
-dropped and counted; a cycle overwritten in the ring before it was drained
-is missing from the count of frames recorded. At the end, ``dropped = the
+and neither a logging worker held off for a while nor a writer fallen
+behind (the pipe full: the drain stops, the cycles wait in the ring) loses
+anything, up to the ring's length; a cycle overwritten in the ring before it
+was sent is missing from the count of frames recorded. At the end, ``dropped = the
 manager's cycles - frames recorded``.
 
 Events (segment changes, message-box text, the node's fault) go through the
@@ -125,7 +125,7 @@ class CycleRecorder:
         self.names = [w.name for w in spec.workers]
         self.realtime_offset_ns = time.time_ns() - time.monotonic_ns()
         self.recorded = 0
-        self.dropped_full = 0
+        self.pipe_full = 0  # drains stopped by a full pipe (the cycles waited in the ring)
         self.overwritten = 0
         self.next = 1  # the next cycle to record
         self.events = 0
@@ -150,6 +150,7 @@ class CycleRecorder:
             fcntl.fcntl(wfd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
         env = os.environ.copy()
         env.update(THREAD_ENV)
+        ready_r, ready_w = os.pipe2(os.O_CLOEXEC)
         try:
             self.proc = subprocess.Popen(
                 [
@@ -161,15 +162,20 @@ class CycleRecorder:
                     str(rfd),
                     "--out",
                     self.path,
+                    "--ready-fd",
+                    str(ready_w),
                 ],
                 env=env,
-                pass_fds=(rfd,),
+                pass_fds=(rfd, ready_w),
                 close_fds=True,
                 stdin=subprocess.DEVNULL,
             )
         finally:
             os.close(rfd)
+            os.close(ready_w)
         self.fd = wfd
+        # the writer's imports take a while: the cycles start once it reads
+        self._wait_ready(ready_r)
         rows = PROC_STATUS.fields
         assert rows is not None
         header = {
@@ -214,12 +220,31 @@ class CycleRecorder:
         os.set_blocking(wfd, False)
         self.ring = LogRing.attach(self.spec.session_id, self.node, self.layout)
 
+    def _wait_ready(self, fd: int) -> None:
+        import select
+
+        try:
+            poller = select.poll()
+            poller.register(fd, select.POLLIN)
+            deadline = time.monotonic() + WRITER_WAIT_S
+            while time.monotonic() < deadline:
+                if poller.poll(100):
+                    os.read(fd, 1)
+                    return
+                if self.proc is not None and self.proc.poll() is not None:
+                    return  # it died: the frames will be dropped and counted
+            log.warning("log writer of %s not ready in %s s", self.node, WRITER_WAIT_S)
+        finally:
+            os.close(fd)
+
     def close(self) -> dict[str, Any]:
         """Send the counters and the node's fault, close the pipe, wait for the writer."""
         if self.fd < 0:
             return {}
         final = self.last_cycle
         with contextlib.suppress(Exception):
+            # Cleanup is off real time: what is left in the ring may wait for the writer
+            os.set_blocking(self.fd, True)
             self.drain()  # what the manager captured since the last cycle we ran
             self.manager.read_into(self.mrec.bytes)
             final = max(final, int(self.mrec["cycle"]))
@@ -230,7 +255,7 @@ class CycleRecorder:
             "cycles": final,
             "recorded": self.recorded,
             "dropped": max(0, final - self.recorded),
-            "dropped_pipe_full": self.dropped_full,
+            "pipe_full": self.pipe_full,
             "overwritten": self.overwritten,
             "first_cycle": self.first_cycle,
             "last_cycle": self.last_cycle,
@@ -283,12 +308,14 @@ class CycleRecorder:
                 try:
                     os.write(self.fd, frame)
                 except BlockingIOError:
-                    self.dropped_full += 1
-                else:
-                    self.recorded += 1
-                    if not self.first_cycle:
-                        self.first_cycle = c
-                    self.last_cycle = c
+                    # the writer is behind: this cycle and the rest stay in
+                    # the ring for the next drain (lost only if overwritten)
+                    self.pipe_full += 1
+                    break
+                self.recorded += 1
+                if not self.first_cycle:
+                    self.first_cycle = c
+                self.last_cycle = c
                 if on_cycle is not None:
                     on_cycle(c)
                 taken += 1

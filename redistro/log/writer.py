@@ -29,10 +29,14 @@ def _read_exact(f: IO[bytes], n: int) -> bytes | None:
     return data
 
 
-def run_writer(fd: int, out: str) -> int:
+def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
     from mcap.writer import CompressionType, Writer
 
     from redistro.log.frames import JSON_SCHEMA, MESSAGE_ENCODING, SCHEMA_ENCODING
+
+    if ready_fd >= 0:  # imported: the recorder may start the cycles
+        os.write(ready_fd, b"R")
+        os.close(ready_fd)
 
     src = os.fdopen(fd, "rb", buffering=1 << 16)
     tmp = out + ".tmp"

@@ -39,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     lw = sub.add_parser("logwriter")
     lw.add_argument("--fd", type=int, required=True)
     lw.add_argument("--out", required=True)
+    lw.add_argument("--ready-fd", type=int, default=-1)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=os.environ.get("REDISTRO_LOG_LEVEL", "INFO"),
@@ -48,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.what == "logwriter":
         from redistro.log.writer import run_writer
 
-        return run_writer(args.fd, args.out)
+        return run_writer(args.fd, args.out, args.ready_fd)
     if args.what == "plant":
         from redistro.plant.process import run_plant
 

@@ -39,8 +39,8 @@ from redistro.control.cartesian import (
     rotvec_to_matrix,
 )
 from redistro.control.dynamics import ArmModel
-from redistro.control.pid import PidGains, PidState, PidWork, pid_update_into
-from redistro.control.trajectory import quintic_into
+from redistro.control.pid import PidGains, PidLoop, PidState
+from redistro.control.trajectory import QuinticRef
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
 from redistro.process.worker import Worker
@@ -66,15 +66,14 @@ class RobotState:
     plan: Record
     hold_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
     pid: PidState = field(default_factory=PidState)
-    work: PidWork = field(default_factory=PidWork)
     cartesian: bool = False  # the running segment drives it through the law
     start_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
-    d_q: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))  # joint goal - start
     short_move: bool = False  # the goal is where the segment starts (within 2 mm)
     # per-cycle scratch
     g: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
     qd_ref: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
     qdd_ref: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
+    zero: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(DOF))
     R: np.ndarray[Any, Any] = field(default_factory=lambda: np.eye(3))
     t: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
     views: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)
@@ -100,6 +99,19 @@ class RobotState:
         }
         cmd["joint_on"] = ON
         self.to_records = _LawCopier(self.law, self.cmd, self.plan)
+        self.on = ON.copy()
+
+    def loops(self, gains: PidGains) -> None:
+        """The joint PID bound to this robot's arrays: holding ``hold_q``, or
+        tracking a joint segment's quintic (written into the command's q_cmd)."""
+        v = self.views
+        self.hold_loop = PidLoop(
+            gains, self.pid, v["q"], v["qd"], self.hold_q, self.zero, self.g, self.on, v["tau"]
+        )
+        self.quintic = QuinticRef(v["q_cmd"], self.qd_ref, self.qdd_ref)
+        self.joint_loop = PidLoop(
+            gains, self.pid, v["q"], v["qd"], v["q_cmd"], self.qd_ref, self.g, self.on, v["tau"]
+        )
 
     def hold_plan(self) -> None:
         """The plan's constant fields while the robot holds its pose."""
@@ -203,6 +215,8 @@ class SscWorker(Worker):
                     r, model, law, offset, base, Record(FEEDBACK), Record(COMMAND), Record(PLAN)
                 )
             )
+        for st in self.states:
+            st.loops(self.pid)
         self.fbs = [st.fb for st in self.states]
         self.plan_recs = [st.plan for st in self.states]
         self.started = False
@@ -227,7 +241,7 @@ class SscWorker(Worker):
             self.started = True
             self.t0_step = step_now
             for st in self.states:
-                st.hold_q = st.views["q"].copy()
+                st.hold_q[...] = st.views["q"]
             self.post(f"every robot reported; task starts ({len(self.plans)} segments)")
             self._begin(0, 0.0)
         t = (step_now - self.t0_step) / self.physics_hz
@@ -272,7 +286,7 @@ class SscWorker(Worker):
         self.cond_since = None
         if k >= len(self.plans):
             for st in self.states:
-                st.hold_q = st.views["q"].copy()
+                st.hold_q[...] = st.views["q"]
                 st.pid.reset()
                 st.cartesian = False
                 st.hold_plan()
@@ -285,7 +299,7 @@ class SscWorker(Worker):
             v = st.views
             if st.name != plan.robot:
                 if prev == st.name or k == 0:
-                    st.hold_q = q.copy()  # it was moving: it holds where it is now
+                    st.hold_q[...] = q  # it was moving: it holds where it is now
                     st.pid.reset()
                 st.cartesian = False
                 st.hold_plan()
@@ -319,7 +333,7 @@ class SscWorker(Worker):
                 v["selection"][...] = plan.selection if force else 0
             else:
                 st.cartesian = False
-                st.d_q = plan.q_goal - st.start_q
+                st.quintic.start(st.start_q, plan.q_goal, plan.move_s)
                 goal = st.model.kinematics(plan.q_goal)
                 v["goal"][...] = goal.p
                 v["goal_rot"][...] = matrix_to_rotvec(goal.R)
@@ -376,11 +390,8 @@ class SscWorker(Worker):
         """A joint PID holding ``hold_q`` (gravity compensated)."""
         v = st.views
         q = v["q"]
-        st.g[...] = st.model.gravity(q)
-        st.qd_ref[...] = 0.0
-        pid_update_into(
-            self.pid, st.pid, st.work, q, v["qd"], st.hold_q, st.qd_ref, st.g, ON, dt, v["tau"]
-        )
+        st.model.gravity_into(q, st.g)
+        st.hold_loop.update(dt)
         v["q_cmd"][...] = st.hold_q
         self._pose(st, q, goal=True)
 
@@ -388,11 +399,9 @@ class SscWorker(Worker):
         v = st.views
         q = v["q"]
         if not st.cartesian:  # a joint segment: a quintic in joint space, a joint PID
-            quintic_into(st.start_q, st.d_q, plan.move_s, seg_t, v["q_cmd"], st.qd_ref, st.qdd_ref)
-            st.g[...] = st.model.gravity(q)
-            pid_update_into(
-                self.pid, st.pid, st.work, q, v["qd"], v["q_cmd"], st.qd_ref, st.g, ON, dt, v["tau"]
-            )
+            st.quintic.at(seg_t)
+            st.model.gravity_into(q, st.g)
+            st.joint_loop.update(dt)
             self._pose(st, q, goal=False)
             return
         law = st.law

@@ -338,3 +338,39 @@ def test_the_cartesian_law_kernel_matches_its_numpy_composition() -> None:
             )
             assert np.allclose(a.state, b.state, rtol=1e-9, atol=1e-10), f"case {case} cycle {k}"
     assert laws[0].contact  # the force axes met their contact threshold somewhere
+
+
+def test_the_joint_kernels_match_their_numpy_references() -> None:
+    from redistro.control.pid import PidGains, PidLoop, PidState
+    from redistro.control.trajectory import QuinticRef
+
+    rng = np.random.default_rng(2)
+    gains = PidGains(*(np.abs(rng.normal(size=7)) * 20 for _ in range(4)))
+    arrays = [np.zeros(7) for _ in range(5)]
+    on = np.zeros(7, dtype=bool)
+    loops = []
+    for use in (True, False):
+        tau = np.zeros(7)
+        loops.append((PidLoop(gains, PidState(), *arrays, on, tau, use_kernel=use), tau))
+    refs = [QuinticRef(np.zeros(7), np.zeros(7), np.zeros(7), use_kernel=u) for u in (True, False)]
+    for r in refs:
+        r.start(rng.normal(size=7), rng.normal(size=7), 2.5)
+        r.q0[...] = refs[0].q0
+        r.d[...] = refs[0].d
+    for k in range(300):
+        for a in arrays:
+            a[...] = rng.normal(size=7)
+        on[...] = rng.random(7) < 0.8
+        for loop, _tau in loops:
+            loop.update(0.001 * (1 + k % 3))
+        (_, a), (_, b) = loops
+        assert np.allclose(a, b, rtol=1e-13, atol=1e-13)
+        assert np.array_equal(loops[0][0].state.integral, loops[1][0].state.integral)
+        for r in refs:
+            r.at(-0.2 + 0.01 * k)
+        assert np.allclose(
+            np.array([refs[0].q, refs[0].qd, refs[0].qdd]),
+            np.array([refs[1].q, refs[1].qd, refs[1].qdd]),
+            rtol=1e-13,
+            atol=1e-13,
+        )
