@@ -3,9 +3,11 @@ nice values otherwise; CPU affinity; memory locking. Reports what was granted.""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import os
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -84,6 +86,34 @@ def leave_real_time() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass  # not permitted: it stays where it is
+
+
+def is_real_time() -> bool:
+    """Whether the calling thread runs under SCHED_RR or SCHED_FIFO."""
+    try:
+        return os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK in (os.SCHED_RR, os.SCHED_FIFO)
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def normal_policy() -> Iterator[None]:
+    """Run a block at the normal policy, then return to the real-time one (a
+    real-time process's occasional chores: a progress display, a spawn)."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    except OSError:
+        policy, param = os.SCHED_OTHER, None
+    real_time = policy & ~os.SCHED_RESET_ON_FORK in (os.SCHED_RR, os.SCHED_FIFO)
+    if real_time:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER | os.SCHED_RESET_ON_FORK, os.sched_param(0))
+    try:
+        yield
+    finally:
+        if real_time and param is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, policy, param)
 
 
 def _mlockall(granted: Granted) -> bool:

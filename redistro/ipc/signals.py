@@ -22,9 +22,15 @@ SIG_ORPHAN = signal.SIGRTMIN + 3
 SIG_WAKE = signal.SIGRTMIN + 4
 """Worker -> manager: look at the workers' rows now (an e-stop request), not at the next tick."""
 
+SIG_ESTOP = signal.SIGRTMIN + 5
+"""Session owner -> manager: a node of the group faulted and cannot carry its
+e-stop through its DDM (it has none, or its DDM is what failed): e-stop now.
+(Manager -> owner: a SIGCHLD sent with kill asks for that relay.)"""
+
 STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 RUNTIME_SIGNALS = frozenset(
-    {SIG_SYNC, SIG_END, SIG_ORPHAN, SIG_WAKE, signal.SIGALRM, signal.SIGCHLD} | STOP_SIGNALS
+    {SIG_SYNC, SIG_END, SIG_ORPHAN, SIG_WAKE, SIG_ESTOP, signal.SIGALRM, signal.SIGCHLD}
+    | STOP_SIGNALS
 )
 
 _PR_SET_PDEATHSIG = 1

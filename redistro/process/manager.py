@@ -36,9 +36,12 @@ from redistro.process.stats import Samples
 log = logging.getLogger(__name__)
 
 ROUTINE_WAIT = (
-    frozenset({signal.SIGALRM, signal.SIGCHLD, signals.SIG_ORPHAN, signals.SIG_WAKE})
+    frozenset(
+        {signal.SIGALRM, signal.SIGCHLD, signals.SIG_ORPHAN, signals.SIG_WAKE, signals.SIG_ESTOP}
+    )
     | signals.STOP_SIGNALS
 )
+RELAY_FILE = "estop"  # in the session folder, estop.<node>: a faulted node asks for a relay
 START_WAIT = frozenset({signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
 
 
@@ -121,6 +124,9 @@ class Manager:
         self._tick_ns = 0
         self._estop = False
         self.wake_fd = -1
+        # the node cannot carry its e-stop to the group itself: it has no DDM
+        # (an ESC-only session), or its DDM is what failed
+        self._no_door = not any(w.role == "ddm" for w in spec.workers)
         self.ring: Any = None  # the session log's ring, when the node logs
         self.capture: Any = None
 
@@ -306,6 +312,8 @@ class Manager:
                 if sig == signal.SIGCHLD:
                     self._check_children()
                     continue
+                if sig == signals.SIG_ESTOP:  # the session owner relays a node's e-stop
+                    raise NodeFault("estop", self._relayed_estop())
                 if sig == signals.SIG_WAKE:
                     # a worker's e-stop or trip: act now, not at the next tick
                     self._check_failed()
@@ -354,6 +362,27 @@ class Manager:
             self._cpu_end = time.process_time()
             gc.enable()
 
+    def _relayed_estop(self) -> str:
+        source = "another node"
+        if self.spec.result_path:
+            # the faulted nodes' relay files name them
+            mine = f"{RELAY_FILE}.{self.spec.node}"
+            with contextlib.suppress(OSError):
+                folder = Path(self.spec.result_path).parent
+                found = sorted(
+                    p.name.removeprefix(f"{RELAY_FILE}.")
+                    for p in folder.glob(f"{RELAY_FILE}.*")
+                    if p.name != mine
+                )
+                source = ", ".join(found) or source
+        return f"e-stop from {source} (relayed by the session owner)"
+
+    def _door_down(self, j: int) -> None:
+        """Worker ``j`` failed: if it is the node's DDM, the node's e-stop
+        cannot reach the group through it."""
+        if self.spec.workers[j].role == "ddm":
+            self._no_door = True
+
     def _stop_text(self, sig: int) -> str:
         if sig == signals.SIG_ORPHAN:
             return "session owner died"
@@ -365,6 +394,7 @@ class Manager:
         """Reap any worker that exited; a worker exit during the session is a fault."""
         for j, child in enumerate(self.children):
             if child.alive and child.reap():
+                self._door_down(j)
                 status = child.status or 0
                 if os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_FAILED:
                     # it said why in its box: that is the cause
@@ -399,6 +429,7 @@ class Manager:
             limit = limits[j]
             if age >= limit:
                 self.hung.add(j)
+                self._door_down(j)
                 child = self.children[j]
                 raise NodeFault(
                     "abnormal",
@@ -456,6 +487,7 @@ class Manager:
         self._drain_messages()
         for j, text in self._failed.items():
             child = self.children[j]
+            self._door_down(j)
             raise NodeFault("abnormal", f"worker {child.name} (pid {child.pid}) {text}")
 
     def _message(self, process: str, level: int, text: str, stamp_ns: int | None = None) -> None:
@@ -488,6 +520,17 @@ class Manager:
         if self.wake_fd >= 0:  # the ddm carries the e-stop to the group now
             with contextlib.suppress(OSError):
                 os.eventfd_write(self.wake_fd, 1)
+        if reason != "estop" and self.spec.owner_pid:
+            # ... and the session owner relays it to the nodes it has not
+            # reached within a part of a cycle (at once when this node has no
+            # DDM to carry it): a SIGCHLD sent by kill (SI_USER) asks for that
+            # (an owner that does not expect it ignores it); the relay file
+            # says whether this node's door is down
+            with contextlib.suppress(OSError):
+                if self.spec.result_path:
+                    relay = Path(self.spec.result_path).parent / f"{RELAY_FILE}.{self.spec.node}"
+                    relay.write_text("no door\n" if self._no_door else "door\n")
+                os.kill(self.spec.owner_pid, signal.SIGCHLD)
         try:
             self.on_fault(reason, message)
         except Exception:

@@ -16,7 +16,7 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from redistro.ipc import signals
 from redistro.ipc.session import Session
@@ -27,6 +27,8 @@ from redistro.process.spec import NodeSpec
 log = logging.getLogger(__name__)
 
 OWNER_WAIT = frozenset({signal.SIGCHLD}) | signals.STOP_SIGNALS
+SI_USER = 0  # siginfo.si_code of a signal sent by kill()
+_T = TypeVar("_T")
 # children of this process that are no part of any node (a benchmark's
 # cyclictest running beside a session): reaping leaves them alone
 SPARED: set[int] = set()
@@ -225,6 +227,89 @@ def _has_ddm(spec: NodeSpec) -> bool:
     return any(w.role == "ddm" for w in spec.workers)
 
 
+# How long the group's own e-stop (a faulted node's DDM -> the others') has
+# before the session owner relays it to the nodes it has not reached [s]:
+# a part of a 200 Hz cycle; the DDMs carry it in 1-3 ms. A node whose DDM is
+# down (none, or the one that failed) is relayed at once.
+RELAY_GRACE_S = 0.0015
+# SCHED_RR while the owner waits on its nodes, above every controller process
+# (the e-stop relay must not queue behind a fault's clean-up); its chores (the
+# progress display, starting a node) run at the normal policy
+OWNER_PRIORITY = 30
+
+
+class _Relay:
+    """The session owner's relay of a node's e-stop to the rest of the group."""
+
+    def __init__(self, nodes: list[_Node], session_id: str) -> None:
+        self.nodes = nodes
+        self.session_id = session_id
+        self.due: list[tuple[float, _Node, str]] = []
+        self.done: set[int] = set()
+        self._lds: dict[str, Any] = {}
+
+    def request(self, pid: int, now: float) -> None:
+        """A manager faulted (its SIGCHLD by kill): relay its e-stop."""
+        source = next((n for n in self.nodes if n.pid == pid), None)
+        if source is None or source.pid in self.done:
+            return
+        self.done.add(source.pid)
+        from redistro.process.manager import RELAY_FILE
+
+        # the manager wrote it before it signalled (the receiving managers
+        # name their source from it)
+        door = ""
+        with contextlib.suppress(OSError):
+            folder = Path(source.spec.result_path).parent
+            door = (folder / f"{RELAY_FILE}.{source.spec.node}").read_text().strip()
+        # no door: at once, to every other node (one already stopped ignores it);
+        # a door: after the grace, to the nodes its DDM has not reached
+        self.due.append((now + (0.0 if door == "no door" else RELAY_GRACE_S), source, door))
+
+    @property
+    def next_s(self) -> float | None:
+        return min((d[0] for d in self.due), default=None)
+
+    def poll(self, now: float) -> None:
+        due = [d for d in self.due if d[0] <= now]
+        if not due:
+            return
+        self.due = [d for d in self.due if d[0] > now]
+        checked = all(door != "no door" for _, _, door in due)
+        for n in self.nodes:
+            if n.status is not None or any(n is s for _, s, _ in due):
+                continue
+            if not checked or not self._stopped(n):
+                signals.send(n.pidfd, signals.SIG_ESTOP)
+
+    def prepare(self) -> None:
+        """Attach the running nodes' Local Data ahead of any fault (an attach
+        costs milliseconds; the relay has a part of a cycle)."""
+        from redistro.localdata import LocalData
+
+        for n in self.nodes:
+            if n.status is None and n.pid and n.spec.node not in self._lds:
+                with contextlib.suppress(Exception):
+                    ld = LocalData.attach(self.session_id, n.spec.node)
+                    self._lds[n.spec.node] = (ld, ld.block("manager"))
+
+    def _stopped(self, n: _Node) -> bool:
+        """Whether node ``n`` has its e-stop already (its manager block says so)."""
+        entry = self._lds.get(n.spec.node)
+        if entry is None:
+            return False  # not attached: relay (a second e-stop is harmless)
+        try:
+            return bool(entry[1].read()["estop"])
+        except Exception:
+            return False
+
+    def close(self) -> None:
+        for ld, _ in self._lds.values():
+            with contextlib.suppress(Exception):
+                ld.close()
+        self._lds.clear()
+
+
 def _wait_nodes(
     nodes: list[_Node],
     budget_s: float | None,
@@ -238,13 +323,43 @@ def _wait_nodes(
     if budget_s is None and all(s.cycles for s in specs):
         budget_s, clock = max(s.cycles / s.rate_hz for s in specs), None
     budget = _Budget(budget_s, margin, start, clock)
+    relay = _Relay(nodes, specs[0].session_id)
+    from redistro.ipc import sched
+
+    raised = specs[0].sched_policy in ("auto", "rr") and os.sched_getscheduler(0) in (
+        os.SCHED_OTHER,
+        os.SCHED_BATCH,
+    )
+    if raised:
+        raised = sched.apply(OWNER_PRIORITY, None, "rr").policy == "SCHED_RR"
+    try:
+        _wait_loop(nodes, budget, on_wait, pending, relay)
+    finally:
+        relay.close()
+        if raised:
+            sched.leave_real_time()
+
+
+def _wait_loop(
+    nodes: list[_Node],
+    budget: _Budget,
+    on_wait: Callable[[], None] | None,
+    pending: _Later | None,
+    relay: _Relay,
+) -> None:
     spent = False
     group_stop: tuple[float, str] | None = None  # (when, why): the fallback stop
     while any(n.status is None for n in nodes):
         busy = (pending is not None and pending.specs) or group_stop is not None
-        info = signals.wait(OWNER_WAIT, 0.02 if busy else 0.2)
+        timeout = 0.02 if busy else 0.2
+        if relay.next_s is not None:
+            timeout = max(0.0, min(timeout, relay.next_s - time.monotonic()))
+        info = signals.wait(OWNER_WAIT, timeout)
         now = time.monotonic()
-        if pending is not None and not pending.poll(now):
+        if info is not None and info.si_signo == signal.SIGCHLD and info.si_code == SI_USER:
+            relay.request(info.si_pid, now)  # a manager faulted: relay its e-stop
+        relay.poll(now)
+        if pending is not None and not _chore(pending.poll, now):
             log.error("%s", pending.failed)
             for n in nodes:
                 n.stop(pending.failed, now)
@@ -259,6 +374,8 @@ def _wait_nodes(
                         # the fallback, after a grace
                         grace = GROUP_STOP_GRACE_S if all(_has_ddm(o.spec) for o in nodes) else 0.0
                         group_stop = (now + grace, f"a fault in {n.spec.node}")
+        if not relay.due and len(relay._lds) < len(nodes):
+            _chore(relay.prepare)
         if group_stop is not None and now >= group_stop[0]:
             for n in nodes:
                 n.stop(group_stop[1], now)
@@ -275,7 +392,15 @@ def _wait_nodes(
             if n.status is None and n.kill_at is not None and now > n.kill_at:
                 signals.send(n.pidfd, signal.SIGKILL)
         if on_wait is not None:
-            on_wait()
+            _chore(on_wait)
+
+
+def _chore(fn: Callable[..., _T], *args: Any) -> _T:
+    """Run an owner's chore at the normal policy."""
+    from redistro.ipc import sched
+
+    with sched.normal_policy():
+        return fn(*args)
 
 
 def reap_descendants(timeout_s: float, keep: frozenset[int] = frozenset()) -> list[int]:

@@ -70,8 +70,9 @@ def _check_log(run: Path, summary: dict[str, Any]) -> None:
     rec = summary["log"]["nodes"]["ssc"]
     cycles = summary["nodes"]["ssc"]["cycles"]
     assert rec["complete"] and rec["cycles"] == cycles, rec
-    # the lowest-priority logger misses cycles on a loaded host: 0.5-5 % seen
-    assert rec["dropped"] <= 0.15 * cycles, rec
+    # every cycle: the manager captures it into the ring, the logger (the
+    # lowest priority, held off now and then) drains the ring when it runs
+    assert rec["dropped"] == 0 and rec["recorded"] == cycles, rec
     sl = read_log(run / "session.mcap")
     for topic in ("/r1/feedback", "/r2/command", "/r2/plan", "/ssc/timing"):
         assert sl.counts[topic] == cycles - rec["dropped"], (topic, sl.counts[topic], rec)
@@ -84,20 +85,20 @@ def _check_log(run: Path, summary: dict[str, Any]) -> None:
 def test_peg_insertion_over_each_transport(
     calibrated: Path, tmp_path: Path, transport: str
 ) -> None:
+    """Over sockets through ``redistro bench group`` (the session, measured)."""
     runs = _runs(calibrated, tmp_path)
     out = tmp_path / "run"
-    done = run_cli(
-        "--set",
-        f"session.runs_dir={runs}",
-        "--set",
-        f"ddm.transport={transport}",
-        "session",
-        SHORT,
-        "--out",
-        str(out),
-        timeout=600,
-    )
+    figures = tmp_path / "group.json"
+    common = ("--set", f"session.runs_dir={runs}", "--set", f"ddm.transport={transport}")
+    if transport == "socket":
+        done = run_cli(*common, "bench", "group", SHORT, "--json", str(figures), timeout=600)
+    else:
+        done = run_cli(*common, "session", SHORT, "--out", str(out), timeout=600)
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-3000:]
+    if transport == "socket":
+        bench = load_json(figures)
+        out = Path(bench["run_dir"])
+        _check_bench(bench)
     summary = load_json(out / "summary.json")
     _check_peg(summary)
     _check_log(out, summary)
@@ -105,6 +106,32 @@ def test_peg_insertion_over_each_transport(
     print(
         {n: d["command_latency_us"] for n, d in summary["ddm"].items() if "command_latency_us" in d}
     )
+
+
+def _check_bench(f: dict[str, Any]) -> None:
+    """The group benchmark's figures: every process measured, the plant split,
+    the DDM latency, the log, the host's yardsticks of the same minutes."""
+    assert f["result"] == "ok" and f["transport"] == "socket"
+    for node in ("esc.r1", "esc.r2", "ssc"):
+        n = f["nodes"][node]
+        assert n["cycles"] > 1000 and 0 <= n["overrun_percent"] < 100, n
+        assert n["lateness_us"]["p50"] <= n["lateness_us"]["p99"], n
+        for name, p in n["processes"].items():
+            assert 0 < p["cpu_percent"] < 100, (node, name, p)
+            if name != "manager":
+                assert 0 < p["step_cpu_us"]["p50"] <= p["step_cpu_us"]["p99"], (node, name, p)
+    pl = f["plant"]
+    assert 0 < pl["physics_us"]["p50"] < pl["step_us"]["p50"], pl
+    assert pl["chassis_us"]["p50"] > 0 and 0 < pl["rtf"] <= 1.05, pl
+    for robot in ("r1", "r2"):
+        lat = f["ddm"][robot]["command_latency_us"]
+        assert 0 < lat["p50"] <= lat["p99"] <= lat["max"], lat
+    assert f["log"]["dropped"] == 0, f["log"]
+    assert f["group_cpu_percent"] > sum(n["cpu_percent"] for n in f["nodes"].values())
+    if shutil.which("cyclictest"):
+        ct = f["cyclictest_us"]
+        assert ct["samples"] > 1000 and ct["p50"] <= ct["p99"] <= ct["max"], ct
+    assert set(f["host_steal"]["ms"]) == set(f["host_busy_percent"]) != set()
 
 
 def _pid_of(ld: Any, name: str) -> int:
@@ -135,13 +162,18 @@ def test_a_stopped_ssc_ddm_starves_the_escs(calibrated: Path, tmp_path: Path) ->
         proc.stderr.close()
     print(f"session ended {time.monotonic() - stopped_at:.2f} s after the SIGSTOP")
     summary = load_json(out / "summary.json")
-    starving = [n for n in ("esc.r1", "esc.r2") if summary["nodes"][n]["result"] == "starving"]
-    assert starving, summary["nodes"]
-    for n in starving:
-        reason = summary["nodes"][n]["reason"]
-        # detected the first cycle the index went over the limit, not later
-        assert f"starving index {LIMIT + 1} over the limit {LIMIT}" in reason, reason
-        assert summary["nodes"][n]["freeze_monotonic_ns"], summary["nodes"][n]
+    # each ESC stops: by its own starving index, or first by the e-stop the
+    # session owner relays from the SSC (which finds its hung ddm: 25 missed
+    # heartbeats, before the ESCs' 40 starving cycles)
+    for n in ("esc.r1", "esc.r2"):
+        node = summary["nodes"][n]
+        if node["result"] == "starving":
+            # detected the first cycle the index went over the limit, not later
+            assert f"starving index {LIMIT + 1} over the limit {LIMIT}" in node["reason"], node
+        else:
+            assert node["result"] == "estop", node
+            assert "e-stop from ssc (relayed by the session owner)" in node["reason"], node
+        assert node["freeze_monotonic_ns"], node
     assert summary["result"] in ("starving", "abnormal"), summary["reason"]
 
 
@@ -167,11 +199,15 @@ def test_an_unsafe_r1_stops_r2_and_every_node_sees_the_estop(
     assert summary["result"] == "unsafe", summary["reason"]
     assert nodes["esc.r1"]["result"] == "unsafe", nodes["esc.r1"]
     assert summary["reason"].startswith("r1 joint 1 velocity"), summary["reason"]
-    # the e-stop went r1's ESC -> ssc -> r2's ESC through the DDMs
+    # the e-stop went r1's ESC -> ssc -> r2's ESC through the DDMs (the
+    # session owner relays it to a node it has not reached within 1.5 ms:
+    # either may come first, the DDMs carry it regardless)
     assert nodes["ssc"]["result"] == "estop", nodes["ssc"]
     assert "e-stop from esc.r1" in nodes["ssc"]["reason"], nodes["ssc"]
     assert nodes["esc.r2"]["result"] == "estop", nodes["esc.r2"]
-    assert "e-stop from ssc" in nodes["esc.r2"]["reason"], nodes["esc.r2"]
+    reason = nodes["esc.r2"]["reason"]
+    assert "e-stop from ssc" in reason or "e-stop from esc.r1 (relayed" in reason, reason
+    assert summary["ddm"]["ssc"]["r1"]["estop_in"], summary["ddm"]["ssc"]
     assert (
         summary["ddm"]["esc.r2"]["estop_in"] and summary["ddm"]["esc.r2"]["estop_source"] == "ssc"
     )

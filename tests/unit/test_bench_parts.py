@@ -91,3 +91,48 @@ def test_host_steal_from_proc_stat(tmp_path: Path) -> None:
     assert r["percent_of_run"]["cpu0"] == 10.0
     assert cpu_steal_ticks(str(tmp_path / "missing")) == {}
     assert cpu_steal_ticks()  # this machine's kernel reports it
+
+
+def test_group_figures_from_a_summary() -> None:
+    """bench group puts a session's own figures side by side: per process,
+    the node's CPU as the sum of its processes, the group's with the plant
+    and the log writers."""
+    from redistro.bench.group import figures
+
+    def worker(name: str, cpu: float) -> dict[str, object]:
+        return {
+            "name": name,
+            "cycles": 100,
+            "overruns": 1,
+            "compute_us": {"p50": 20.0, "p99": 30.0, "max": 40.0},
+            "step_cpu_us": {"p50": 10.0, "p99": 15.0, "max": 25.0},
+            "lateness_us": {"p50": 5.0, "p99": 9.0, "max": 12.0},
+            "cpu_percent": cpu,
+        }
+
+    summary = {
+        "task": "t",
+        "result": "ok",
+        "reason": "",
+        "nodes": {
+            "esc.r1": {
+                "rate_hz": 200.0,
+                "cycles": 998,
+                "missed_ticks": 2,
+                "overruns": 3,
+                "lateness_us": {"p50": 40.0, "p99": 80.0, "max": 900.0},
+                "manager": {"cpu_percent": 2.0},
+                "workers": [worker("acquisition", 3.0), worker("sender", 4.0)],
+            }
+        },
+        "plant": {"rtf": 0.99, "cpu_percent": 20.0, "step_us": {"p50": 100.0}},
+        "log": {"dropped": 0, "nodes": {"ssc": {"writer_cpu_percent": 5.0, "dropped": 0}}},
+        "ddm": {"esc.r1": {"command_latency_us": {"p50": 150.0, "p99": 400.0, "max": 900.0}}},
+    }
+    f = figures(summary)
+    n = f["nodes"]["esc.r1"]
+    assert n["overrun_percent"] == 0.3  # of 1000 periods (cycles + missed ticks)
+    assert n["cpu_percent"] == 9.0
+    assert n["processes"]["sender"]["step_cpu_us"]["p99"] == 15.0
+    assert f["group_cpu_percent"] == 34.0  # 9 + the plant's 20 + the writer's 5
+    assert f["ddm"]["r1"]["command_latency_us"]["p50"] == 150.0

@@ -87,3 +87,25 @@ def test_scheduling_reports_what_was_granted() -> None:
     assert os.WEXITSTATUS(status) == 0
     assert sched.nice_for(19) == -9
     assert sched.cpus_of_mask(sched.cpu_mask([0, 3])) == [0, 3]
+
+
+def test_a_chore_runs_at_the_normal_policy_and_real_time_returns() -> None:
+    pid = os.fork()
+    if pid == 0:  # in a child: the test process keeps its own scheduling
+        code = 0
+        try:
+            if sched.apply(5, None, "rr").policy != "SCHED_RR":
+                os._exit(3)  # real time refused here: nothing to check
+            with sched.normal_policy():
+                if sched.is_real_time():
+                    code = 1
+            if not sched.is_real_time() or os.sched_getparam(0).sched_priority != 5:
+                code = 2
+        except BaseException:
+            code = 4
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    code = os.WEXITSTATUS(status)
+    if code == 3:
+        pytest.skip("SCHED_RR is refused on this host")
+    assert code == 0, code
