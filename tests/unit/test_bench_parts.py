@@ -136,3 +136,14 @@ def test_group_figures_from_a_summary() -> None:
     assert n["processes"]["sender"]["step_cpu_us"]["p99"] == 15.0
     assert f["group_cpu_percent"] == 34.0  # 9 + the plant's 20 + the writer's 5
     assert f["ddm"]["r1"]["command_latency_us"]["p50"] == 150.0
+
+
+def test_the_socket_floor_measures_every_exchange() -> None:
+    """The floor's two processes exchange at the rate asked for; the replier
+    times each receive and reply."""
+    from redistro.bench import floor
+
+    got = floor.measure(500.0, 0.2, 19)
+    fig = got["reply_cpu_us"]
+    assert fig["samples"] == 100, got
+    assert 0 < fig["p50"] <= fig["p99"] <= fig["max"], got
