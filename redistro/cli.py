@@ -99,6 +99,14 @@ def _parser() -> argparse.ArgumentParser:
     gr.add_argument("task", help="task file, e.g. tasks/peg_insertion.yaml")
     gr.add_argument("--json", dest="json_path", default=None, help="write the figures here")
 
+    kb = bsub.add_parser(
+        "kernels",
+        help="each compiled kernel against its numpy reference, CPU per call",
+        parents=[common],
+    )
+    kb.add_argument("--calls", type=int, default=5000, help="calls timed per piece")
+    kb.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+
     pl = sub.add_parser("plant", help="run the simulated plant alone", parents=[common])
     pl.add_argument("--gui", action="store_true", help="open the PyBullet window")
     pl.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
@@ -243,6 +251,8 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         return _bench_plant(args, cfg)
     if args.command == "bench" and args.bench == "group":
         return _bench_group(args, cfg)
+    if args.command == "bench" and args.bench == "kernels":
+        return _bench_kernels(args, cfg)
     if args.command == "plant":
         return _plant(args, cfg)
     if args.command == "log":
@@ -367,6 +377,26 @@ def _bench_group(args: argparse.Namespace, cfg: Any) -> int:
         write_json(Path(args.json_path), out)
         print(f"wrote {args.json_path}")
     return 0 if out["result"] == "ok" else 1
+
+
+def _bench_kernels(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from redistro.bench import kernels
+    from redistro.process.owner import write_json
+
+    if args.calls < 1:
+        raise ConfigError(f"--calls {args.calls}: must be at least 1")
+    if args.json_path:
+        parent = Path(args.json_path).resolve().parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise ConfigError(f"--json {args.json_path}: {parent} is not a writable folder")
+    out = kernels.run(cfg, args.calls)
+    kernels.print_figures(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0
 
 
 def _bench_ipc(args: argparse.Namespace) -> int:

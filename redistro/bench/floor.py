@@ -1,16 +1,24 @@
-"""The socket floor: what one ddm exchange costs the kernel and the
-interpreter alone, measured in the same ``bench group`` run.
+"""The DDM floor: what a command's way from the SSC worker to an ESC ddm,
+and one ddm exchange, cost the kernel and the interpreter alone, measured in
+the same ``bench group`` run.
 
-Two processes at the ddms' real-time priority play the socket transport's
-send/receive/reply over TCP loopback and nothing else: the caller sends a
-record of a command's size at the node rate, the replier wakes in epoll,
-receives it and sends a feedback-sized reply. The replier's CPU for its
-receive and send (``thread_time`` around the two calls, as a ddm's step CPU
-is taken around its step) is the floor under an ESC ddm's exchange on this
-host, at this moment: no record is checked, encoded or copied.
+Three processes play the path with nothing else to do: a *worker* (the
+caller) stamps the time into an eventfd at the node rate, as the SSC worker
+wakes its ddm after each command; a *forwarder* at the ddms' real-time
+priority wakes in epoll, reads the stamp and sends a command-sized record
+over TCP loopback, then takes the reply, as the SSC ddm does; a *replier*
+at the same priority wakes in epoll, receives the record and sends a
+feedback-sized reply, as an ESC ddm does. No record is checked, encoded or
+copied into Local Data.
 
-Run as ``python -m redistro.bench.floor --rate HZ --seconds S`` (the caller;
-it starts the replier with fork+exec); prints one JSON line.
+- ``reply_cpu_us``: the replier's CPU for its receive and send
+  (``thread_time`` around the two calls, as a ddm's step CPU is taken around
+  its step): the floor under an ESC ddm's exchange.
+- ``latency_us``: from the worker's stamp to the replier's clock after its
+  receive: the floor under the DDM command latency (two wake-ups, one TCP hop).
+
+Run as ``python -m redistro.bench.floor --rate HZ --seconds S``; prints one
+JSON line. Every process is started with fork+exec.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import mmap
 import os
 import select
 import socket
@@ -58,33 +67,52 @@ def _replier(port: int, count: int, priority: int) -> int:
     buf = bytearray(4 * COMMAND_BYTES)
     reply = bytes(REPLY_BYTES)
     cpu: list[int] = []
-    clock = time.thread_time_ns
+    latency: list[int] = []
+    clock, now = time.thread_time_ns, time.monotonic_ns
+    timeout = 10.0  # the others' start-up, then half a second of silence ends it
     for _ in range(count):
-        if not ep.poll(1.0):
+        if not ep.poll(timeout):
             break
+        timeout = 0.5
         c0 = clock()
         if not s.recv_into(buf):
             break
+        t = now()
         s.send(reply)
         cpu.append(clock() - c0)
-    print(json.dumps(_percentiles(cpu)), flush=True)
+        latency.append(t - int.from_bytes(buf[:8], "little"))
+    print(json.dumps({"cpu": _percentiles(cpu), "latency": _percentiles(latency)}), flush=True)
     return 0
+
+
+def _forwarder(efd: int, sock_fd: int, stamp_fd: int, count: int, priority: int) -> int:
+    s = socket.socket(fileno=sock_fd)
+    stamp = mmap.mmap(stamp_fd, 8)
+    _real_time(priority)
+    ep = select.epoll()
+    ep.register(efd, select.EPOLLIN)
+    command = bytearray(COMMAND_BYTES)
+    buf = bytearray(4 * REPLY_BYTES)
+    timeout = 10.0
+    for _ in range(count):
+        if not ep.poll(timeout):
+            break
+        timeout = 0.5
+        os.eventfd_read(efd)
+        command[:8] = stamp[:8]
+        s.send(command)
+        s.recv_into(buf)
+    return 0
+
+
+def _module(*args: str) -> list[str]:
+    return [sys.executable, "-m", "redistro.bench.floor", *args]
 
 
 def measure(rate_hz: float, seconds: float, priority: int) -> dict[str, Any]:
     """The floor at ``rate_hz`` for ``seconds`` (run in a fresh interpreter)."""
     out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "redistro.bench.floor",
-            "--rate",
-            str(rate_hz),
-            "--seconds",
-            str(seconds),
-            "--priority",
-            str(priority),
-        ],
+        _module("--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority)),
         capture_output=True,
         text=True,
         timeout=seconds + 30,
@@ -96,53 +124,71 @@ def measure(rate_hz: float, seconds: float, priority: int) -> dict[str, Any]:
         return {"error": (out.stderr.strip().splitlines() or ["no output"])[-1]}
 
 
-def _caller(rate_hz: float, seconds: float, priority: int) -> int:
+def _worker(rate_hz: float, seconds: float, priority: int) -> int:
     count = max(1, int(rate_hz * seconds))
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
     listener.listen(1)
     port = listener.getsockname()[1]
-    child = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "redistro.bench.floor",
-            "--reply",
-            str(port),
-            "--count",
-            str(count),
-            "--priority",
-            str(priority),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    efd = os.eventfd(0, os.EFD_CLOEXEC)
+    stamp_fd = os.memfd_create("redistro-floor")  # the worker's stamp, shared
+    os.ftruncate(stamp_fd, 8)
+    stamp = mmap.mmap(stamp_fd, 8)
+    children: list[Any] = []
     try:
+        children.append(
+            subprocess.Popen(
+                _module("--reply", str(port), "--count", str(count), "--priority", str(priority)),
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+        )
         listener.settimeout(10.0)
-        s, _ = listener.accept()
-        s.settimeout(1.0)
-        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        _real_time(priority)
-        command = bytes(COMMAND_BYTES)
-        buf = bytearray(4 * REPLY_BYTES)
+        conn, _ = listener.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.setblocking(True)
+        children.append(
+            subprocess.Popen(
+                _module(
+                    "--forward",
+                    f"{efd},{conn.fileno()},{stamp_fd}",
+                    "--count",
+                    str(count),
+                    "--priority",
+                    str(priority),
+                ),
+                pass_fds=(efd, conn.fileno(), stamp_fd),
+            )
+        )
+        conn.close()
         period = 1.0 / rate_hz
-        due = time.monotonic()
+        due = time.monotonic() + 0.5  # the forwarder's start-up
         for _ in range(count):
             due += period
             wait = due - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
-            s.send(command)
-            s.recv_into(buf)
-        out, _ = child.communicate(timeout=10.0)
+            stamp[:8] = time.monotonic_ns().to_bytes(8, "little")
+            os.eventfd_write(efd, 1)
+        out, _ = children[0].communicate(timeout=10.0)
+        children[1].wait(timeout=10.0)
     finally:
-        if child.poll() is None:
-            child.kill()
-            child.wait()
+        for child in children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
         listener.close()
+        stamp.close()
+        os.close(stamp_fd)
+        os.close(efd)
     figures = json.loads(out.strip().splitlines()[-1])
-    figures.update(rate_hz=rate_hz, seconds=seconds)
-    print(json.dumps({"reply_cpu_us": figures}), flush=True)
+    result = {
+        "reply_cpu_us": figures["cpu"],
+        "latency_us": figures["latency"],
+        "rate_hz": rate_hz,
+        "seconds": seconds,
+    }
+    print(json.dumps(result), flush=True)
     return 0
 
 
@@ -152,11 +198,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--priority", type=int, default=19)
     ap.add_argument("--reply", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--forward", default="", help=argparse.SUPPRESS)
     ap.add_argument("--count", type=int, default=0, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.reply:
         return _replier(a.reply, a.count, a.priority)
-    return _caller(a.rate, a.seconds, a.priority)
+    if a.forward:
+        efd, sock_fd, stamp_fd = (int(v) for v in a.forward.split(","))
+        return _forwarder(efd, sock_fd, stamp_fd, a.count, a.priority)
+    return _worker(a.rate, a.seconds, a.priority)
 
 
 if __name__ == "__main__":

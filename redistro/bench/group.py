@@ -15,9 +15,11 @@ positions are unknown, not measured) and gathers, in one document:
 - cyclictest at the node rate, running beside the session for its whole
   length (the timer baseline of the same minutes);
 - host steal and host busy time per vCPU during the run (from /proc/stat);
-- the socket floor right after the session (``redistro.bench.floor``): a
-  TCP loopback receive and reply alone at the node rate, the kernel's and
-  the interpreter's share of a ddm exchange on this host.
+- the DDM floor right after the session (``redistro.bench.floor``): the
+  command's path (an eventfd wake, a TCP loopback send, receive and reply)
+  with nothing else to do, at the node rate: the kernel's and the
+  interpreter's share of the command latency and of a ddm exchange on this
+  host.
 
 Every figure but the last three comes from the session's own ``summary.json``
 (each process measures itself); this module only puts them side by side.
@@ -175,9 +177,9 @@ def run(
     summary = json.loads((out_dir / "summary.json").read_text())
     out = figures(summary)
     out.update(host)
-    # the floor under a ddm exchange on this host, now: TCP loopback send,
-    # receive and reply alone, at the node rate (after the session: beside it,
-    # it would be load)
+    # the floor under a ddm exchange and the command latency on this host,
+    # now: the wake-ups and the TCP loopback send, receive and reply alone, at
+    # the node rate (after the session: beside it, it would be load)
     from redistro.bench import floor
 
     out["socket_floor"] = floor.measure(rate, 3.0, cfg.scheduling.priorities.get("ddm", 19))
@@ -226,6 +228,9 @@ def print_figures(f: dict[str, Any], out: Any = sys.stdout) -> None:
     fl = (f.get("socket_floor") or {}).get("reply_cpu_us") or {}
     if "p50" in fl:
         p(f"  socket floor (receive + reply alone) CPU p50/p99 {fl['p50']}/{fl['p99']} us")
+    fl = (f.get("socket_floor") or {}).get("latency_us") or {}
+    if "p50" in fl:
+        p(f"  socket floor latency (eventfd + TCP alone) p50/p99 {fl['p50']}/{fl['p99']} us")
     steal = (f.get("host_steal") or {}).get("ms")
     if steal:
         p("  host steal " + ", ".join(f"{c} {ms} ms" for c, ms in steal.items()))

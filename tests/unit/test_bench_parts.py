@@ -139,11 +139,31 @@ def test_group_figures_from_a_summary() -> None:
 
 
 def test_the_socket_floor_measures_every_exchange() -> None:
-    """The floor's two processes exchange at the rate asked for; the replier
-    times each receive and reply."""
+    """The floor's three processes pass a stamp at the rate asked for (a
+    wake-up that finds two stamps takes the later one); the replier times
+    each receive and reply and each stamp's way."""
     from redistro.bench import floor
 
     got = floor.measure(500.0, 0.2, 19)
-    fig = got["reply_cpu_us"]
-    assert fig["samples"] == 100, got
-    assert 0 < fig["p50"] <= fig["p99"] <= fig["max"], got
+    cpu, latency = got["reply_cpu_us"], got["latency_us"]
+    assert 90 <= cpu["samples"] <= 100, got
+    assert cpu["samples"] == latency["samples"], got
+    assert 0 < cpu["p50"] <= cpu["p99"] <= cpu["max"], got
+    assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < 1e6, got
+
+
+def test_the_kernels_bench_times_each_kernel_and_its_reference() -> None:
+    from pathlib import Path
+
+    from redistro import kernels as built
+    from redistro.bench import kernels
+    from redistro.config.loader import load_config
+
+    if not built.AVAILABLE:
+        pytest.skip("redistro._kernels not built")
+    cfg = load_config(Path(__file__).parents[2] / "config" / "redistro.yaml")
+    got = kernels.run(cfg, calls=50)["cpu_us_per_call"]
+    assert len(got) == 6
+    for name, row in got.items():
+        for side in ("numpy", "kernel"):
+            assert 0 < row[side]["p50"] <= row[side]["p99"], (name, row)

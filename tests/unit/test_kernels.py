@@ -18,38 +18,17 @@ import pytest
 from redistro import kernels
 from redistro.config.hardware import load_hardware
 from redistro.config.loader import load_config
-from redistro.drivers.io.backplane import Backplane
 from redistro.drivers.io.registers import BoardType
 from redistro.drivers.robot import RobotDriver
 from redistro.errors import IOFault
 from redistro.plant.chassis import Chassis
+from redistro.plant.loopback import ChassisLoopback as Loopback
 from redistro.plant.world import World
 
 pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="redistro._kernels not built")
 ROOT = Path(__file__).parents[2]
 CFG = load_config(ROOT / "config" / "redistro.yaml")
 HW = load_hardware(CFG)
-
-
-class Loopback(Backplane):
-    """A controller's backplane straight onto a chassis in this process."""
-
-    timeout_s = 0.5
-
-    def __init__(self, chassis: Chassis) -> None:
-        self.chassis = chassis
-
-    def inventory(self) -> dict[int, BoardType]:
-        return dict(self.chassis.boards)
-
-    def read(self, addresses: list[int]) -> dict[int, np.ndarray[Any, Any]]:
-        return {a: self.chassis.inp[a].copy() for a in addresses}
-
-    def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
-        self.chassis.banks.rec_out[address][...] = record
-
-    def close(self) -> None:
-        pass
 
 
 @pytest.fixture
