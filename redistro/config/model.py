@@ -27,11 +27,12 @@ PAPER_PRIORITIES: dict[str, int] = {
     "logger": 15,
     "recorder": 15,
     "busy": 16,
-    # The simulated plant: real time above every controller process, as
-    # boards that do not wait for the controller's CPUs (nice -10 where real
-    # time is refused). Its step costs ~80 us of its 1 ms; a plant that needs
-    # more than half the wall clock leaves real time (plant.process.DUTY_LIMIT).
-    "plant": 30,
+    # The simulated plant: the lowest real-time priority, below every
+    # controller process (nice -10 where real time is refused). Its step costs
+    # ~80-150 us of its 1 ms; a plant that needs more than half the wall clock
+    # leaves real time (plant.process.DUTY_LIMIT). Above the controller it
+    # delayed the nodes' cycles at 1 kHz (docs/PERFORMANCE.md).
+    "plant": 1,
 }
 
 

@@ -175,17 +175,12 @@ class Ddm(Worker):
         self.manager_block.read_into(self.mgr.bytes)
         estop = bool(self.mgr["estop"])
         try:
-            if self.kind != "esc":
-                # the SSC's side: woken by its worker's fresh command, which
-                # goes out first (the command latency); then the replies
-                self._send(estop)
-                self._receive()
-                self._check_links()  # it loses one robot's link at a time
-            else:
-                fresh = self._receive()
-                new_estop = estop and not self.estop_sent
-                if not (self.replying and self.commanded and not fresh and not new_estop):
-                    self._send(estop)  # (replying, feedback goes out with a command only)
+            fresh = self._receive()
+            new_estop = estop and not self.estop_sent
+            if not (self.replying and self.commanded and not fresh and not new_estop):
+                self._send(estop)  # (replying, feedback goes out with a command only)
+            if self.kind != "esc":  # the connecting side loses one robot's link at a time
+                self._check_links()
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the
             # managers' starving checks end the session within their limits

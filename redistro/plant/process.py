@@ -39,10 +39,10 @@ log = logging.getLogger(__name__)
 # CPU back, which jolted the force-controlled peg sideways. Five steps are
 # one 200 Hz control cycle: further behind, the simulation skips ahead.
 CATCH_UP_STEPS = 5
-# The plant runs above the controller (simulated hardware does not wait for
-# the controller's CPUs). A plant whose steps take more than this share of
-# the wall clock over a second (a slow machine, a heavy contact) leaves real
-# time for nice -10 and slows its own clock instead of holding a CPU.
+# A real-time plant whose steps take more than this share of the wall clock
+# over a second (a slow machine, a heavy contact) leaves real time for nice
+# -10 and slows its own clock instead of holding a CPU from the session's
+# other processes (the owner's chores, the log writers).
 DUTY_LIMIT = 0.5
 
 
@@ -88,12 +88,11 @@ def run_plant(
             port = CanPort(chassis.boards, open_bus(c.interface, c.channel, c.port, session_id))
         from redistro.ipc import sched
 
-        # real time above every controller process: the simulated chassis
-        # keeps its 1 kHz beside them (as real boards would) and applies a
-        # freeze within a step even while a fault's clean-up holds the CPUs;
-        # where real time is refused, nice -10
+        # the lowest real-time priority, below every controller process: the
+        # simulated chassis keeps its 1 kHz beside them and never delays
+        # them; where real time is refused, nice -10
         policy = cfg.scheduling.policy
-        prio = cfg.scheduling.priorities.get("plant", 30)
+        prio = cfg.scheduling.priorities.get("plant", 1)
         granted = sched.apply(prio, None, "rr" if policy in ("auto", "rr") else "none")
         if granted.policy == "default" and policy in ("auto", "nice"):
             granted = sched.apply(20, None, "nice")

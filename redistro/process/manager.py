@@ -520,6 +520,10 @@ class Manager:
         if self.wake_fd >= 0:  # the ddm carries the e-stop to the group now
             with contextlib.suppress(OSError):
                 os.eventfd_write(self.wake_fd, 1)
+        try:
+            self.on_fault(reason, message)  # the ESC's robot: frozen now
+        except Exception:
+            log.exception("on_fault hook failed")
         if reason != "estop" and self.spec.owner_pid:
             # ... and the session owner relays it to the nodes it has not
             # reached within a part of a cycle (at once when this node has no
@@ -531,10 +535,10 @@ class Manager:
                     relay = Path(self.spec.result_path).parent / f"{RELAY_FILE}.{self.spec.node}"
                     relay.write_text("no door\n" if self._no_door else "door\n")
                 os.kill(self.spec.owner_pid, signal.SIGCHLD)
-        try:
-            self.on_fault(reason, message)
-        except Exception:
-            log.exception("on_fault hook failed")
+        # the reaction is out; what is left (the workers' end, the results)
+        # must not hold the simulated plant off the CPUs while it applies
+        # the group's freezes
+        sched.leave_real_time()
         self._message("manager", logging.ERROR, f"{reason}: {message}")
 
     # -- cleanup --
