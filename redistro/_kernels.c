@@ -704,6 +704,9 @@ static PyObject *guard_prepare(PyObject *mod, PyObject *arg) {
     double *lim = F64(pl, GP_LIMITS), *tau = F64(pl, GP_TAU), *trace = F64(pl, GP_TRACE);
     uint8_t *on = U8(pl, GP_ON), *released = U8(pl, GP_RELEASED);
     Py_ssize_t rows = pl->n[GP_TRACE] / 30;
+    /* limits: qd_max[7] tau_max[7] force moment, then (when given) the
+       position limits less the margin lo[7] hi[7] and 1/(2 decel)[7] */
+    int pos_limits = pl->n[GP_LIMITS] >= 37;
     int finished = so[2] >= 0 && src[so[2]] == 2;
     long flags = 0;
     double *row = trace + 30 * (at[0] % rows);
@@ -724,6 +727,11 @@ static PyObject *guard_prepare(PyObject *mod, PyObject *arg) {
             flags |= 1;
         if (fabs(qd) > lim[j] || fabs(t) > lim[7 + j] || fabs(c) > lim[7 + j])
             flags |= 1;
+        if (pos_limits) { /* inside the limits, and able to stop inside them */
+            double stop = q + qd * fabs(qd) * lim[30 + j];
+            if (q < lim[16 + j] || q > lim[23 + j] || stop < lim[16 + j] || stop > lim[23 + j])
+                flags |= 1;
+        }
         if (on[j] != released[j])
             flags |= 2;
     }

@@ -206,7 +206,27 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Every output named on the command line is writable, before anything runs."""
+    import math
+
+    from redistro.config.inputs import check_out_dir, check_out_file
+
+    for attr, option in (("out", "--out"), ("csv", "--csv")):
+        value = getattr(args, attr, None)
+        if value:
+            check_out_dir(value, option)
+    for attr in ("json_path", "json_out"):
+        value = getattr(args, attr, None)
+        if isinstance(value, str) and value:
+            check_out_file(value, "--json")
+    interval = getattr(args, "interval", None)
+    if interval is not None and not (math.isfinite(interval) and 0.05 <= interval <= 3600):
+        raise ConfigError(f"--interval: expected a number of seconds in 0.05..3600, got {interval}")
+
+
 def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
+    _check_outputs(args)
     if args.command == "clean":
         return _clean()
     if args.command == "session":

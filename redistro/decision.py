@@ -68,6 +68,31 @@ def check_positions(cfg: Config, task: Task) -> None:
         raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
 
 
+def check_motion(cfg: Config, task: Task) -> None:
+    """Every recorded position inside the joint limits (a positions file
+    beyond them cannot be right), every joint goal inside them less the
+    margin, every joint move within the speed limit (redistro/config/limits.py)."""
+    from redistro.config.limits import joint_limits, outside_hard, task_motion_problems
+
+    limits = joint_limits(cfg)
+    start: dict[str, list[float]] = {}
+    for r in task.robots:
+        path = positions_file(cfg, r)
+        try:
+            q = positions.read(path, [r]).q_rad[r]
+        except positions.PositionsUnknown:
+            continue
+        problem = outside_hard(limits, q)
+        if problem:
+            raise ConfigError(
+                f"{path}: q_rad.{r}: {problem}; the file cannot be right "
+                "(run tasks/self_calibration.yaml)"
+            )
+        start[r] = q
+    for problem in task_motion_problems(cfg, task, start):
+        raise ConfigError(problem)
+
+
 class Progress:
     """Where each node is in its segments: a progress bar per node with the
     current segment on a terminal (rich), else a plain line about once a second."""
@@ -207,6 +232,7 @@ def run_session(
     task = load_task(task_path, cfg)
     load_hardware(cfg)
     check_positions(cfg, task)
+    check_motion(cfg, task)
     from redistro.ssc.reach import unreachable_goals
 
     for problem in unreachable_goals(cfg, task):

@@ -237,7 +237,8 @@ def load_robot(name: str, robot: RobotConfig, base: Path, origin: str) -> RobotH
 
 def load_hardware(cfg: Config, base: Path | str | None = None) -> dict[str, RobotHardware]:
     """Every robot's hardware files, read and checked; board addresses must not
-    collide between robots (they share one chassis)."""
+    collide between robots (they share one chassis); the safety limits within
+    the hardware's ratings and the arm model's joint limits."""
     base_dir = Path(base) if base is not None else Path(cfg.source).parent
     out: dict[str, RobotHardware] = {}
     owner: dict[int, str] = {}
@@ -258,4 +259,7 @@ def load_hardware(cfg: Config, base: Path | str | None = None) -> dict[str, Robo
         for rname in table:
             if rname not in cfg.robots:
                 raise ConfigError(f"{cfg.source}: {key}.{rname}: no robot named {rname!r}")
+    from redistro.config.limits import check_ratings
+
+    check_ratings(cfg, out)
     return out

@@ -30,23 +30,22 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return key.split("."), value
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{where}: invalid YAML ({problem})") from None
+def read_yaml(path: Path, what: str = "config") -> dict[str, Any]:
+    """A YAML mapping from a regular file of at most 1 MiB of UTF-8, without
+    aliases, anchors or duplicate keys (redistro/config/inputs.py)."""
+    from redistro.config.inputs import load_yaml, read_text
+
+    data = load_yaml(read_text(path, what), path)
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: <top>: expected a mapping of config sections, got {data!r}")
+        raise ConfigError(f"{path}: <top>: expected a mapping of {what} sections, got {_cut(data)}")
     return data
+
+
+def _cut(value: Any, n: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= n else text[: n - 3] + "..."
 
 
 def _known_path(cls: type, parts: list[str]) -> bool:
@@ -103,4 +102,8 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
         origins[dotted] = "--set"
     cfg = build(Config, data, origin=origin, origins=origins)
     source = str(path) if path is not None else str(DEFAULT_CONFIG_PATH)
-    return dataclasses.replace(cfg, source=source)
+    cfg = dataclasses.replace(cfg, source=source, overridden=tuple(origins))
+    from redistro.config.checks import check_config
+
+    check_config(cfg)
+    return cfg

@@ -63,7 +63,8 @@ class SchedulingConfig:
 
     policy: Literal["auto", "rr", "nice", "none"] = "auto"
     priorities: dict[str, int] = field(
-        default_factory=lambda: dict(PAPER_PRIORITIES), metadata={"ge": 1, "le": 99}
+        default_factory=lambda: dict(PAPER_PRIORITIES),
+        metadata={"ge": 1, "le": 99, "keys": tuple(PAPER_PRIORITIES)},
     )
     lock_memory: bool = False
 
@@ -102,6 +103,16 @@ class SafetyConfig:
     encoder_jump_rad_s: the acquisition's plausibility check: a counter that
         moved more between two samples than this speed allows is a glitch
         (an I/O fault), not motion [rad/s].
+    q_min_rad, q_max_rad: joint position limits [rad], shape (7,) or empty
+        (empty: the arm model's). They may narrow the model's limits, never
+        widen them (redistro/config/limits.py).
+    q_margin_rad: the guard keeps every joint this far inside its limits [rad].
+    decel_rad_s2: per joint, the deceleration a braking joint can count on
+        [rad/s^2]: a joint that cannot stop before its limit less the margin
+        at this deceleration is a fault while it still can.
+    Every limit is bounded by the hardware's rating (torque: current limit x
+    torque constant x gear; speed: the model's; force and moment: the wrist
+    sensor's range): a value above it is refused at load.
     """
 
     qd_max_rad_s: list[float] = field(
@@ -114,6 +125,12 @@ class SafetyConfig:
     force_max_n: float = field(default=120.0, metadata={"gt": 0})
     moment_max_nm: float = field(default=15.0, metadata={"gt": 0})
     encoder_jump_rad_s: float = field(default=20.0, metadata={"gt": 0})
+    q_min_rad: list[float] = field(default_factory=list, metadata={"len": 7, "optional": True})
+    q_max_rad: list[float] = field(default_factory=list, metadata={"len": 7, "optional": True})
+    q_margin_rad: float = field(default=0.05, metadata={"ge": 0, "le": 0.5})
+    decel_rad_s2: list[float] = field(
+        default_factory=lambda: [5.0] * 7, metadata={"len": 7, "gt": 0}
+    )
 
 
 @dataclass(frozen=True)
@@ -384,7 +401,7 @@ class PlantConfig:
     ft_noise_n: float = field(default=0.05, metadata={"ge": 0})
     ft_noise_nm: float = field(default=0.005, metadata={"ge": 0})
     ft_bias: dict[str, list[float]] = field(default_factory=dict, metadata={"len": 6})
-    seed: int = 0
+    seed: int = field(default=0, metadata={"ge": 0, "le": 2**32 - 1})
     # The arms' pose kept while powered off (JSON, per robot, rad): read at
     # power-on, written at power-off. Empty: start at initial_q_rad each time.
     pose_file: str = ""
@@ -424,3 +441,13 @@ class Config:
     # The file this config was read from (relative hardware paths start from
     # its folder); set by the loader, never read from YAML.
     source: str = field(default="config/redistro.yaml", compare=False, metadata={"internal": True})
+    # The dotted keys set by --set overrides; set by the loader.
+    overridden: tuple[str, ...] = field(default=(), compare=False, metadata={"internal": True})
+
+    def origin(self, dotted: str) -> str:
+        """Where a value came from: ``--set`` when an override set it (or a
+        section above it), else the config file."""
+        for key in self.overridden:
+            if dotted == key or dotted.startswith(key + ".") or dotted.startswith(key + "["):
+                return "--set"
+        return self.source

@@ -31,6 +31,8 @@ from redistro.config.model import Config
 from redistro.config.validate import build
 from redistro.errors import ConfigError
 
+MAX_SEGMENTS = 254  # PLAN.segment and ESC_PLAN.segment are u1; 255 means past the last
+
 
 @dataclass(frozen=True)
 class CalibrationTask:
@@ -119,9 +121,14 @@ class Task:
 def load_task(path: Path | str, cfg: Config) -> Task:
     """Read and check a task file against the config (robots must exist)."""
     path = Path(path)
-    data = read_yaml(path)
+    data = read_yaml(path, "task")
     task = build(Task, data, origin=str(path))
     where = str(path)
+    if len(task.segments) > MAX_SEGMENTS:
+        raise ConfigError(
+            f"{where}: segments: at most {MAX_SEGMENTS} segments (the Local Data layout's "
+            f"one-byte segment index; 255 means past the last), got {len(task.segments)}"
+        )
     seen: set[str] = set()
     for i, r in enumerate(task.robots):
         if r not in cfg.robots:

@@ -46,6 +46,8 @@ class _Ctx:
 
     def unknown(self, path: str, known: list[str]) -> ConfigError:
         where = _origin(self.origins, path, self.default_origin)
+        if len(path) > 120:
+            path = path[:117] + "..."
         return ConfigError(f"{where}: {path}: unknown key (known: {', '.join(sorted(known))})")
 
 
@@ -71,6 +73,9 @@ def _build_dataclass(cls: type, data: Any, path: str, ctx: _Ctx) -> Any:
         sub = f"{path}.{name}" if path else name
         if name in data:
             kwargs[name] = _convert(hints[name], data[name], sub, ctx, dict(f.metadata))
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            where = _origin(ctx.origins, sub, ctx.default_origin)
+            raise ConfigError(f"{where}: {sub}: missing (expected {_describe(hints[name])})")
     return cls(**kwargs)
 
 
@@ -138,9 +143,10 @@ def _convert(tp: Any, value: Any, path: str, ctx: _Ctx, meta: dict[str, Any]) ->
             raise ctx.fail(path, _describe(tp), value)
         if len(value) < meta.get("min_len", 0):
             raise ctx.fail(path, f"a list of at least {meta['min_len']} items", value)
-        if "len" in meta and len(value) != meta["len"]:
-            raise ctx.fail(path, f"a list of exactly {meta['len']} items", value)
-        meta = {k: v for k, v in meta.items() if k not in ("len", "min_len")}
+        if "len" in meta and len(value) != meta["len"] and not (meta.get("optional") and not value):
+            alt = " (or an empty list)" if meta.get("optional") else ""
+            raise ctx.fail(path, f"a list of exactly {meta['len']} items{alt}", value)
+        meta = {k: v for k, v in meta.items() if k not in ("len", "min_len", "optional")}
         (item_tp,) = get_args(tp)
         return [_convert(item_tp, v, f"{path}[{i}]", ctx, meta) for i, v in enumerate(value)]
     if origin is dict:

@@ -74,15 +74,19 @@ def write(path: Path | str, session: str, q_rad: dict[str, Any], clean: bool) ->
 
 def read(path: Path | str, robots: list[str] | None = None) -> Positions:
     """The recorded positions, or PositionsUnknown (missing, corrupt, unclean)."""
+    from redistro.config.inputs import load_json, read_text
+    from redistro.errors import ConfigError
+
     path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        raise PositionsUnknown(path, "missing", "no positions file")
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PositionsUnknown(path, "missing", "no positions file") from None
-    except OSError as exc:
-        raise PositionsUnknown(path, "missing", exc.strerror or str(exc)) from None
+        text = read_text(path, "positions file", limit=64 * 1024)
+    except ConfigError as exc:
+        detail = str(exc).split(": ", 1)[-1]
+        raise PositionsUnknown(path, "corrupt", detail) from None
     try:
-        doc = json.loads(text)
+        doc = load_json(text)
         if not isinstance(doc, dict):
             raise ValueError("not a JSON object")
         digest = doc.pop("sha256")

@@ -2,8 +2,10 @@
 
 Before every command it checks, in this order: the feedback is finite; joint
 speeds, measured joint torques and the wrist force and moment are within the
-limits of ``esc.safety``; the command is finite and its torques within
-limits. (NaN passes every ``>`` test: finiteness is checked first.) A
+limits of ``esc.safety``; every joint is inside its position limits less the
+margin, and can stop inside them at the configured deceleration
+(q + qd|qd| / 2a; redistro/config/limits.py); the command is finite and its
+torques within limits. (NaN passes every ``>`` test: finiteness is checked first.) A
 violation freezes the robot at once through the sender's own driver, records
 what tripped in the guard block (the manager ends the session ``unsafe``),
 and the sender sends nothing more. Otherwise it releases the brakes of joints
@@ -29,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from redistro import kernels
+from redistro.config.limits import joint_limits
 from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
 from redistro.localdata.layout import (
@@ -72,8 +75,14 @@ def check(
     tau_max: np.ndarray,
     force_max: float,
     moment_max: float,
+    q_lo: np.ndarray | None = None,
+    q_hi: np.ndarray | None = None,
+    stop_k: np.ndarray | None = None,
 ) -> None:
-    """Raise Violation naming the first limit broken (pure; unit-tested)."""
+    """Raise Violation naming the first limit broken (pure; unit-tested).
+
+    q_lo, q_hi: position limits less the margin [rad]; stop_k: per joint
+    1 / (2 deceleration) [s^2/rad], the stopping distance is qd|qd| stop_k."""
     for name, v in (
         ("position", q),
         ("velocity", qd),
@@ -99,6 +108,17 @@ def check(
     m = float(np.linalg.norm(wrench[3:]))
     if m > moment_max:
         raise Violation("moment", -1, m, moment_max, "N m")
+    if q_lo is not None and q_hi is not None and stop_k is not None:
+        for j in range(len(q)):
+            if q[j] > q_hi[j]:
+                raise Violation("position", j, float(q[j]), float(q_hi[j]), "rad")
+            if q[j] < q_lo[j]:
+                raise Violation("position", j, float(q[j]), float(q_lo[j]), "rad")
+            stop = float(q[j] + qd[j] * abs(qd[j]) * stop_k[j])
+            if stop > q_hi[j]:
+                raise Violation("stopping position", j, stop, float(q_hi[j]), "rad")
+            if stop < q_lo[j]:
+                raise Violation("stopping position", j, stop, float(q_lo[j]), "rad")
     bad = np.flatnonzero(~np.isfinite(tau_cmd))
     if bad.size:
         j = int(bad[0])
@@ -118,6 +138,9 @@ class Sender(Worker):
         self.tau_max = np.asarray(lim.tau_max_nm, dtype=np.float64)
         self.force_max = lim.force_max_n
         self.moment_max = lim.moment_max_nm
+        jl = joint_limits(ctx.cfg)
+        self.q_lo, self.q_hi = jl.inner_lower, jl.inner_upper
+        self.stop_k = 1.0 / (2.0 * jl.decel)
         self.driver = ctx.driver(plant_session(self.spec))
         self.driver.open(owner=False)  # the manager froze the robot before we existed
         ld = self.ld
@@ -160,7 +183,14 @@ class Sender(Worker):
         fbf, homef = FEEDBACK.fields, HOME.fields
         assert fbf is not None and homef is not None
         self.limits = np.concatenate(
-            [self.qd_max, self.tau_max, [self.force_max, self.moment_max]]
+            [
+                self.qd_max,
+                self.tau_max,
+                [self.force_max, self.moment_max],
+                self.q_lo,
+                self.q_hi,
+                self.stop_k,
+            ]
         ).astype(np.float64)
         status = int(fields["session_status"][1]) if "session_status" in fields else -1
         self._prepare_args = {
@@ -216,6 +246,9 @@ class Sender(Worker):
                     self.tau_max,
                     self.force_max,
                     self.moment_max,
+                    self.q_lo,
+                    self.q_hi,
+                    self.stop_k,
                 )
             except Violation as v:
                 self._trip(cycle, v)
@@ -260,8 +293,14 @@ class Sender(Worker):
         flags = 0
         measured = np.concatenate([fb["q_rad"], fb["qd_rad_s"], fb["tau_nm"], tau, fb["wrench"]])
         lim = self.limits
+        q, qd = fb["q_rad"], fb["qd_rad_s"]
+        stop = q + qd * np.abs(qd) * lim[30:37]
         if (
             not np.isfinite(measured).all()
+            or (q < lim[16:23]).any()
+            or (q > lim[23:30]).any()
+            or (stop < lim[16:23]).any()
+            or (stop > lim[23:30]).any()
             or (np.abs(fb["qd_rad_s"]) > lim[:7]).any()
             or (np.abs(fb["tau_nm"]) > lim[7:14]).any()
             or (np.abs(tau) > lim[7:14]).any()

@@ -58,10 +58,14 @@ def load(arg: str, runs_dir: str) -> tuple[Path, SessionLog, dict[str, Any]]:
     summary: dict[str, Any] = {}
     sp = run / "summary.json"
     if sp.exists():
+        from redistro.config.inputs import load_json, read_text
+
         try:
-            summary = json.loads(sp.read_text())
+            summary = load_json(read_text(sp, "summary", limit=16 << 20))
         except ValueError as exc:
             raise ConfigError(f"{sp}: not valid JSON ({exc})") from None
+        if not isinstance(summary, dict):
+            raise ConfigError(f"{sp}: expected a JSON object, got a {type(summary).__name__}")
     return run, sl, summary
 
 

@@ -140,6 +140,8 @@ def read_log(path: Path) -> SessionLog:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
+    from redistro.config.inputs import load_json
+
     out = SessionLog(path)
     chunks: dict[str, list[bytes]] = {}
     times: dict[str, list[int]] = {}
@@ -158,15 +160,20 @@ def read_log(path: Path) -> SessionLog:
                     chunks.setdefault(topic, []).append(msg.data)
                     times.setdefault(topic, []).append(msg.log_time)
                 else:
-                    doc = json.loads(msg.data)
+                    doc = load_json(msg.data.decode("utf-8"))
+                    if not isinstance(doc, dict):
+                        raise ValueError(
+                            f"{topic}: an event at {msg.log_time} ns is not a JSON object"
+                        )
                     doc["log_time_ns"] = msg.log_time
                     out.events.setdefault(topic, []).append(doc)
             for meta in reader.iter_metadata():
                 out.metadata.setdefault(meta.name, []).append(
                     {k: _loads(v) for k, v in meta.metadata.items()}
                 )
-    except (McapError, OSError, ValueError, KeyError) as exc:
-        raise ValueError(f"{path}: not a readable session log ({exc})") from exc
+    except (McapError, OSError, ValueError, KeyError, RecursionError) as exc:
+        text = str(exc) if len(str(exc)) <= 120 else str(exc)[:117] + "..."
+        raise ValueError(f"{path}: not a readable session log ({text})") from exc
     for topic, parts in chunks.items():
         dt = dtypes[topic]
         blob = b"".join(parts)
@@ -178,7 +185,9 @@ def read_log(path: Path) -> SessionLog:
 
 
 def _loads(v: str) -> Any:
+    from redistro.config.inputs import load_json
+
     try:
-        return json.loads(v)
+        return load_json(v)
     except ValueError:
         return v

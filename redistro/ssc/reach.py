@@ -2,9 +2,9 @@
 
 A goal is reachable when a damped least-squares inverse kinematics on the
 arm's own model (Pinocchio; tool and base as in the plant), inside the joint
-limits, brings the TCP within 2 mm and 0.02 rad of it from one of a few
-starting postures. A goal none of them reaches is refused with the segment
-named.
+limits less the guard's margin (redistro/config/limits.py), brings the TCP
+within 2 mm and 0.02 rad of it from one of a few starting postures. A goal
+none of them reaches is refused with the segment named.
 """
 
 from __future__ import annotations
@@ -31,14 +31,23 @@ def _ik_error(
     return np.concatenate([p_goal - k.p, e_rot]), k.J
 
 
-def reachable(model: Any, pose: np.ndarray, starts: list[np.ndarray]) -> tuple[bool, float]:
-    """(reached, the best position error [m]) for a TCP pose (position + rotation vector)."""
+def reachable(
+    model: Any,
+    pose: np.ndarray,
+    starts: list[np.ndarray],
+    lo: np.ndarray | None = None,
+    hi: np.ndarray | None = None,
+) -> tuple[bool, float]:
+    """(reached, the best position error [m]) for a TCP pose (position + rotation
+    vector), every joint kept in [lo, hi] (default: the model's limits)."""
     from redistro.control.cartesian import rotvec_to_matrix
 
     p_goal = np.asarray(pose[:3], dtype=np.float64)
     R_goal = rotvec_to_matrix(np.asarray(pose[3:], dtype=np.float64))
-    lo = np.asarray(model.model.lowerPositionLimit, dtype=np.float64)
-    hi = np.asarray(model.model.upperPositionLimit, dtype=np.float64)
+    if lo is None:
+        lo = np.asarray(model.model.lowerPositionLimit, dtype=np.float64)
+    if hi is None:
+        hi = np.asarray(model.model.upperPositionLimit, dtype=np.float64)
     best = np.inf
     for q0 in starts:
         q = np.clip(np.asarray(q0, dtype=np.float64), lo, hi)
@@ -60,11 +69,13 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
     """One line per Cartesian goal no robot posture reaches (empty: all fine)."""
     if task.kind != "strategy":
         return []
+    from redistro.config.limits import joint_limits
     from redistro.control.dynamics import ArmModel
     from redistro.robotmodel import Peg
     from redistro.ssc.plan import segment_plans
 
     peg = cfg.plant.peg
+    limits = joint_limits(cfg)
     models: dict[str, Any] = {}
     out: list[str] = []
     for i, plan in enumerate(segment_plans(task, cfg)):
@@ -80,11 +91,11 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
             np.array([0.0, 0.6, 0.0, -1.4, 0.0, 1.0, 0.0]),
             np.array([0.0, 0.3, 0.0, -1.9, 0.0, 0.9, 0.0]),
         ]
-        ok, err = reachable(model, plan.pose, starts)
+        ok, err = reachable(model, plan.pose, starts, limits.inner_lower, limits.inner_upper)
         if not ok:
             xyz = ", ".join(f"{v:.3f}" for v in plan.pose[:3])
             out.append(
                 f"{task.source}: segments[{i}].goal: {plan.robot} cannot reach the pose "
-                f"({xyz}) m: {err * 1e3:.0f} mm short at best"
+                f"({xyz}) m inside its joint limits: {err * 1e3:.0f} mm short at best"
             )
     return out

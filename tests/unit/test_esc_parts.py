@@ -58,7 +58,16 @@ def _ok() -> dict[str, np.ndarray]:
 
 def _check(**kw: np.ndarray) -> None:
     args = {**_ok(), **kw}
-    check(**args, qd_max=np.ones(7), tau_max=np.full(7, 10.0), force_max=50.0, moment_max=5.0)
+    check(
+        **args,
+        qd_max=np.ones(7),
+        tau_max=np.full(7, 10.0),
+        force_max=50.0,
+        moment_max=5.0,
+        q_lo=np.full(7, -2.0),
+        q_hi=np.full(7, 2.0),
+        stop_k=np.full(7, 0.1),  # 1 / (2 * 5 rad/s^2)
+    )
 
 
 def test_safety_check_passes_within_limits() -> None:
@@ -75,12 +84,31 @@ def test_safety_check_passes_within_limits() -> None:
         ({"wrench": np.array([0, 0, 0, 0, 0, np.inf])}, "wrench not finite", -1),
         ({"tau_cmd": np.array([np.nan, 0, 0, 0, 0, 0, 0])}, "commanded torque not finite", 0),
         ({"tau_cmd": np.array([0, 0, 0, 0, -12.0, 0, 0])}, "commanded torque", 4),
+        ({"q": np.array([0, 0, 0, 2.01, 0, 0, 0])}, "position", 3),
+        ({"q": np.array([0, -2.2, 0, 0, 0, 0, 0])}, "position", 1),
+        # 1.95 rad moving at 0.9 rad/s toward 2.0: it needs 0.081 rad to stop
+        (
+            {"q": np.array([0, 0, 0, 0, 0, 1.95, 0]), "qd": np.array([0, 0, 0, 0, 0, 0.9, 0])},
+            "stopping position",
+            5,
+        ),
+        (
+            {"q": np.array([-1.95, 0, 0, 0, 0, 0, 0]), "qd": np.array([-0.9, 0, 0, 0, 0, 0, 0])},
+            "stopping position",
+            0,
+        ),
     ],
 )
 def test_safety_check_names_what_tripped(kw: dict, quantity: str, joint: int) -> None:
     with pytest.raises(Violation) as exc:
         _check(**kw)
     assert exc.value.quantity == quantity and exc.value.joint == joint
+
+
+def test_a_joint_near_its_limit_moving_away_or_slowly_is_fine() -> None:
+    # 1.95 rad moving away, or toward the limit at 0.3 rad/s (stops in 0.009 rad)
+    _check(q=np.full(7, 1.95), qd=np.full(7, -0.9))
+    _check(q=np.full(7, 1.95), qd=np.full(7, 0.3))
 
 
 def test_a_nan_command_is_caught_before_any_comparison() -> None:

@@ -196,7 +196,9 @@ def test_the_guard_screen_flags_whatever_the_guard_refuses() -> None:
 
     fb, cmd, home = Record(FEEDBACK), Record(COMMAND), Record(HOME)
     qd_max, tau_max = np.full(7, 1.0), np.array([200, 200, 120, 120, 60, 60, 30.0])
-    limits = np.concatenate([qd_max, tau_max, [120.0, 15.0]])
+    q_lo, q_hi = np.full(7, -2.0), np.full(7, 2.0)
+    stop_k = np.full(7, 0.1)  # 1 / (2 * 5 rad/s^2)
+    limits = np.concatenate([qd_max, tau_max, [120.0, 15.0], q_lo, q_hi, stop_k])
     on, released, tau = np.zeros(7, bool), np.zeros(7, bool), np.zeros(7)
     trace, at = np.zeros((TRACE_CYCLES, 30)), np.zeros(2, np.int64)
     f, c, h = FEEDBACK.fields, COMMAND.fields, HOME.fields
@@ -220,7 +222,7 @@ def test_the_guard_screen_flags_whatever_the_guard_refuses() -> None:
     refused = 0
     for k in range(20000):
         a, cm = fb.array, cmd.array
-        a["q_rad"] = rng.normal(size=7)
+        a["q_rad"] = rng.normal(size=7) * 0.8
         a["qd_rad_s"] = rng.normal(size=7) * 0.3
         a["tau_nm"] = rng.normal(size=7) * tau_max * 0.25
         a["wrench"] = rng.normal(size=6) * [25, 25, 25, 3, 3, 3]
@@ -248,6 +250,9 @@ def test_the_guard_screen_flags_whatever_the_guard_refuses() -> None:
                 tau_max,
                 120.0,
                 15.0,
+                q_lo,
+                q_hi,
+                stop_k,
             )
         except Violation:
             refused += 1

@@ -1,0 +1,84 @@
+"""Checks across fields, run once the config is built: names, hosts, ports.
+
+- Robot names become parts of IPC object names (``/redistro.<session>.esc.<robot>...``):
+  letters, digits, ``_`` and ``-``, 1-32 characters.
+- ``ddm.peers`` entries are ``host:port``; hosts (``listen_host``,
+  ``esc_hosts``, peers) are IPv4/IPv6 addresses or host names; the reflective
+  group is an IPv4 multicast address; ``esc_hosts``/``esc_ports`` and the
+  plant's per-robot tables name robots of the config.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+from typing import TYPE_CHECKING
+
+from redistro.errors import ConfigError
+
+if TYPE_CHECKING:
+    from redistro.config.model import Config
+
+ROBOT_NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+HOST_NAME = re.compile(
+    r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+    r"(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$"
+)
+
+
+def _cut(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def valid_host(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+        return True
+    except ValueError:
+        return bool(HOST_NAME.match(text))
+
+
+def check_config(cfg: Config) -> None:
+    for name in cfg.robots:
+        if not ROBOT_NAME.match(name):
+            raise ConfigError(
+                f"{cfg.origin('robots.' + name)}: robots: a robot name is 1-32 letters, digits, "
+                f"_ or -, got {_cut(name)}"
+            )
+    d = cfg.ddm
+    if not valid_host(d.listen_host):
+        raise ConfigError(
+            f"{cfg.origin('ddm.listen_host')}: ddm.listen_host: expected an IP address or a "
+            f"host name, got {_cut(d.listen_host)}"
+        )
+    try:
+        group = ipaddress.ip_address(d.group)
+        ok = group.version == 4 and group.is_multicast
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ConfigError(
+            f"{cfg.origin('ddm.group')}: ddm.group: expected an IPv4 multicast address "
+            f"(224.0.0.0/4), got {_cut(d.group)}"
+        )
+    for key, table in (("ddm.esc_hosts", d.esc_hosts), ("ddm.esc_ports", d.esc_ports)):
+        for robot, value in table.items():
+            if robot not in cfg.robots:
+                raise ConfigError(
+                    f"{cfg.origin(key)}: {key}.{_cut(robot)[1:-1]}: no robot of that name "
+                    f"(known: {', '.join(cfg.robots)})"
+                )
+            if key == "ddm.esc_hosts" and not valid_host(str(value)):
+                raise ConfigError(
+                    f"{cfg.origin(key)}: {key}.{robot}: expected an IP address or a host "
+                    f"name, got {_cut(value)}"
+                )
+    for i, peer in enumerate(d.peers):
+        host, sep, port = peer.rpartition(":")
+        host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+        if not sep or not valid_host(host) or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ConfigError(
+                f"{cfg.origin('ddm.peers')}: ddm.peers[{i}]: expected host:port with a port "
+                f"1-65535, got {_cut(peer)}"
+            )
