@@ -152,6 +152,12 @@ def _parser() -> argparse.ArgumentParser:
     )
 
     sub.add_parser("clean", help="remove IPC objects left by dead sessions", parents=[common])
+    ck = sub.add_parser(
+        "check",
+        help="check a task and the config as a session would, start nothing",
+        parents=[common],
+    )
+    ck.add_argument("task", help="task YAML file")
 
     lg = sub.add_parser("log", help="read a run's session log back")
     lsub = lg.add_subparsers(dest="log_command", required=True, parser_class=_Parser)
@@ -199,11 +205,20 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(config, overrides)
         return _dispatch(args, cfg)
     except ConfigError as exc:
-        print(f"redistro: error: {exc}", file=sys.stderr)
+        print(f"redistro: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except RedistroError as exc:
-        print(f"redistro: {exc}", file=sys.stderr)
+        print(f"redistro: {one_line(str(exc))}", file=sys.stderr)
         return 1
+
+
+def one_line(text: str, limit: int = 400) -> str:
+    """A message as one printable line: control characters (line breaks among
+    them, which include \x1c-\x1e and \x85 for str.splitlines) escaped, cut
+    to ``limit`` characters."""
+    if not text.isprintable():
+        text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -229,6 +244,13 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
     _check_outputs(args)
     if args.command == "clean":
         return _clean()
+    if args.command == "check":
+        from redistro.decision import preflight
+
+        task = preflight(cfg, args.task)
+        segments = f"{len(task.segments)} segments"
+        print(f"ok: {task.task} ({task.kind}, {segments}) on {', '.join(task.robots)}")
+        return 0
     if args.command == "session":
         from redistro.decision import run_session
 

@@ -216,6 +216,42 @@ class Progress:
         self.lds.clear()
 
 
+def check_key(cfg: Config, needed: bool = False) -> None:
+    """``ddm.key_file`` readable and private (needed: nodes started alone
+    share no session folder, so they need it)."""
+    from redistro.ddm import record as wire
+
+    if not cfg.ddm.key_file:
+        if needed:
+            raise ConfigError(
+                f"{cfg.origin('ddm.key_file')}: ddm.key_file: nodes started alone need a "
+                "shared key file (32 random bytes as hex, mode 0600, the same on every node; "
+                "e.g. python3 -c 'import os; print(os.urandom(32).hex())' > link.key)"
+            )
+        return
+    try:
+        wire.load_key(cfg.ddm.key_file)
+    except ValueError as exc:
+        raise ConfigError(f"{cfg.origin('ddm.key_file')}: ddm.key_file: {exc}") from None
+
+
+def preflight(cfg: Config, task_path: str) -> Task:
+    """Every check a session makes before it reaps, creates or starts anything:
+    the task against the config, the hardware files and their ratings, the
+    recorded joint positions, joint goals and speeds against the limits, and
+    the Cartesian goals' reach. ConfigError (one line) on the first problem."""
+    task = load_task(task_path, cfg)
+    load_hardware(cfg)
+    check_key(cfg)
+    check_positions(cfg, task)
+    check_motion(cfg, task)
+    from redistro.ssc.reach import unreachable_goals
+
+    for problem in unreachable_goals(cfg, task):
+        raise ConfigError(problem)
+    return task
+
+
 def run_session(
     cfg: Config,
     task_path: str,
@@ -229,14 +265,7 @@ def run_session(
     """around_task: a context the task itself runs in (not a self-calibration
     run first): what ``redistro bench group`` measures."""
     say = say or (lambda text: print(text, flush=True))
-    task = load_task(task_path, cfg)
-    load_hardware(cfg)
-    check_positions(cfg, task)
-    check_motion(cfg, task)
-    from redistro.ssc.reach import unreachable_goals
-
-    for problem in unreachable_goals(cfg, task):
-        raise ConfigError(problem)
+    task = preflight(cfg, task_path)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     if task.kind == "strategy" and task.calibrate_if_needed:
@@ -313,6 +342,10 @@ def _run_task(
     node_results: list[dict[str, Any]] = []
     plant_result: dict[str, Any] = {}
     with ipc_session.Session.create() as s:
+        if not cfg.ddm.key_file:  # the link's key: the session's own, in its 0700 folder
+            from redistro.ddm import record as wire
+
+            wire.new_key(s.directory / wire.SESSION_KEY)
         run_dir = Path(out_dir) if out_dir else runs / s.id
         run_dir.mkdir(parents=True, exist_ok=True)
         messages = str(run_dir / "messages.log")

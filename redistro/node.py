@@ -31,6 +31,7 @@ from redistro.config.task import load_task
 from redistro.decision import (
     Progress,
     build_summary,
+    check_key,
     check_motion,
     ddm_pace,
     positions_file,
@@ -79,6 +80,7 @@ def run_node(
         why = unknown_positions(cfg, task).get(robot)
         if why:
             raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
+    check_key(cfg, needed=True)
     check_motion(cfg, task)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)

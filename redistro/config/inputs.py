@@ -56,48 +56,49 @@ def read_text(path: Path | str, what: str = "file", limit: int = MAX_BYTES) -> s
         ) from None
 
 
-class _StrictLoader(yaml.SafeLoader):
-    """The safe loader without aliases and without duplicate keys."""
+_LOADER: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when present
 
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()  # type: ignore[no-untyped-call]
-            raise yaml.constructor.ConstructorError(
-                None, None, "aliases (*name) are not allowed", event.start_mark
-            )
-        event = self.peek_event()  # type: ignore[no-untyped-call]
-        anchor = getattr(event, "anchor", None)
-        if anchor is not None:
-            raise yaml.constructor.ConstructorError(
-                None, None, "anchors (&name) are not allowed", event.start_mark
-            )
-        depth = getattr(self, "_depth", 0)
-        if depth >= MAX_DEPTH:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"nested deeper than {MAX_DEPTH} levels", event.start_mark
-            )
-        self._depth = depth + 1
-        try:
-            return super().compose_node(parent, index)
-        finally:
-            self._depth = depth
 
-    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
-        seen: set[Any] = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=True)
-            try:
-                hashable = key in seen
-            except TypeError:
-                raise yaml.constructor.ConstructorError(
-                    None, None, "a mapping key that is not a plain value", key_node.start_mark
-                ) from None
-            if hashable:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"key {_cut(key)} given twice", key_node.start_mark
-                )
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
+class _Refused(Exception):
+    def __init__(self, problem: str, mark: Any) -> None:
+        super().__init__(problem)
+        self.problem = problem
+        self.problem_mark = mark
+
+
+def _scan_events(text: str) -> None:
+    """Aliases, anchors and deep nesting, from the event stream (iterative:
+    nothing recurses before the depth is known)."""
+    depth = 0
+    for ev in yaml.parse(text, Loader=_LOADER):
+        if isinstance(ev, yaml.AliasEvent):
+            raise _Refused("aliases (*name) are not allowed", ev.start_mark)
+        if getattr(ev, "anchor", None) is not None:
+            raise _Refused("anchors (&name) are not allowed", ev.start_mark)
+        if isinstance(ev, yaml.MappingStartEvent | yaml.SequenceStartEvent):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise _Refused(f"nested deeper than {MAX_DEPTH} levels", ev.start_mark)
+        elif isinstance(ev, yaml.MappingEndEvent | yaml.SequenceEndEvent):
+            depth -= 1
+
+
+def _check_keys(node: Any) -> None:
+    """No key given twice in one mapping."""
+    if isinstance(node, yaml.MappingNode):
+        seen: set[tuple[str, str]] = set()
+        for key, value in node.value:
+            if isinstance(key, yaml.ScalarNode):
+                ident = (key.tag, key.value)
+                if ident in seen:
+                    raise _Refused(f"key {_cut(key.value)} given twice", key.start_mark)
+                seen.add(ident)
+            else:
+                raise _Refused("a mapping key that is not a plain value", key.start_mark)
+            _check_keys(value)
+    elif isinstance(node, yaml.SequenceNode):
+        for item in node.value:
+            _check_keys(item)
 
 
 def _cut(value: Any, n: int = 60) -> str:
@@ -106,9 +107,14 @@ def _cut(value: Any, n: int = 60) -> str:
 
 
 def load_yaml(text: str, path: Path | str) -> Any:
+    """YAML through the safe loader, without anchors, aliases (an alias bomb
+    expands a few hundred bytes into gigabytes) or keys given twice (the last
+    would win silently), nested at most MAX_DEPTH levels."""
     try:
-        return yaml.load(text, Loader=_StrictLoader)
-    except yaml.YAMLError as exc:
+        _scan_events(text)
+        _check_keys(yaml.compose(text, Loader=_LOADER))
+        return yaml.load(text, Loader=_LOADER)
+    except (yaml.YAMLError, _Refused) as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]

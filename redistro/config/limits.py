@@ -200,8 +200,9 @@ def task_motion_problems(
     cfg: Config, task: Any, start_q: dict[str, list[float]] | None = None
 ) -> list[str]:
     """One line per joint goal outside the limits (less the margin), and per
-    joint move whose quintic would need more than ``qd_max_rad_s`` (its peak
-    is 15/8 of the distance over the move time). A move's start is the
+    joint move whose distance over its move time is above ``qd_max_rad_s``
+    (the quintic's peak, 15/8 of that, is the guard's to judge at run time:
+    a task may run close to the limit on purpose). A move's start is the
     previous joint goal of its robot, or for the first the robot's position
     in ``start_q`` (unknown: the speed of that move is left to the guard)."""
     limits = joint_limits(cfg)
@@ -220,14 +221,15 @@ def task_motion_problems(
             out.append(f"{where}: {at}: {problem}")
         start = prev.get(robot)
         if start is not None and move_s > 0:
-            peak = QUINTIC_PEAK * np.abs(qv - start) / move_s
-            j = int(np.argmax(peak / qd_max))
-            if peak[j] > qd_max[j]:
+            mean = np.abs(qv - start) / move_s
+            j = int(np.argmax(mean / qd_max))
+            if mean[j] > qd_max[j]:
                 out.append(
                     f"{where}: {at}: joint {j + 1} would move {abs(qv[j] - start[j]):.3g} rad "
-                    f"in {move_s:g} s, a peak of {peak[j]:.3g} rad/s over "
+                    f"in {move_s:g} s, {mean[j]:.3g} rad/s on average, over "
                     f"esc.safety.qd_max_rad_s {qd_max[j]:g} (give it at least "
-                    f"{QUINTIC_PEAK * abs(qv[j] - start[j]) / qd_max[j]:.3g} s)"
+                    f"{abs(qv[j] - start[j]) / qd_max[j]:.3g} s; the quintic's peak is "
+                    f"{QUINTIC_PEAK:g} times the average)"
                 )
         prev[robot] = qv
 

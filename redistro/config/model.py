@@ -273,6 +273,10 @@ class DdmConfig:
     group, port: the reflective network's multicast group and UDP port
         (0: derived like the ESC ports); peers: host:port of nodes on other
         hosts that also get every write.
+    key_file: the link's key (hex, a file of this user, mode 0600) that
+        authenticates every record (HMAC-SHA256). Empty: a session makes a
+        fresh key in its runtime directory; nodes started alone
+        (``redistro node``) need this file, the same on every node.
     """
 
     transport: Literal["socket", "reflective"] = "socket"
@@ -285,6 +289,7 @@ class DdmConfig:
     group: str = "239.255.68.68"
     port: int = field(default=0, metadata={"ge": 0, "le": 65535})
     peers: list[str] = field(default_factory=list)
+    key_file: str = ""
 
 
 @dataclass(frozen=True)

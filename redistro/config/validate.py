@@ -7,6 +7,7 @@ where origin is the file (or ``--set``) the offending value came from.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import types
 import typing
@@ -57,13 +58,20 @@ def build(cls: type[T], data: Any, *, origin: str, origins: Origins | None = Non
     return typing.cast(T, _build_dataclass(cls, data, "", ctx))
 
 
+@functools.cache
+def _shape(cls: type) -> tuple[dict[str, Any], dict[str, dataclasses.Field[Any]]]:
+    """A dataclass's resolved type hints and its fields (resolving string
+    annotations compiles code: once per class)."""
+    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
+    return get_type_hints(cls), fields
+
+
 def _build_dataclass(cls: type, data: Any, path: str, ctx: _Ctx) -> Any:
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
         raise ctx.fail(path, f"a mapping of {cls.__name__} fields", data)
-    hints = get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
+    hints, fields = _shape(cls)
     for key in data:
         if key not in fields:
             sub = f"{path}.{key}" if path else str(key)

@@ -1,11 +1,19 @@
-"""The DDM wire record: fixed size, versioned, checksummed.
+"""The DDM wire record: fixed size, versioned, checksummed, authenticated.
 
 Every record carries one robot's Robot Group Shared Data, a Command (SSC ->
 ESC) or a Feedback (ESC -> SSC), as the same bytes as its Local Data block
-payload (:mod:`redistro.localdata.layout`), behind a header::
+payload (:mod:`redistro.localdata.layout`), behind a header, followed by a
+tag::
 
     magic u4 | version u2 | kind u1 | robot u1 | source S16 | seq u8 |
-    stamp_ns i8 | estop u1 | pad | crc32 u4 (over everything else)
+    stamp_ns i8 | estop u1 | pad | crc32 u4 (over everything else) |
+    payload | tag: HMAC-SHA256 (the link's key) over header and payload
+
+The crc32 tells noise from forgery: a flipped bit fails the checksum, a
+record written without the link's key (forged, or renamed to another
+source) fails the tag (``auth``). The key is the session's (``ddm.key`` in
+its runtime directory) or, for nodes started alone, ``ddm.key_file``
+(:func:`load_key`). Computing and checking a tag costs about 1 µs.
 
 ``seq`` counts the source's records of that kind and robot; ``stamp_ns`` is
 the source's CLOCK_MONOTONIC when it sent the record (comparable only with
@@ -17,21 +25,33 @@ duplicate, out-of-order and stale records and counts each kind of drop.
 
 from __future__ import annotations
 
+import hmac
+import os
+import stat
 import struct
 import zlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from redistro.errors import WireError
-from redistro.localdata.layout import COMMAND, FEEDBACK
+from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
 
 MAGIC = 0x52445344  # "DSDR" little-endian
-VERSION = 1
+VERSION = 2
+TAG_BYTES = 32  # HMAC-SHA256
+KEY_BYTES = 32
+SESSION_KEY = "ddm.key"  # a session's link key, in its runtime directory
 KIND_COMMAND = 1
 KIND_FEEDBACK = 2
-PAYLOADS: dict[int, np.dtype[Any]] = {KIND_COMMAND: COMMAND, KIND_FEEDBACK: FEEDBACK}
+KIND_HELLO = 3  # the connecting side's first record on a new link: it proves the key
+PAYLOADS: dict[int, np.dtype[Any]] = {
+    KIND_COMMAND: COMMAND,
+    KIND_FEEDBACK: FEEDBACK,
+    KIND_HELLO: COUNTER,
+}
 PAYLOAD_BYTES = max(d.itemsize for d in PAYLOADS.values())
 
 HEADER = np.dtype(
@@ -49,7 +69,8 @@ HEADER = np.dtype(
     ]
 )
 WIRE = np.dtype([("header", HEADER), ("payload", "u1", (PAYLOAD_BYTES,))])
-SIZE = WIRE.itemsize
+BODY = WIRE.itemsize  # what the tag covers
+SIZE = BODY + TAG_BYTES
 _CRC_AT = HEADER.fields["crc32"][1]  # type: ignore[index]
 
 
@@ -61,8 +82,59 @@ _STAMP = struct.Struct("<q")  # every payload starts with its producer's stamp [
 
 
 def _crc(buf: bytes | bytearray | memoryview) -> int:
-    view = memoryview(buf)
+    view = memoryview(buf)[:BODY]
     return zlib.crc32(view[_CRC_AT + 4 :], zlib.crc32(view[:_CRC_AT])) & 0xFFFFFFFF
+
+
+def _tag(key: bytes, buf: bytes | bytearray | memoryview) -> bytes:
+    return hmac.digest(key, memoryview(buf)[:BODY], "sha256")
+
+
+def _check_tag(key: bytes, buf: bytes | bytearray | memoryview) -> None:
+    if not hmac.compare_digest(_tag(key, buf), bytes(memoryview(buf)[BODY:SIZE])):
+        raise WireError("auth", "the tag does not match the link's key")
+
+
+def new_key(path: Path | str) -> bytes:
+    """A fresh random key, written to ``path`` (mode 0600, created, never
+    overwritten)."""
+    key = os.urandom(KEY_BYTES)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    try:
+        os.write(fd, key.hex().encode() + b"\n")
+    finally:
+        os.close(fd)
+    return key
+
+
+def load_key(path: Path | str) -> bytes:
+    """A link key from its file: a regular file of this user, mode 0600 (no
+    access for group or others), holding at least 16 bytes as hex. ValueError
+    naming what is wrong otherwise."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the key file ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path}: the key file is not a regular file")
+        if st.st_uid != os.getuid():
+            raise ValueError(f"{path}: the key file is owned by uid {st.st_uid}, not {os.getuid()}")
+        if st.st_mode & 0o077:
+            raise ValueError(
+                f"{path}: the key file has mode {stat.S_IMODE(st.st_mode):04o}, expected 0600"
+            )
+        text = os.read(fd, 4096).decode("ascii", errors="replace").strip()
+    finally:
+        os.close(fd)
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        raise ValueError(f"{path}: the key file does not hold a hex key") from None
+    if len(key) < 16:
+        raise ValueError(f"{path}: the key is {len(key)} bytes, at least 16 are needed")
+    return key
 
 
 @dataclass(frozen=True)
@@ -84,6 +156,7 @@ def encode(
     stamp_ns: int,
     payload: np.ndarray[Any, Any] | np.void | bytes,
     estop: bool = False,
+    key: bytes = b"",
 ) -> bytes:
     """One record's bytes. payload: a record (or its bytes) of PAYLOADS[kind]."""
     if kind not in PAYLOADS:
@@ -104,15 +177,15 @@ def encode(
     rec["payload"][: len(raw)] = np.frombuffer(raw, dtype=np.uint8)
     out = bytearray(rec.tobytes())
     out[_CRC_AT : _CRC_AT + 4] = _crc(out).to_bytes(4, "little")
-    return bytes(out)
+    return bytes(out) + _tag(key, out)
 
 
-def decode(buf: bytes | bytearray | memoryview) -> Decoded:
+def decode(buf: bytes | bytearray | memoryview, key: bytes = b"") -> Decoded:
     """The record in ``buf``, or WireError(reason) with reason one of
-    size, magic, version, kind, checksum."""
+    size, magic, version, kind, checksum, auth."""
     if len(buf) != SIZE:
         raise WireError("size", f"{len(buf)} bytes, expected {SIZE}")
-    rec = np.frombuffer(bytes(buf), dtype=WIRE)[0]
+    rec = np.frombuffer(bytes(buf)[:BODY], dtype=WIRE)[0]
     h = rec["header"]
     if int(h["magic"]) != MAGIC:
         raise WireError("magic", f"{int(h['magic']):#010x}")
@@ -123,6 +196,7 @@ def decode(buf: bytes | bytearray | memoryview) -> Decoded:
         raise WireError("kind", str(kind))
     if int(h["crc32"]) != _crc(buf):
         raise WireError("checksum")
+    _check_tag(key, buf)
     dtype = PAYLOADS[kind]
     payload = np.frombuffer(rec["payload"][: dtype.itemsize].tobytes(), dtype=dtype)[0]
     return Decoded(
@@ -136,10 +210,12 @@ def decode(buf: bytes | bytearray | memoryview) -> Decoded:
     )
 
 
-def check(buf: bytes | bytearray | memoryview) -> tuple[int, int, bytes, int, int, int]:
-    """The header of a well-formed record: (kind, robot, source, seq,
-    stamp_ns, estop), its payload at ``PAYLOAD_AT``; WireError(reason) as
-    :func:`decode` (no numpy: the ddm's per-record path)."""
+def check(
+    buf: bytes | bytearray | memoryview, key: bytes = b""
+) -> tuple[int, int, bytes, int, int, int]:
+    """The header of a well-formed, authentic record: (kind, robot, source,
+    seq, stamp_ns, estop), its payload at ``PAYLOAD_AT``; WireError(reason)
+    as :func:`decode` (no numpy: the ddm's per-record path)."""
     if len(buf) != SIZE:
         raise WireError("size", f"{len(buf)} bytes, expected {SIZE}")
     magic, version, kind, robot, source, seq, stamp, estop, crc = HEAD.unpack_from(buf, 0)
@@ -151,6 +227,7 @@ def check(buf: bytes | bytearray | memoryview) -> tuple[int, int, bytes, int, in
         raise WireError("kind", str(kind))
     if crc != _crc(buf):
         raise WireError("checksum")
+    _check_tag(key, buf)
     return kind, robot, source, seq, stamp, estop
 
 
@@ -162,9 +239,10 @@ def payload_stamp(buf: bytes | bytearray | memoryview) -> int:
 class Encoder:
     """Records of one kind and robot from one source, into one reused buffer."""
 
-    def __init__(self, kind: int, robot: int, source: str) -> None:
+    def __init__(self, kind: int, robot: int, source: str, key: bytes = b"") -> None:
         if kind not in PAYLOADS:
             raise ValueError(f"unknown record kind {kind}")
+        self.key = key
         self.buf = bytearray(SIZE)
         self.view = memoryview(self.buf)
         self.size = PAYLOADS[kind].itemsize
@@ -177,6 +255,7 @@ class Encoder:
         HEAD.pack_into(v, 0, *self.head, seq, stamp_ns, 1 if estop else 0, 0)
         v[PAYLOAD_AT : PAYLOAD_AT + self.size] = payload
         struct.pack_into("<I", v, _CRC_AT, _crc(v))
+        v[BODY:SIZE] = _tag(self.key, v)
         return bytes(self.buf)
 
 

@@ -25,6 +25,7 @@ from redistro.ipc.sysv import Card, card_key
 from redistro.localdata.layout import MAX_ROBOTS
 
 KINDS = 2
+MAX_DATAGRAMS = 256  # per receive(): a flood waits in the socket for the next
 SLOT = 8 + SIZE  # seq (u8) + one record
 DEFAULT_GROUP = "239.255.68.68"
 _SOURCE = slice(8, 24)  # the record header's source field
@@ -54,7 +55,9 @@ class ReflectiveTransport(Transport):
         self.card = Card.create(card_key(session_id, node), KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
         try:
-            self.sock = _multicast_socket(*self.group)
+            # no peers on other hosts: only the group's datagrams on loopback
+            # are received (bound to the group address, joined on lo)
+            self.sock = _multicast_socket(*self.group, any_source=bool(self.peers))
         except OSError as exc:
             self.card.close()
             self.card.remove()
@@ -101,7 +104,7 @@ class ReflectiveTransport(Transport):
 
     def receive(self) -> list[bytes]:
         out: list[bytes] = []
-        while True:
+        for _ in range(MAX_DATAGRAMS):  # a flood waits for the next receive
             try:
                 data = self.sock.recv(2 * SIZE)
             except BlockingIOError:
@@ -113,6 +116,7 @@ class ReflectiveTransport(Transport):
             if len(data) == SIZE and 1 <= data[6] <= KINDS and data[7] < MAX_ROBOTS:
                 self._write_card(self._slot(data, data[7]), data)
             out.append(data)
+        return out
 
     def fds(self) -> list[int]:
         return [self.sock.fileno()]
@@ -124,12 +128,12 @@ class ReflectiveTransport(Transport):
         self.card.remove()
 
 
-def _multicast_socket(group: str, port: int) -> socket.socket:
+def _multicast_socket(group: str, port: int, any_source: bool = False) -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
     try:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-        s.bind(("", port))
+        s.bind(("" if any_source else group, port))
         lo = socket.inet_aton("127.0.0.1")
         s.setsockopt(
             socket.IPPROTO_IP,

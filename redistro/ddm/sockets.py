@@ -1,8 +1,12 @@
 """Message passing over TCP: the SSC's ddm sends, the ESC's ddm receives and replies.
 
 An ESC ddm *listens* (``listen=(host, port)``) and takes one peer, the SSC
-ddm (a new connection replaces the old one: the SSC may reconnect); the SSC
-ddm *connects* to one ESC per robot (``peers={robot: (host, port)}``),
+ddm. The peer is pinned: once a record signed with the link's key came over
+a connection (the connecting side sends ``hello``, a signed record, first
+thing on every connection), a new connection is refused and counted; a
+connection that has not authenticated within ``HANDSHAKE_S``, or sends a
+record that fails the key, is dropped (and a new connection may take its
+place). The SSC ddm *connects* to one ESC per robot (``peers={robot: (host, port)}``),
 without blocking: the connections are made in ``receive`` (each ESC may
 start after the SSC, on another host), retried every 50 ms until
 ``connect_timeout_s``; a record for a robot not yet connected is dropped
@@ -41,6 +45,8 @@ class _Link:
 
 RETRY_S = 0.05
 RECV_BYTES = 65536
+MAX_RECORDS = 64  # per link and receive(): a flooding peer cannot hold the ddm
+HANDSHAKE_S = 2.0  # a connection must authenticate within this
 
 
 @dataclass
@@ -61,12 +67,24 @@ class SocketTransport(Transport):
         listen: tuple[str, int] | None = None,
         peers: dict[int, tuple[str, int]] | None = None,
         connect_timeout_s: float = 5.0,
+        hello: bytes = b"",
+        authenticate: bool = False,
     ) -> None:
+        """hello: the signed record a connecting side sends first on every
+        connection; authenticate: a listening side whose owner checks the
+        records' key (the ddm) pins its peer as described above; without it
+        the first connection is the peer at once (the transport alone, as in
+        its contract tests)."""
         if (listen is None) == (peers is None):
             raise ValueError("a socket transport either listens or connects to peers")
         self.server: socket.socket | None = None
         self.links: dict[int, _Link] = {}  # robot -> link (client side)
         self.peer: _Link | None = None  # the one peer (server side)
+        self.peer_since = 0.0  # when it connected
+        self.pinned = False  # it has authenticated
+        self.authenticate = authenticate
+        self.refused_count = 0
+        self.hello = hello
         self.dropped_full = 0
         self.lost: str | None = None  # why a link was lost (raised by the next receive)
         self.lost_robots: dict[int, str] = {}  # connecting side: robot -> why its link was lost
@@ -124,8 +142,11 @@ class SocketTransport(Transport):
                 if writable:
                     err = p.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
                     if err == 0:
-                        self.links[robot] = _Link(p.sock, p.name)
+                        link = self.links[robot] = _Link(p.sock, p.name)
                         del self.pending[robot]
+                        if self.hello:
+                            with contextlib.suppress(OSError):
+                                link.sock.send(self.hello)
                         continue
                     p.sock.close()
                     p.sock = None
@@ -140,9 +161,29 @@ class SocketTransport(Transport):
                 sock, addr = self.server.accept()
             except BlockingIOError:
                 return
-            if self.peer is not None:
+            if self.peer is not None and self.pinned:
+                with contextlib.suppress(OSError):
+                    sock.close()
+                self.refused_count += 1
+                continue
+            if self.peer is not None:  # never authenticated: the newcomer may be the SSC
                 self.peer.close()
             self.peer = _Link(sock, f"{addr[0]}:{addr[1]}")
+            self.peer_since = time.monotonic()
+            self.pinned = not self.authenticate
+
+    def authenticated(self) -> None:
+        if self.server is not None and self.peer is not None:
+            self.pinned = True
+
+    def drop_unauthenticated(self) -> None:
+        if self.server is not None and self.peer is not None and not self.pinned:
+            self.peer.close()
+            self.peer = None
+            self.refused_count += 1
+
+    def refused(self) -> int:
+        return self.refused_count
 
     def send(self, record: bytes, robot: int) -> None:
         link = self.peer if self.server is not None else self.links.get(robot)
@@ -172,19 +213,29 @@ class SocketTransport(Transport):
             raise TransportError(self.lost)
         if self.server is not None:
             self._receives += 1
-            if self.peer is None or not self._receives & 63:  # a connection waiting
-                self._accept()
+            if (
+                self.peer is not None
+                and not self.pinned
+                and time.monotonic() - self.peer_since > HANDSHAKE_S
+            ):
+                self.drop_unauthenticated()  # silent, or never proved the key
+            if self.peer is None or not self._receives & 63 or not self.pinned:
+                self._accept()  # a connection waiting
             links = {0: self.peer} if self.peer is not None else {}
         else:
             if self.pending:
                 self._progress()
             links = dict(self.links)
         out: list[bytes] = []
+        budget = MAX_RECORDS * SIZE
         for robot, link in links.items():
             why = None
             while True:
+                room = budget - len(link.buf)
+                if room <= 0:
+                    break  # the rest waits in the socket for the next receive
                 try:
-                    chunk = link.sock.recv(RECV_BYTES)
+                    chunk = link.sock.recv(min(RECV_BYTES, room))
                 except BlockingIOError:
                     break
                 except OSError as exc:
@@ -194,13 +245,16 @@ class SocketTransport(Transport):
                     why = f"link to {link.name} lost: closed by the peer"
                     break
                 link.buf += chunk
-                if len(chunk) < RECV_BYTES:
+                if len(chunk) < min(RECV_BYTES, room):
                     break  # all there was (the ddm's poll wakes it again for more)
             n = len(link.buf) // SIZE
             out += [bytes(link.buf[i * SIZE : (i + 1) * SIZE]) for i in range(n)]
             del link.buf[: n * SIZE]
             if why is not None:
-                if self.server is not None:
+                if self.server is not None and not self.pinned:
+                    link.close()
+                    self.peer = None  # an unauthenticated connection went: no loss
+                elif self.server is not None:
                     self.lost = why
                 else:
                     self.links.pop(robot).close()

@@ -41,6 +41,20 @@ class Transport(ABC):
         (robot -> why); a transport without per-robot links has none."""
         return {}
 
+    # -- peers, for transports with connections (the others ignore these) --
+
+    def authenticated(self) -> None:  # noqa: B027 - optional, a no-op by default
+        """The records just received were signed with the link's key: their
+        connection is the peer's, and no new connection displaces it."""
+
+    def drop_unauthenticated(self) -> None:  # noqa: B027 - optional, a no-op by default
+        """A record just received was not signed with the link's key: drop
+        its connection unless it has authenticated before."""
+
+    def refused(self) -> int:
+        """Connections refused so far (the link already had its peer)."""
+        return 0
+
     def __enter__(self) -> Transport:
         return self
 

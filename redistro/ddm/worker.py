@@ -59,12 +59,25 @@ def link_id(spec: NodeSpec) -> str:
     return str(params.get("link") or spec.session_id)
 
 
+def link_key(cfg: Config, session_id: str) -> bytes:
+    """The key that signs and checks this node's records: ``ddm.key_file``,
+    else the session's own (made by the session owner in its runtime folder)."""
+    path = cfg.ddm.key_file or str(Manifest.for_session(session_id).directory / wire.SESSION_KEY)
+    return wire.load_key(path)
+
+
 def open_transport(
-    cfg: Config, session_id: str, link: str, node: str, kind: str, robots: list[str]
+    cfg: Config,
+    session_id: str,
+    link: str,
+    node: str,
+    kind: str,
+    robots: list[str],
+    key: bytes = b"",
 ) -> Any:
     """The transport ``ddm.transport`` names, set up for this node's side.
     session_id names this node's own objects (its memory card); link derives
-    the ports the nodes meet on."""
+    the ports the nodes meet on; key signs the connecting side's hello."""
     cls = transport_class(cfg.ddm.transport)
     index = list(cfg.robots)
     if cfg.ddm.transport == "reflective":
@@ -82,9 +95,13 @@ def open_transport(
             manifest=Manifest.for_session(session_id),
         )
     if kind == "esc":
-        return cls(listen=(cfg.ddm.listen_host, esc_port(cfg, link, robots[0])))
+        return cls(listen=(cfg.ddm.listen_host, esc_port(cfg, link, robots[0])), authenticate=True)
     timeout = cfg.ddm.connect_timeout_s  # connects while running: an ESC may start later
+    hello = wire.encode(
+        wire.KIND_HELLO, 0, node, 1, time.monotonic_ns(), bytes(COUNTER.itemsize), key=key
+    )
     return cls(
+        hello=hello,
         peers={
             index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, link, r))
             for r in robots
@@ -123,8 +140,9 @@ class Ddm(Worker):
             self.out_recs = [Record(COMMAND) for _ in range(n)]
         self.last_out = [0] * n  # seq_src of the last record sent, per robot
         self.in_size = wire.PAYLOADS[self.in_kind].itemsize
+        self.key = link_key(self.cfg, self.spec.session_id)
         self.encoders = [
-            wire.Encoder(self.out_kind, self.gid[r], self.spec.node) for r in self.robots
+            wire.Encoder(self.out_kind, self.gid[r], self.spec.node, self.key) for r in self.robots
         ]
         self.seq = [0] * n
         self.admission = wire.Admission()
@@ -142,7 +160,9 @@ class Ddm(Worker):
             self.spec.node,
             self.kind,
             self.robots,
+            self.key,
         )
+        self.refused_seen = 0
         self._arm_injections()
         self.replying = self.kind == "esc" and self.transport.replies
         for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
@@ -228,14 +248,34 @@ class Ddm(Worker):
     def _receive(self) -> int:
         """Admit what came; the number of fresh records."""
         fresh = 0
-        for raw in self.transport.receive():
+        received = self.transport.receive()
+        refused = self.transport.refused()
+        if refused != self.refused_seen:
+            for ex in self.ex:
+                ex["foreign"] += refused - self.refused_seen
+            self.refused_seen = refused
+            self.dirty = self.urgent = True
+        for raw in received:
             self.dirty = True
             try:
-                kind, robot, source, seq, stamp, estop = wire.check(raw)
-            except WireError:
+                kind, robot, source, seq, stamp, estop = wire.check(raw, self.key)
+            except WireError as exc:
+                field = "forged" if exc.reason == "auth" else "malformed"
                 for ex in self.ex:
-                    ex["malformed"] += 1
+                    ex[field] += 1
                     ex["dropped"] += 1
+                if field == "forged" and self.kind == "esc":
+                    # not the SSC: whoever holds the link goes (a new
+                    # connection may take it: the SSC reconnecting)
+                    self.transport.drop_unauthenticated()
+                continue
+            if kind == wire.KIND_HELLO:
+                # signed and fresh: the connection is the peer's (pinned); a
+                # replayed hello is a duplicate: its connection is dropped
+                if self.admission.refuse(source, kind, robot, seq, stamp):
+                    self.transport.drop_unauthenticated()
+                else:
+                    self.transport.authenticated()
                 continue
             i = self.local.get(robot)
             if kind != self.in_kind or i is None:
@@ -246,6 +286,7 @@ class Ddm(Worker):
                 ex[why] += 1
                 ex["dropped"] += 1
                 continue
+            self.transport.authenticated()
             now = time.monotonic_ns()
             if estop and not ex["estop_in"]:
                 self.urgent = True

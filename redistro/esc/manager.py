@@ -227,6 +227,8 @@ def _exchange_dict(ex: Any) -> dict[str, Any]:
             "duplicate",
             "out_of_order",
             "stale",
+            "forged",
+            "foreign",
             "latency_n",
         )
     }

@@ -16,7 +16,9 @@ Kinds:
 - ``start``: what the next start finds: a crashed session's leftovers, a
   missing, corrupt or unclean positions file;
 - ``input``: a bad task file, config or command line;
-- ``hogs``: the whole peg insertion beside two processes spinning on both CPUs.
+- ``hogs``: the whole peg insertion beside two processes spinning on both CPUs;
+- ``limits``: the drill itself, with config that puts a joint limit in its
+  way: nothing is injected, the guard must stop the joint inside the limit.
 
 Expected: the session ends with one of ``expect``, the first fault's reason
 holds ``reason``; detection within ``limit`` (``death``: 2 cycles of the
@@ -146,6 +148,34 @@ def _inject_scenarios() -> list[Scenario]:
         s("records-replayed", "ssc", "ddm.replay", ("ok",), "", "",
           "50 commands replayed (sent 100 records earlier) beside the genuine ones", 50.0,
           count="out_of_order"),
+        # attacks on the links: the records are signed with the link's key
+        s("records-forged", "ssc", "ddm.forged", ("ok",), "", "",
+          "50 forged 150 N m commands (checksum right, another key) beside the genuine ones",
+          50.0, count="forged"),
+        s("records-renamed", "ssc", "ddm.renamed", ("ok",), "", "",
+          "50 old commands replayed under another source name beside the genuine ones", 50.0,
+          count="forged"),
+        s("records-flood", "ssc", "ddm.flood", ("ok",), "", "",
+          "5 000 forged commands at once on r2's link", 5000.0, count="forged"),
+        s("foreign-connection", "ssc", "ddm.foreign", ("ok",), "", "",
+          "a second connection to r2's ddm sends 50 forged commands", 50.0, count="foreign"),
+    ]  # fmt: skip
+
+
+def _limit_scenarios() -> list[Scenario]:
+    """The drill itself heading for a joint limit: nothing injected, the
+    guard must stop the joint while it can still stop inside the limit."""
+    return [
+        # the drill's home move takes r2's joint 4 from about -1.64 up to -1.2
+        # rad (peak 0.17 rad/s); its upper limit narrowed to -1.1 (-1.15 with
+        # the margin) and a braking deceleration of 0.05 rad/s^2 put its
+        # stopping point past the limit halfway, long before the joint is there
+        Scenario("joint-limit-approach", "limits", "esc.r2", "", "limits", ("unsafe",),
+                 "stopping position", "",
+                 sets=("esc.safety.q_max_rad=[2.9, 2.0, 2.9, -1.1, 2.9, 2.0, 3.0]",
+                       "esc.safety.decel_rad_s2=[5, 5, 5, 0.05, 5, 5, 5]"),
+                 what="r2's joint 4 heading for its limit (narrowed to -1.1 rad) faster "
+                      "than it could brake (0.05 rad/s^2)"),
     ]  # fmt: skip
 
 
@@ -193,7 +223,7 @@ INPUT_CASES = {
 }
 
 CATALOGUE: tuple[Scenario, ...] = tuple(
-    _process_scenarios() + _inject_scenarios() + _other_scenarios()
+    _process_scenarios() + _inject_scenarios() + _limit_scenarios() + _other_scenarios()
 )
 
 

@@ -237,7 +237,8 @@ def _break_session(
     cycles_at: dict[str, int] = {}
     try:
         sid = _session_id(proc, deadline, "self_calibration" if calibration else "fault_drill")
-        if calibration:
+        if calibration or sc.kind == "limits":
+            # stuck from the start, or nothing injected: the drill runs into the limit itself
             inject_ns = time.monotonic_ns()
         else:
             delay = rng.uniform(0.5, 2.5)

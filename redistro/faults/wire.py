@@ -12,7 +12,16 @@ trigger on it breaks what that ddm sends:
 - ``ddm.malformed``: for ``arg`` records, a copy with one byte flipped goes
   out before each genuine record (noise on the line);
 - ``ddm.replay``: for ``arg`` records, the record sent 100 records earlier
-  goes out again before each genuine one (a replay).
+  goes out again before each genuine one (a replay);
+- ``ddm.forged``: for ``arg`` records, a forgery goes out before each
+  genuine one: the same record with 150 N m on joint 1, its checksum right
+  but signed with another key (someone on the network without the key);
+- ``ddm.renamed``: for ``arg`` records, the record sent 100 records earlier
+  under another source name, its checksum right (a replay under a new name);
+- ``ddm.flood``: ``arg`` forgeries at once, then the genuine record (a
+  peer streaming without pause);
+- ``ddm.foreign``: a second connection to the peer's port sends ``arg``
+  forgeries (another host taking over the link).
 
 The genuine records of the last two still go out: the receiver must refuse
 the bad ones, count them and carry on.
@@ -27,7 +36,41 @@ from redistro.ddm.transport import Transport
 from redistro.errors import TransportError
 from redistro.faults.inject import Injection
 
-POINTS = ("ddm.link-close", "ddm.drop", "ddm.delay", "ddm.malformed", "ddm.replay")
+POINTS = (
+    "ddm.link-close",
+    "ddm.drop",
+    "ddm.delay",
+    "ddm.malformed",
+    "ddm.replay",
+    "ddm.forged",
+    "ddm.renamed",
+    "ddm.flood",
+    "ddm.foreign",
+)
+OTHER_KEY = b"not the link's key, 32 bytes...."
+
+
+def _resealed(record: bytes, source: bytes | None = None, tau: float | None = None) -> bytes:
+    """A record changed by someone without the link's key: its checksum made
+    right again, its tag signed with another key."""
+    import struct
+
+    from redistro.ddm import record as wire
+
+    b = bytearray(record)
+    if source is not None:
+        b[8:24] = source[:16].ljust(16, b"\0")
+    if tau is not None:  # the command's joint 1 torque (the payload's tau_nm[0])
+        from redistro.localdata.layout import COMMAND
+
+        at = wire.PAYLOAD_AT + COMMAND.fields["tau_nm"][1]  # type: ignore[index]
+        struct.pack_into("<d", b, at, tau)
+    crc_at = wire.HEADER.fields["crc32"][1]  # type: ignore[index]
+    struct.pack_into("<I", b, crc_at, wire._crc(b))
+    b[wire.BODY : wire.SIZE] = wire._tag(OTHER_KEY, b)
+    return bytes(b)
+
+
 REPLAY_BACK = 100
 
 
@@ -73,8 +116,39 @@ class InjectedTransport(Transport):
                 old, old_robot = self.history[0]
                 if old_robot == robot:
                     self.inner.send(old, robot)
+            elif self.what == "forged":
+                self.inner.send(_resealed(record, tau=150.0), robot)
+            elif self.what == "renamed" and len(self.history) == self.history.maxlen:
+                old, old_robot = self.history[0]
+                if old_robot == robot:
+                    self.inner.send(_resealed(old, source=b"intruder"), robot)
+            elif self.what == "flood":
+                forged = _resealed(record, tau=150.0)
+                for _ in range(self.bad_left + 1):
+                    self.inner.send(forged, robot)
+                self.bad_left = 0
+            elif self.what == "foreign":
+                self._foreign(record, robot)
+                self.bad_left = 0
         self.history.append((record, robot))
         self.inner.send(record, robot)
+
+    def _foreign(self, record: bytes, robot: int) -> None:
+        """Another connection to the peer's port, sending forgeries."""
+        import contextlib
+        import socket
+
+        links = getattr(self.inner, "links", {})
+        link = links.get(robot)
+        if link is None:
+            return
+        forged = _resealed(record, tau=150.0)
+        with (
+            contextlib.suppress(OSError),
+            socket.create_connection(link.sock.getpeername()[:2], timeout=0.5) as sock,
+        ):
+            for _ in range(int(self.inj.arg) or 50):
+                sock.send(forged)
 
     def _flush_delayed(self) -> None:
         now = time.monotonic_ns()
@@ -90,6 +164,15 @@ class InjectedTransport(Transport):
 
     def lost_links(self) -> dict[int, str]:
         return {} if self.closed else self.inner.lost_links()
+
+    def authenticated(self) -> None:
+        self.inner.authenticated()
+
+    def drop_unauthenticated(self) -> None:
+        self.inner.drop_unauthenticated()
+
+    def refused(self) -> int:
+        return self.inner.refused()
 
     @property
     def replies(self) -> bool:  # type: ignore[override]

@@ -57,12 +57,51 @@ def entry_to_name(entry: str) -> tuple[str, str]:
 
 
 def runtime_dir() -> Path:
-    """Where session locks and manifests live (one per machine and user).
+    """Where session locks and manifests live (one per machine and user):
+    ``$XDG_RUNTIME_DIR/redistro`` when that is set, else
+    ``/tmp/redistro-<uid>``; ``REDISTRO_RUNTIME_DIR`` overrides both.
 
     Every redistro process of this user must agree on it, because the reaper
-    judges liveness by the locks found here. ``REDISTRO_RUNTIME_DIR`` overrides.
+    judges liveness by the locks found here (children inherit the environment).
     """
     env = os.environ.get("REDISTRO_RUNTIME_DIR")
     if env:
         return Path(env)
+    xdg = os.environ.get("XDG_RUNTIME_DIR")
+    if xdg and os.path.isabs(xdg):
+        return Path(xdg) / PREFIX
     return Path(tempfile.gettempdir()) / f"{PREFIX}-{os.getuid()}"
+
+
+def checked_runtime_dir(create: bool = True) -> Path | None:
+    """The runtime directory, created 0700 when missing (``create``), and
+    checked: a real folder (not a symlink), owned by this user, with no
+    access for group or others. IPCError naming what is wrong otherwise
+    (another user could plant locks or manifests there). None when it does
+    not exist and ``create`` is false."""
+    import stat
+
+    from redistro.errors import IPCError
+
+    root = runtime_dir()
+    if create:
+        try:
+            os.mkdir(root, 0o700)
+        except FileExistsError:
+            pass
+        except OSError as exc:
+            raise IPCError(f"runtime directory {root}: cannot create it ({exc.strerror})") from None
+    try:
+        st = os.lstat(root)
+    except FileNotFoundError:
+        return None
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise IPCError(f"runtime directory {root}: not a folder (a symlink or a file): refused")
+    if st.st_uid != os.getuid():
+        raise IPCError(f"runtime directory {root}: owned by uid {st.st_uid}, not {os.getuid()}")
+    if st.st_mode & 0o077:
+        raise IPCError(
+            f"runtime directory {root}: mode {stat.S_IMODE(st.st_mode):04o}, expected 0700 "
+            "(chmod 700 it)"
+        )
+    return root

@@ -46,7 +46,9 @@ class Manifest:
 
     def register(self, kind: str, name: str) -> None:
         line = f"{kind} {name}\n".encode()
-        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        fd = os.open(
+            self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600
+        )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
             os.write(fd, line)
@@ -55,9 +57,14 @@ class Manifest:
 
     def entries(self) -> list[tuple[str, str]]:
         try:
-            text = self.path.read_text()
+            fd = os.open(self.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
         except FileNotFoundError:
             return []
+        except OSError as exc:
+            log.warning("manifest %s not read: %s", self.path, exc.strerror)
+            return []
+        with os.fdopen(fd, encoding="utf-8", errors="replace") as f:
+            text = f.read(1 << 20)
         out = []
         for line in text.splitlines():
             kind, _, name = line.partition(" ")
@@ -85,8 +92,8 @@ class Session:
 
     @classmethod
     def create(cls) -> Session:
-        root = names.runtime_dir()
-        root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        root = names.checked_runtime_dir()
+        assert root is not None
         for _ in range(10):
             sid = names.new_session_id()
             directory = root / sid
@@ -95,7 +102,7 @@ class Session:
             except FileExistsError:
                 continue
             try:
-                fd = os.open(directory / "lock", os.O_RDWR | os.O_CREAT, 0o600)
+                fd = os.open(directory / "lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
             except FileNotFoundError:  # reaped between mkdir and open
                 continue
             try:
@@ -138,17 +145,21 @@ class Session:
 
 
 def unlink(kind: str, name: str) -> bool:
-    """Unlink a named object; False if it was already gone."""
-    if kind == "sysv":
-        from redistro.ipc import sysv
-
-        return sysv.remove_key(int(name, 16))
+    """Unlink a named object; False if it was already gone, or may not be
+    removed by this user (reported, not raised)."""
     try:
+        if kind == "sysv":
+            from redistro.ipc import sysv
+
+            return sysv.remove_key(int(name, 16))
         if kind == "sem":
             posix_ipc.unlink_semaphore(name)
         else:
             posix_ipc.unlink_shared_memory(name)
     except posix_ipc.ExistentialError:
+        return False
+    except (posix_ipc.PermissionsError, PermissionError) as exc:
+        log.warning("%s %s not removed: %s", kind, name, exc)
         return False
     return True
 
@@ -157,8 +168,11 @@ def _remove_objects(entries: list[tuple[str, str]]) -> list[str]:
     return [name for kind, name in entries if unlink(kind, name)]
 
 
-def _remove_entries_of(session_id: str | None, live: set[str] | None = None) -> list[str]:
-    """Unlink /dev/shm entries of ``session_id`` (or of every non-live session)."""
+def _remove_entries_of(session_id: str | None, dead: set[str] | None = None) -> list[str]:
+    """Unlink /dev/shm entries of ``session_id`` (or of the ``dead`` sessions:
+    those whose directory in this runtime directory was found with its lock
+    free; objects of sessions unknown here, of another runtime directory or
+    another user, are left alone)."""
     removed: list[str] = []
     try:
         entries = sorted(os.listdir(names.SHM_DIR))
@@ -170,7 +184,7 @@ def _remove_entries_of(session_id: str | None, live: set[str] | None = None) -> 
             continue
         if session_id is not None and sid != session_id:
             continue
-        if session_id is None and live is not None and sid in live:
+        if session_id is None and (dead is None or sid not in dead):
             continue
         kind, name = names.entry_to_name(entry)
         if unlink(kind, name):
@@ -179,34 +193,40 @@ def _remove_entries_of(session_id: str | None, live: set[str] | None = None) -> 
 
 
 def reap() -> list[str]:
-    """Remove the objects of every dead session; return what was removed."""
-    root = names.runtime_dir()
-    live: set[str] = set()
+    """Remove the objects of every dead session of this runtime directory (its
+    lock free, and held by the reaper while it unlinks: the session cannot
+    come back meanwhile); return what was removed."""
+    root = names.checked_runtime_dir(create=False)
     removed: list[str] = []
-    if root.is_dir():
-        for directory in sorted(root.iterdir()):
-            if not directory.is_dir() or not names.is_session_id(directory.name):
-                continue
-            lock = directory / "lock"
+    if root is None:
+        return removed
+    for directory in sorted(root.iterdir()):
+        if directory.is_symlink() or not directory.is_dir():
+            continue
+        if not names.is_session_id(directory.name):
+            continue
+        lock = directory / "lock"
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except FileNotFoundError:
+            # No lock file: a dead session, or one being born this instant
+            # (its creator then sees its directory gone and picks a new id).
+            shutil.rmtree(directory, ignore_errors=True)
+            continue
+        except OSError as exc:
+            log.warning("session %s not reaped: %s", directory.name, exc.strerror)
+            continue
+        try:
             try:
-                fd = os.open(lock, os.O_RDWR)
-            except FileNotFoundError:
-                # No lock file: a dead session, or one being born this instant
-                # (its creator then sees its directory gone and picks a new id).
-                shutil.rmtree(directory, ignore_errors=True)
-                continue
-            try:
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except BlockingIOError:
-                    live.add(directory.name)
-                    continue
-                manifest = Manifest(directory.name, directory)
-                removed += _remove_objects(manifest.entries())
-                shutil.rmtree(directory, ignore_errors=True)
-            finally:
-                os.close(fd)
-    removed += _remove_entries_of(None, live)
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                continue  # alive
+            manifest = Manifest(directory.name, directory)
+            removed += _remove_objects(manifest.entries())
+            removed += _remove_entries_of(None, {directory.name})
+            shutil.rmtree(directory, ignore_errors=True)
+        finally:
+            os.close(fd)
     return removed
 
 

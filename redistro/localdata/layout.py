@@ -179,6 +179,8 @@ EXCHANGE = np.dtype(  # data exchange status, per robot: the data from the other
         ("latency_n", "<u8"),
         # an ESC's ddm: wake it for each new sample (0 while it only replies to commands)
         ("feedback_wanted", "u1"),
+        ("forged", "<u8"),  # well-formed, but not signed with the link's key (auth)
+        ("foreign", "<u8"),  # connections refused: the link already had its peer
     ]
 )
 COUNTER = np.dtype([("count", "<u8"), ("stamp_ns", "<i8")])

@@ -10,7 +10,6 @@ process, histograms of the cycle timing.
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Any
 

@@ -87,7 +87,12 @@ def _end(proc: subprocess.Popen[str], timeout: float) -> tuple[int, str]:
 def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(calibrated: Path, tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     shutil.copytree(calibrated, runs)
+    from redistro.ddm.record import new_key
+
+    key = tmp_path / "link.key"  # the link's key, shared by the nodes (one filesystem here)
+    new_key(key)
     common = ["--set", f"session.runs_dir={runs}", "--set", "ddm.transport=socket"]
+    common += ["--set", f"ddm.key_file={key}"]
     link = f"test-nodes-{os.getpid()}"
     with two_hosts() as hosts:
         plant = _start([], *common, "plant")
@@ -164,7 +169,14 @@ def test_a_node_alone_refuses_bad_input(tmp_path: Path) -> None:
         (["node", "ssc", "tasks/self_calibration.yaml"], "runs alone only in a strategy task"),
         (["node", "esc", "r2", TASK], "the following arguments are required: --plant"),
         (["node", "ssc", TASK, "--link", ""], "--link: expected a non-empty id"),
+        (["node", "ssc", TASK, "--link", "l"], "ddm.key_file: nodes started alone need a shared"),
+        (
+            ["--set", f"ddm.key_file={tmp_path / 'open.key'}", "node", "ssc", TASK, "--link", "l"],
+            "open.key: the key file has mode 0644, expected 0600",
+        ),
     ]
+    (tmp_path / "open.key").write_text("00" * 32)
+    os.chmod(tmp_path / "open.key", 0o644)
     for args, message in bad:
         done = run_cli(*args, timeout=60)
         assert done.returncode == 2, (args, done.stderr)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,7 +58,8 @@ def test_round_trip_keeps_every_field() -> None:
         (lambda b: b[:4] + b"\x09\x00" + b[6:], "version"),
         (lambda b: b[:6] + b"\x07" + b[7:], "kind"),
         (lambda b: b[:40] + bytes([b[40] ^ 1]) + b[41:], "checksum"),
-        (lambda b: b[:-1] + bytes([b[-1] ^ 0x80]), "checksum"),
+        (lambda b: b[:-33] + bytes([b[-33] ^ 0x80]) + b[-32:], "checksum"),
+        (lambda b: b[:-1] + bytes([b[-1] ^ 0x80]), "auth"),
     ],
 )
 def test_malformed_records_are_refused_with_the_reason(mutate, reason: str) -> None:  # type: ignore[no-untyped-def]
@@ -136,3 +139,61 @@ def test_the_ddm_fast_path_agrees_with_encode_and_decode() -> None:
             except WireError as exc:
                 reasons.append(exc.args[0])
         assert reasons[0] == reasons[1] != ""
+
+
+def _resealed(buf: bytes) -> bytes:
+    """A record changed by someone without the key: its checksum recomputed
+    (the tag cannot be)."""
+    from redistro.ddm.record import _crc
+
+    b = bytearray(buf)
+    b[_CRC_AT_TEST : _CRC_AT_TEST + 4] = _crc(b).to_bytes(4, "little")
+    return bytes(b)
+
+
+_CRC_AT_TEST = 44  # the header's crc32 field
+
+
+def test_a_record_without_the_links_key_is_refused_as_forged() -> None:
+    from redistro.ddm.record import BODY, check
+
+    key, other = b"k" * 32, b"o" * 32
+    good = encode(KIND_COMMAND, 0, "ssc", 1, 10, np.zeros((), COMMAND), key=key)
+    assert check(good, key)[0] == KIND_COMMAND
+    forged = encode(KIND_COMMAND, 0, "ssc", 1, 10, np.zeros((), COMMAND), key=other)
+    with pytest.raises(WireError) as exc:
+        check(forged, key)
+    assert exc.value.reason == "auth"
+    # the same record under another source name, its checksum made right
+    renamed = bytearray(good)
+    renamed[8:24] = b"intruder".ljust(16, b"\0")
+    with pytest.raises(WireError) as exc:
+        check(_resealed(bytes(renamed)), key)
+    assert exc.value.reason == "auth"
+    # a 150 N m command written into a genuine record
+    cmd = np.zeros((), COMMAND)
+    cmd["tau_nm"][0] = 150.0
+    tampered = bytearray(good)
+    raw = cmd.tobytes()
+    tampered[48 : 48 + len(raw)] = raw
+    with pytest.raises(WireError) as exc:
+        check(_resealed(bytes(tampered)), key)
+    assert exc.value.reason == "auth"
+    assert len(good) == BODY + 32
+
+
+def test_a_key_file_must_be_private(tmp_path: Path) -> None:
+    from redistro.ddm.record import load_key, new_key
+
+    path = tmp_path / "link.key"
+    key = new_key(path)
+    assert load_key(path) == key and len(key) == 32
+    os.chmod(path, 0o644)
+    with pytest.raises(ValueError, match="mode 0644, expected 0600"):
+        load_key(path)
+    os.chmod(path, 0o600)
+    path.write_text("not hex")
+    with pytest.raises(ValueError, match="does not hold a hex key"):
+        load_key(path)
+    with pytest.raises(FileExistsError):
+        new_key(path)  # never overwritten

@@ -64,6 +64,61 @@ def test_reaper_keeps_live_sessions() -> None:
             sem.unlink()
 
 
+def test_the_runtime_directory_is_private_or_refused(
+    tmp_path: os.PathLike[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pathlib import Path
+
+    from redistro.errors import IPCError
+
+    root = Path(tmp_path) / "rt"
+    monkeypatch.setenv("REDISTRO_RUNTIME_DIR", str(root))
+    assert names.checked_runtime_dir(create=False) is None
+    assert names.checked_runtime_dir() == root
+    assert (os.stat(root).st_mode & 0o777) == 0o700
+    os.chmod(root, 0o755)
+    with pytest.raises(IPCError, match="mode 0755, expected 0700"):
+        session.Session.create()
+    with pytest.raises(IPCError, match="mode 0755"):
+        session.reap()
+    os.rmdir(root)
+    other = Path(tmp_path) / "elsewhere"
+    other.mkdir(mode=0o700)
+    root.symlink_to(other)
+    with pytest.raises(IPCError, match="not a folder"):
+        session.Session.create()
+
+
+def test_xdg_runtime_dir_is_used_when_set(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("REDISTRO_RUNTIME_DIR", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/1234")
+    assert str(names.runtime_dir()) == "/run/user/1234/redistro"
+    monkeypatch.delenv("XDG_RUNTIME_DIR")
+    assert str(names.runtime_dir()).endswith(f"redistro-{os.getuid()}")
+
+
+def test_the_reaper_leaves_sessions_of_another_runtime_directory(
+    tmp_path: os.PathLike[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A dead session's objects are removed only by a reaper of its own
+    runtime directory: one started with another REDISTRO_RUNTIME_DIR does
+    not see its lock, and must not take it for dead."""
+    from pathlib import Path
+
+    monkeypatch.setenv("REDISTRO_RUNTIME_DIR", str(Path(tmp_path) / "a"))
+    s = session.Session.create()
+    name = names.object_name(s.id, "t", "theirs")
+    sem = Semaphore.create(name, s.manifest)
+    sem.close()
+    try:
+        monkeypatch.setenv("REDISTRO_RUNTIME_DIR", str(Path(tmp_path) / "b"))
+        assert name not in session.reap()  # not ours to judge
+        monkeypatch.setenv("REDISTRO_RUNTIME_DIR", str(Path(tmp_path) / "a"))
+        assert name not in session.reap()  # alive: its lock is held
+    finally:
+        assert s.close() == [name]
+
+
 def test_timer_due_counts_missed_ticks() -> None:
     t = IntervalTimer(1000.0)
     assert t.period_ns == 1_000_000

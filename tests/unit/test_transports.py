@@ -205,3 +205,120 @@ def test_socket_connects_to_a_peer_that_starts_later() -> None:
         ssc.close()
         if esc is not None:
             esc.close()
+
+
+KEY = b"k" * 32
+
+
+def _hello(seq: int = 1) -> bytes:
+    from redistro.ddm.record import KIND_HELLO
+    from redistro.localdata.layout import COUNTER
+
+    return encode(KIND_HELLO, 0, "ssc", seq, 1000 + seq, np.zeros((), COUNTER), key=KEY)
+
+
+def _admit(esc: Transport, records: list[bytes]) -> int:
+    """What the ESC's ddm does with records: check the key, pin the peer on a
+    good one, drop the connection on a forged one. Returns the good ones."""
+    from redistro.ddm.record import check
+    from redistro.errors import WireError
+
+    good = 0
+    for r in records:
+        try:
+            check(r, KEY)
+        except WireError:
+            esc.drop_unauthenticated()
+            continue
+        esc.authenticated()
+        good += 1
+    return good
+
+
+def _listening_with_peer() -> tuple[Transport, Transport]:
+    cls = transport_class("socket")
+    esc = cls(listen=("127.0.0.1", 0), authenticate=True)
+    ssc = cls(peers={0: esc.address}, hello=_hello())
+    deadline = time.monotonic() + 5
+    got: list[bytes] = []
+    while not got:
+        assert time.monotonic() < deadline, "no hello within 5 s"
+        ssc.connected()  # type: ignore[attr-defined]
+        got = esc.receive()
+        time.sleep(0.001)  # polling non-blocking sockets, to a deadline
+    assert _admit(esc, got) == 1
+    return ssc, esc
+
+
+def test_a_new_connection_never_displaces_the_authenticated_peer() -> None:
+    ssc, esc = _listening_with_peer()
+    intruder = socket.create_connection(esc.address)  # type: ignore[attr-defined]
+    try:
+        intruder.settimeout(2.0)
+        for _ in range(64):  # a pinned link looks for newcomers every 64 receives
+            esc.receive()
+        assert intruder.recv(16) == b""  # refused: closed
+        assert esc.refused() == 1
+        ssc.send(encode(KIND_COMMAND, 0, "ssc", 2, 1002, np.zeros((), COMMAND), key=KEY), 0)
+        assert _admit(esc, _collect(esc, 1)) == 1  # the SSC's link goes on
+    finally:
+        intruder.close()
+        ssc.close()
+        esc.close()
+
+
+def test_an_unauthenticated_connection_gives_way_and_forged_records_drop_it() -> None:
+    cls = transport_class("socket")
+    esc = cls(listen=("127.0.0.1", 0), authenticate=True)
+    squatter = socket.create_connection(esc.address)
+    ssc = None
+    try:
+        squatter.settimeout(2.0)
+        deadline = time.monotonic() + 5
+        while esc.peer is None:  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline
+            esc.receive()
+            time.sleep(0.001)  # polling a non-blocking accept, to a deadline
+        # a forged record on the squatter's connection: it is dropped
+        forged = encode(KIND_COMMAND, 0, "ssc", 1, 1001, np.zeros((), COMMAND), key=b"x" * 32)
+        squatter.sendall(forged)
+        assert _admit(esc, _collect(esc, 1)) == 0
+        assert squatter.recv(16) == b""
+        # the real SSC then connects, proves the key and is pinned
+        ssc = cls(peers={0: esc.address}, hello=_hello())
+        got: list[bytes] = []
+        while not got:
+            assert time.monotonic() < deadline, "no hello"
+            ssc.connected()  # type: ignore[attr-defined]
+            got = esc.receive()
+            time.sleep(0.001)  # polling non-blocking sockets, to a deadline
+        assert _admit(esc, got) == 1
+    finally:
+        squatter.close()
+        if ssc is not None:
+            ssc.close()
+        esc.close()
+
+
+def test_a_flooding_peer_does_not_hold_a_receive() -> None:
+    from redistro.ddm.sockets import MAX_RECORDS
+
+    ssc, esc = _listening_with_peer()
+    try:
+        rec = encode(KIND_COMMAND, 0, "ssc", 5, 1005, np.zeros((), COMMAND), key=KEY)
+        for _ in range(4 * MAX_RECORDS):
+            ssc.send(rec, 0)
+        deadline = time.monotonic() + 5
+        sizes = []
+        while sum(sizes) < 4 * MAX_RECORDS:
+            assert time.monotonic() < deadline, sizes
+            t0 = time.monotonic()
+            n = len(esc.receive())
+            assert time.monotonic() - t0 < 0.5
+            if n:
+                sizes.append(n)
+            time.sleep(0.001)  # polling a non-blocking receive, to a deadline
+        assert max(sizes) <= MAX_RECORDS and len(sizes) >= 4, sizes
+    finally:
+        ssc.close()
+        esc.close()
