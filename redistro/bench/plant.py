@@ -77,6 +77,7 @@ def run(
                     interface=c.interface,
                     channel=c.channel,
                     port=c.port,
+                    loopback_only=c.loopback_only,
                 )
                 d = RobotDriver(hw, bp, cfg.plant.physics_hz)
                 d.open()

@@ -40,6 +40,13 @@ def valid_host(text: str) -> bool:
 
 
 def check_config(cfg: Config) -> None:
+    from redistro.localdata.layout import MAX_ROBOTS
+
+    if len(cfg.robots) > MAX_ROBOTS:
+        raise ConfigError(
+            f"{cfg.origin('robots')}: robots: at most {MAX_ROBOTS} robots in a group (the "
+            f"Local Data layout's and the plant bank's capacity), got {len(cfg.robots)}"
+        )
     for name in cfg.robots:
         if not ROBOT_NAME.match(name):
             raise ConfigError(

@@ -359,6 +359,7 @@ class CanConfig:
     interface: Literal["virtual", "udp_multicast", "socketcan"] = "udp_multicast"
     channel: str = ""
     port: int = field(default=0, metadata={"ge": 0, "le": 65535})  # udp_multicast; 0: per session
+    loopback_only: bool = True  # udp_multicast: join the group and send on loopback only
 
 
 @dataclass(frozen=True)

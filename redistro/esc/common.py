@@ -36,6 +36,7 @@ class EscContext:
             interface=c.interface,
             channel=c.channel,
             port=c.port,
+            loopback_only=c.loopback_only,
         )
         return RobotDriver(self.hw, bp, self.cfg.plant.physics_hz)
 

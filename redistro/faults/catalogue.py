@@ -155,6 +155,9 @@ def _inject_scenarios() -> list[Scenario]:
         s("records-renamed", "ssc", "ddm.renamed", ("ok",), "", "",
           "50 old commands replayed under another source name beside the genuine ones", 50.0,
           count="forged"),
+        s("records-forged-reflective", "ssc", "ddm.forged", ("ok",), "", "",
+          "50 forged 150 N m commands on the reflective-memory network", 50.0,
+          sets=("ddm.transport=reflective",), count="forged"),
         s("records-flood", "ssc", "ddm.flood", ("ok",), "", "",
           "5 000 forged commands at once on r2's link", 5000.0, count="forged"),
         s("foreign-connection", "ssc", "ddm.foreign", ("ok",), "", "",
@@ -186,6 +189,10 @@ def _other_scenarios() -> list[Scenario]:
                  count="bad_frames",
                  what="1 s of corrupt CAN frames (writes and replies) on the backplane bus, "
                       "the plant and r2's driver on it"),
+        Scenario("can-forged-writes", "can-noise", "plant", "", "forged", ("ok",), "", "",
+                 count="forged_writes",
+                 what="1 s of well-formed CAN writes (DAC at full scale, every brake "
+                      "released) signed with another key, r2's driver holding the arm"),
         Scenario("home-stuck-on", "calibration", "plant", "", "plant.home-stuck-on",
                  ("abnormal",), "no home switch", "",
                  what="r2's home switches stuck on during self-calibration"),

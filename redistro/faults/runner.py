@@ -186,7 +186,7 @@ def run_scenario(
     if sc.kind == "can-noise":
         from redistro.faults.can_noise import run_can_noise
 
-        row.update(run_can_noise(out_dir, config_args))
+        row.update(run_can_noise(out_dir, config_args, forged=sc.action == "forged"))
         return row
     if sc.kind == "hogs":
         row.update(_hogs(sc, runs, out_dir, config_args))

@@ -82,10 +82,11 @@ def run_plant(
         if shm:
             port = ShmPort(bank)
         else:
-            from redistro.drivers.io.can import CanPort, open_bus
+            from redistro.drivers.io.can import CanPort, open_bus, plant_key
 
             c = cfg.plant.can
-            port = CanPort(chassis.boards, open_bus(c.interface, c.channel, c.port, session_id))
+            bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only)
+            port = CanPort(chassis.boards, bus, key=plant_key(session_id))
         from redistro.ipc import sched
 
         # the lowest real-time priority, below every controller process: the
@@ -277,6 +278,7 @@ def _loop(
         "max_step_gap_monotonic_ns": max_gap_at_ns,
         "torn_outputs": int(getattr(port, "torn_outputs", 0)),
         "bad_frames": int(getattr(port, "bad_frames", 0)),
+        "forged_writes": int(getattr(port, "forged", 0)),
         "physics_hz": physics_hz,
         "pid": os.getpid(),
         "kernels": chassis.kernels,

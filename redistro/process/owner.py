@@ -175,8 +175,12 @@ class _Node:
 
 # How long the other nodes get to end on the group's e-stop (their DDMs carry
 # it in a few milliseconds, their managers act within a cycle) before the
-# owner stops them itself. Nodes without DDMs are stopped at once.
+# owner stops them itself. Nodes without DDMs get the e-stop from the owner's
+# relay only: they are stopped after a short grace, so that the relayed
+# e-stop (a real-time signal) is taken before the SIGTERM (a standard
+# signal, which a manager's sigwaitinfo would return first when both wait).
 GROUP_STOP_GRACE_S = 0.25
+RELAYED_STOP_GRACE_S = 0.05
 
 # The slowest a task's own clock (the simulated plant) may run before the
 # wall-clock backstop of its budget stops the nodes [share of real time]: a
@@ -372,7 +376,8 @@ def _wait_loop(
                         # the group's own e-stop (through the DDMs) ends the
                         # other nodes within a few cycles; stopping them is
                         # the fallback, after a grace
-                        grace = GROUP_STOP_GRACE_S if all(_has_ddm(o.spec) for o in nodes) else 0.0
+                        with_ddms = all(_has_ddm(o.spec) for o in nodes)
+                        grace = GROUP_STOP_GRACE_S if with_ddms else RELAYED_STOP_GRACE_S
                         group_stop = (now + grace, f"a fault in {n.spec.node}")
         if not relay.due and len(relay._lds) < len(nodes):
             _chore(relay.prepare)

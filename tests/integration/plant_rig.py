@@ -80,6 +80,7 @@ def plant_rig(backplane: str, tmp: Path, overrides: list[str] | None = None) -> 
                     interface=c.interface,
                     channel=c.channel,
                     port=c.port,
+                    loopback_only=c.loopback_only,
                 )
                 drivers[name] = RobotDriver(hw, bp, cfg.plant.physics_hz)
                 drivers[name].open()

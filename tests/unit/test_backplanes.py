@@ -65,8 +65,10 @@ def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
         from redistro.drivers.io.can import CanBackplane, CanPort
 
         channel = f"contract-{time.monotonic_ns()}"
-        port = CanPort(BOARDS, can.Bus(interface="virtual", channel=channel))
-        bp = CanBackplane("s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel))
+        port = CanPort(BOARDS, can.Bus(interface="virtual", channel=channel), key=CAN_KEY)
+        bp = CanBackplane(
+            "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
+        )
         silent = threading.Event()
         done = threading.Event()
 
@@ -86,6 +88,9 @@ def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
             thread.join()
             port.close()
             bp.bus.shutdown()
+
+
+CAN_KEY = b"the plant's CAN key, 32 bytes..."
 
 
 def test_inventory(pair: Pair) -> None:
@@ -144,3 +149,46 @@ def test_corrupt_frames_are_counted_and_dropped() -> None:
     assert rx.add(frames[2]) == payload
     # a stale reply (another sequence) is not taken as the answer
     assert rx.add(frames_for(6, payload)[0], want_seq=8) is None
+
+
+def test_a_can_write_without_the_plants_key_never_reaches_a_register() -> None:
+    import can
+
+    from redistro.drivers.io.can import CanBackplane, CanPort
+
+    channel = f"forged-{time.monotonic_ns()}"
+    port = CanPort(BOARDS, can.Bus(interface="virtual", channel=channel), key=CAN_KEY)
+    good = CanBackplane(
+        "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
+    )
+    bad = CanBackplane(
+        "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=b"x" * 32
+    )
+    sniffer = can.Bus(interface="virtual", channel=channel)
+    try:
+        out = np.zeros((), BANKS[BoardType.DAC][1])
+        out["code"][:3] = [100, -200, 2047]
+        good.write(32, out)
+        frames = []  # what a listener on the bus captured: the genuine write
+        while (msg := sniffer.recv(timeout=0.2)) is not None:
+            frames.append(msg)
+        port.service(time.monotonic_ns() + 50_000_000)
+        assert list(port.outputs(32)["code"][:3]) == [100, -200, 2047]
+        forged = np.zeros((), BANKS[BoardType.DAC][1])
+        forged["code"][:3] = [2047, 2047, 2047]
+        bad.write(32, forged)  # DAC codes from someone without the key
+        port.service(time.monotonic_ns() + 50_000_000)
+        assert list(port.outputs(32)["code"][:3]) == [100, -200, 2047]
+        assert port.forged == 1
+        out["code"][:3] = [0, 0, 0]
+        good.write(32, out)
+        port.service(time.monotonic_ns() + 50_000_000)
+        assert list(port.outputs(32)["code"][:3]) == [0, 0, 0]
+        for msg in frames:  # the captured genuine write, replayed: an old sequence
+            sniffer.send(msg)
+        port.service(time.monotonic_ns() + 50_000_000)
+        assert list(port.outputs(32)["code"][:3]) == [0, 0, 0]
+        assert port.forged == 2
+    finally:
+        for bus in (port.bus, good.bus, bad.bus, sniffer):
+            bus.shutdown()

@@ -7,6 +7,7 @@ import pytest
 from redistro.config import Config, load_config, parse_override
 from redistro.config.model import PAPER_PRIORITIES
 from redistro.errors import ConfigError
+from tests.helpers import ROOT
 
 
 def test_defaults_without_a_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -92,3 +93,65 @@ def test_override_errors_say_set() -> None:
 
 def test_config_error_is_a_value_error() -> None:
     assert issubclass(ConfigError, ValueError)
+
+
+def test_more_robots_than_the_layout_holds_are_refused() -> None:
+    from redistro.config import load_config
+    from redistro.errors import ConfigError
+
+    sets = [f"robots.r{i}={{io: r1.io.yaml, sensors: r1.sensors.yaml}}" for i in range(3, 7)]
+    with pytest.raises(ConfigError, match="at most 4 robots in a group"):
+        load_config(ROOT / "config/redistro.yaml", sets)
+
+
+def test_the_reaper_reports_an_object_it_may_not_remove(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    import posix_ipc
+
+    from redistro.ipc import session
+
+    def refuse(name: str) -> None:
+        raise posix_ipc.PermissionsError("Permission denied")
+
+    monkeypatch.setattr(posix_ipc, "unlink_shared_memory", refuse)
+    assert session.unlink("shm", "/redistro.someone-elses") is False
+    assert "not removed: Permission denied" in caplog.text
+
+
+def test_a_forged_estop_or_finished_flag_is_refused() -> None:
+    import numpy as np
+
+    from redistro.ddm.record import KIND_COMMAND, encode
+    from redistro.ddm.record import check as check_record
+    from redistro.errors import WireError
+    from redistro.localdata.layout import COMMAND, SessionStatus
+
+    cmd = np.zeros((), COMMAND)
+    cmd["session_status"] = SessionStatus.FINISHED
+    for estop in (True, False):
+        forged = encode(KIND_COMMAND, 0, "ssc", 9, 9, cmd, estop=estop, key=b"x" * 32)
+        with pytest.raises(WireError, match="auth"):
+            check_record(forged, b"k" * 32)
+
+
+def test_the_reflective_network_and_the_can_bus_stay_on_loopback() -> None:
+    import socket
+    import struct
+
+    from redistro.ddm.reflective import _multicast_socket
+    from redistro.drivers.io.can import open_bus
+    from redistro.ipc.names import new_session_id
+
+    s = _multicast_socket("239.255.68.68", 0)
+    try:
+        assert s.getsockname()[0] == "239.255.68.68"  # the group's datagrams only
+    finally:
+        s.close()
+    bus = open_bus("udp_multicast", "", 0, new_session_id())
+    try:
+        sock = bus._multicast._socket
+        iface = sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, 4)
+        assert socket.inet_ntoa(struct.pack("4s", iface)) == "127.0.0.1"
+    finally:
+        bus.shutdown()

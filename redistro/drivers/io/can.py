@@ -12,14 +12,24 @@ CRC-16 of the segment's payload (u16). A frame with a bad length, CRC, segment
 index or an unknown sequence is counted and dropped, never trusted. Every send
 and receive has a timeout; a bus error or a board that does not answer in time
 is an :class:`~redistro.errors.IOFault`.
+
+A write carries, after the bank, a 32-byte HMAC-SHA256 over its address,
+sequence number and bank with the plant's CAN key (``can.key`` in the plant
+session's runtime folder, made by the plant at start, read by the drivers):
+a write that fails it, or repeats an old sequence number, never reaches a
+register (counted in ``forged``). The ``udp_multicast`` bus joins its group
+and sends on loopback only (``plant.can.loopback_only``).
 """
 
 from __future__ import annotations
 
 import binascii
+import hmac
+import socket
 import struct
 import time
 import zlib
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +45,39 @@ WRITE, READ, REPLY = 0x100, 0x200, 0x300
 LATE_BATCH = 64  # frames a late plant still takes before its next step
 INVENTORY = 0x7F0  # controller -> chassis: who is there?
 INVENTORY_REPLY = 0x7F1  # chassis -> controller: (address u8, type u8) pairs
+TAG = 32  # a write's HMAC-SHA256
+KEY_FILE = "can.key"  # in the plant session's runtime folder
+_WRITE_HEAD = struct.Struct("<BH")  # what the tag covers before the bank: address, seq
+
+
+def write_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
+    return hmac.digest(key, _WRITE_HEAD.pack(address, seq & 0xFFFF) + bank, "sha256")
+
+
+def key_path(session_id: str) -> Path:
+    from redistro.ipc.session import Manifest
+
+    return Manifest.for_session(session_id).directory / KEY_FILE
+
+
+def plant_key(session_id: str) -> bytes:
+    """The plant's CAN key: made once by the plant (mode 0600), read after."""
+    from redistro.ddm import record as wire
+
+    path = key_path(session_id)
+    try:
+        return wire.new_key(path)
+    except FileExistsError:
+        return wire.load_key(path)
+
+
+def driver_key(session_id: str) -> bytes:
+    from redistro.ddm import record as wire
+
+    try:
+        return wire.load_key(key_path(session_id))
+    except ValueError as exc:
+        raise IOFault(f"CAN: no key of the plant of session {session_id}: {exc}") from None
 
 
 def frames_for(seq: int, payload: bytes) -> list[bytes]:
@@ -85,7 +128,9 @@ class Reassembly:
         return None
 
 
-def open_bus(interface: str, channel: str, port: int, session_id: str) -> Any:
+def open_bus(
+    interface: str, channel: str, port: int, session_id: str, loopback_only: bool = True
+) -> Any:
     import can
 
     kwargs: dict[str, Any] = {"interface": interface, "fd": True}
@@ -100,9 +145,29 @@ def open_bus(interface: str, channel: str, port: int, session_id: str) -> Any:
     else:
         kwargs["channel"] = channel or "can0"
     try:
-        return can.Bus(**kwargs)
+        bus = can.Bus(**kwargs)
     except (can.CanError, OSError) as exc:
         raise IOFault(f"CAN {interface} {kwargs['channel']}: cannot open ({exc})") from None
+    if interface == "udp_multicast" and loopback_only:
+        _loopback_only(bus, str(kwargs["channel"]))
+    return bus
+
+
+def _loopback_only(bus: Any, group: str) -> None:
+    """python-can's udp_multicast joins its group on every interface (the
+    default route's): here it leaves that membership, joins on loopback and
+    sends there, so the bus never leaves the machine."""
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    if sock is None or ":" in group:
+        raise IOFault("CAN udp_multicast: cannot restrict the bus to loopback (IPv4 only)")
+    g, lo = socket.inet_aton(group), socket.inet_aton("127.0.0.1")
+    try:
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_DROP_MEMBERSHIP, g + struct.pack("@I", 0))
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, g + lo)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, lo)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+    except OSError as exc:
+        raise IOFault(f"CAN udp_multicast: cannot join {group} on loopback ({exc})") from None
 
 
 def session_port(session_id: str) -> int:
@@ -128,9 +193,17 @@ class CanBackplane(Backplane):
         channel: str = "",
         port: int = 0,
         bus: Any = None,
+        key: bytes | None = None,
+        loopback_only: bool = True,
     ) -> None:
+        """key: the plant's CAN key (None: read from the plant session's folder)."""
         self.timeout_s = timeout_s
-        self.bus = bus if bus is not None else open_bus(interface, channel, port, session_id)
+        self.key = key if key is not None else driver_key(session_id)
+        self.bus = (
+            bus
+            if bus is not None
+            else open_bus(interface, channel, port, session_id, loopback_only)
+        )
         self._own_bus = bus is None
         self._types: dict[int, BoardType] | None = None
         self._rx: dict[int, Reassembly] = {}
@@ -221,7 +294,8 @@ class CanBackplane(Backplane):
 
     def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
         self._seq = (self._seq + 1) & 0xFFFF
-        for frame in frames_for(self._seq, record.tobytes()):
+        bank = record.tobytes()
+        for frame in frames_for(self._seq, bank + write_tag(self.key, address, self._seq, bank)):
             self._send(WRITE | address, frame)
 
     def close(self) -> None:
@@ -232,13 +306,16 @@ class CanBackplane(Backplane):
 class CanPort(BoardPort):
     """The chassis' end: answers read requests and takes writes between steps."""
 
-    def __init__(self, boards: dict[int, BoardType], bus: Any) -> None:
+    def __init__(self, boards: dict[int, BoardType], bus: Any, key: bytes = b"") -> None:
         self.bus = bus
+        self.key = key
         self.types = dict(boards)
         self._in = {a: np.zeros((), BANKS[t][0]) for a, t in boards.items()}
         self._out = {a: np.zeros((), BANKS[t][1]) for a, t in boards.items()}
-        self._rx = {a: Reassembly(BANKS[t][1].itemsize) for a, t in boards.items()}
+        self._rx = {a: Reassembly(BANKS[t][1].itemsize + TAG) for a, t in boards.items()}
+        self._last_seq: dict[int, int] = {}
         self.bad_frames = 0
+        self.forged = 0  # writes refused: the tag did not match, or an old sequence number
         self.requests = 0
 
     def outputs(self, address: int) -> np.ndarray[Any, Any]:
@@ -278,8 +355,17 @@ class CanPort(BoardPort):
         before = rx.bad
         whole = rx.add(data)
         self.bad_frames += rx.bad - before
-        if whole is not None:
-            self._out[a].reshape(1).view(np.uint8)[:] = np.frombuffer(whole, np.uint8)
+        if whole is None:
+            return
+        seq = HEAD.unpack_from(data)[0]
+        bank, tag = whole[:-TAG], whole[-TAG:]
+        last = self._last_seq.get(a)
+        fresh = last is None or 0 < (seq - last) & 0xFFFF < 0x8000
+        if not (fresh and hmac.compare_digest(tag, write_tag(self.key, a, seq, bank))):
+            self.forged += 1
+            return
+        self._last_seq[a] = seq
+        self._out[a].reshape(1).view(np.uint8)[:] = np.frombuffer(bank, np.uint8)
 
     def service(self, until_ns: int) -> None:
         """Answer requests until ``until_ns``; when the step is late, take what
