@@ -58,7 +58,7 @@ def entry_to_name(entry: str) -> tuple[str, str]:
 
 def runtime_dir() -> Path:
     """Where session locks and manifests live (one per machine and user):
-    ``$XDG_RUNTIME_DIR/redistro`` when that is set, else
+    ``$XDG_RUNTIME_DIR/redistro`` when that names a folder, else
     ``/tmp/redistro-<uid>``; ``REDISTRO_RUNTIME_DIR`` overrides both.
 
     Every redistro process of this user must agree on it, because the reaper
@@ -68,7 +68,7 @@ def runtime_dir() -> Path:
     if env:
         return Path(env)
     xdg = os.environ.get("XDG_RUNTIME_DIR")
-    if xdg and os.path.isabs(xdg):
+    if xdg and os.path.isabs(xdg) and os.path.isdir(xdg):
         return Path(xdg) / PREFIX
     return Path(tempfile.gettempdir()) / f"{PREFIX}-{os.getuid()}"
 

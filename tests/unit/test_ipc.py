@@ -89,10 +89,14 @@ def test_the_runtime_directory_is_private_or_refused(
         session.Session.create()
 
 
-def test_xdg_runtime_dir_is_used_when_set(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_xdg_runtime_dir_is_used_when_set(
+    tmp_path: os.PathLike[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.delenv("REDISTRO_RUNTIME_DIR", raising=False)
-    monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/1234")
-    assert str(names.runtime_dir()) == "/run/user/1234/redistro"
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    assert str(names.runtime_dir()) == f"{tmp_path}/redistro"
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/nonexistent/run/user/1234")  # not there: /tmp
+    assert str(names.runtime_dir()).endswith(f"redistro-{os.getuid()}")
     monkeypatch.delenv("XDG_RUNTIME_DIR")
     assert str(names.runtime_dir()).endswith(f"redistro-{os.getuid()}")
 
