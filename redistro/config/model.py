@@ -423,9 +423,14 @@ class LogConfig:
         insertion); they drop and count the cycles they miss. A starved
         recorder is no fault, a hung one is, after this many of its node's
         cycles (1 s at 200 Hz).
+    heartbeat_limit_s: ... and never fewer cycles than this long at the
+        node's rate (1 s: 1 000 cycles at 1 kHz, what the log ring holds,
+        1 024 cycles; at 1 kHz a recorder held off 200 ms had ended a
+        session ``abnormal`` with nothing lost).
     """
 
     heartbeat_limit_cycles: int = field(default=200, metadata={"ge": 2, "le": 100000})
+    heartbeat_limit_s: float = field(default=1.0, metadata={"ge": 0, "le": 60})
 
 
 @dataclass(frozen=True)

@@ -43,8 +43,18 @@ def esc_segments(task: Task, robot: str, hw: RobotHardware) -> list[dict[str, An
     ]
 
 
+def recorder_heartbeat_limit(cfg: Config, rate_hz: float) -> int:
+    """A recorder's heartbeat limit in its node's cycles: ``log.heartbeat_limit_cycles``,
+    and never less than ``log.heartbeat_limit_s`` of them (at 1 kHz, 200 cycles
+    would be 200 ms, a fifth of what the log ring holds)."""
+    return max(cfg.log.heartbeat_limit_cycles, math.ceil(cfg.log.heartbeat_limit_s * rate_hz))
+
+
 def worker_specs(
-    cfg: Config, roles: tuple[tuple[str, int], ...], params: dict[str, Any]
+    cfg: Config,
+    roles: tuple[tuple[str, int], ...],
+    params: dict[str, Any],
+    rate_hz: float = 0.0,
 ) -> list[WorkerSpec]:
     """One WorkerSpec per (role, stage), at the role's configured priority; an
     off-cycle worker (negative stage: the ddm) runs on data (ddm.rate_hz 0) or on its
@@ -59,7 +69,9 @@ def worker_specs(
             priority=prio.get(role, 16),
             params=params,
             rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
-            heartbeat_limit_cycles=cfg.log.heartbeat_limit_cycles if role in RECORDERS else 0,
+            heartbeat_limit_cycles=(
+                recorder_heartbeat_limit(cfg, rate_hz) if role in RECORDERS else 0
+            ),
         )
         for role, stage in roles
     ]
@@ -111,7 +123,7 @@ def esc_spec(
     roles = ESC_STRATEGY_WORKERS if strategy else ESC_WORKERS
     if run_dir and not strategy:
         roles = (*roles, ESC_RECORDER)  # a strategy session is logged by the SSC
-    workers = worker_specs(cfg, roles, params)
+    workers = worker_specs(cfg, roles, params, cfg.esc.rate_hz)
     return NodeSpec(
         session_id=session_id,
         node=f"esc.{robot}",

@@ -338,7 +338,9 @@ def _limit_cycles(sc: Scenario, cfg: Config, node: str) -> float | None:
     if sc.limit == "heartbeat":
         hb = cfg.ssc.heartbeat_limit_cycles if node == "ssc" else cfg.esc.heartbeat_limit_cycles
         if sc.proc in RECORDERS:  # the session log's recorders have their own
-            hb = cfg.log.heartbeat_limit_cycles
+            from redistro.esc.plan import recorder_heartbeat_limit
+
+            hb = recorder_heartbeat_limit(cfg, rate)
         return hb + 2
     if sc.limit == "starving":
         return cfg.ddm.starving_limit_cycles + 2

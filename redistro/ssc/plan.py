@@ -86,7 +86,7 @@ def ssc_spec(
         "link": link,
     }
     prio = cfg.scheduling.priorities
-    workers = worker_specs(cfg, SSC_WORKERS, params)
+    workers = worker_specs(cfg, SSC_WORKERS, params, cfg.ssc.rate_hz)
     return NodeSpec(
         session_id=session_id,
         node="ssc",
