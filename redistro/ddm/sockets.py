@@ -273,7 +273,11 @@ class SocketTransport(Transport):
     def fds(self) -> list[int]:
         out = []
         if self.server is not None:
-            out.append(self.server.fileno())
+            # with its peer pinned, a newcomer must not wake the ddm (a waiting
+            # connection keeps the listening socket readable): it is refused
+            # within 64 receives
+            if self.peer is None or not self.pinned:
+                out.append(self.server.fileno())
             if self.peer is not None:
                 out.append(self.peer.sock.fileno())
         else:
