@@ -72,7 +72,7 @@ def check_motion(cfg: Config, task: Task) -> None:
     """Every recorded position inside the joint limits (a positions file
     beyond them cannot be right), every joint goal inside them less the
     margin, every joint move within the speed limit (redistro/config/limits.py)."""
-    from redistro.config.limits import joint_limits, outside_hard, task_motion_problems
+    from redistro.config.limits import joint_limits, task_motion_problems
 
     limits = joint_limits(cfg)
     start: dict[str, list[float]] = {}
@@ -82,7 +82,7 @@ def check_motion(cfg: Config, task: Task) -> None:
             q = positions.read(path, [r]).q_rad[r]
         except positions.PositionsUnknown:
             continue
-        problem = outside_hard(limits, q)
+        problem = limits.outside(q, margin=False)
         if problem:
             raise ConfigError(
                 f"{path}: q_rad.{r}: {problem}; the file cannot be right "

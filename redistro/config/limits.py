@@ -80,16 +80,18 @@ class JointLimits:
     def inner_upper(self) -> np.ndarray:
         return self.upper - self.margin
 
-    def outside(self, q: np.ndarray | list[float]) -> str:
-        """'' when every joint of q is inside the limits less the margin, else
-        which joint is not, by how much."""
+    def outside(self, q: np.ndarray | list[float], margin: bool = True) -> str:
+        """'' when every joint of q is inside the limits (less the margin, or
+        the hard limits with ``margin`` false), else which joint is not."""
         q = np.asarray(q, dtype=np.float64)
+        lower, upper = (self.inner_lower, self.inner_upper) if margin else (self.lower, self.upper)
+        note = f" (joint limits less {self.margin:g} rad margin)" if margin else ""
         for j in range(DOF):
-            lo, hi = float(self.inner_lower[j]), float(self.inner_upper[j])
+            lo, hi = float(lower[j]), float(upper[j])
             if not lo <= float(q[j]) <= hi:
                 return (
                     f"joint {j + 1} at {float(q[j]):.4g} rad is outside its limits "
-                    f"[{lo:.4g}, {hi:.4g}] rad (joint limits less {self.margin:g} rad margin)"
+                    f"[{lo:.4g}, {hi:.4g}] rad{note}"
                 )
         return ""
 
@@ -181,19 +183,6 @@ def check_ratings(cfg: Config, hardware: dict[str, RobotHardware]) -> None:
 
 
 QUINTIC_PEAK = 1.875  # a quintic's peak speed over its mean speed (15/8)
-
-
-def outside_hard(limits: JointLimits, q: np.ndarray | list[float]) -> str:
-    """'' when q is inside the hard limits (no margin), else which joint is not."""
-    q = np.asarray(q, dtype=np.float64)
-    for j in range(DOF):
-        lo, hi = float(limits.lower[j]), float(limits.upper[j])
-        if not lo <= float(q[j]) <= hi:
-            return (
-                f"joint {j + 1} at {float(q[j]):.4g} rad is outside its limits "
-                f"[{lo:.4g}, {hi:.4g}] rad"
-            )
-    return ""
 
 
 def task_motion_problems(
