@@ -78,6 +78,7 @@ def build_spec(
         shutdown_timeout_s=cfg.session.shutdown_timeout_s,
         sched_policy=cfg.scheduling.policy,
         lock_memory=cfg.scheduling.lock_memory,
+        cpu_latency_us=cfg.scheduling.cpu_latency_us,
         manager_priority=prio.get("manager", 20),
         cpus=list(cpus),
     )

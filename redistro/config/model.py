@@ -59,6 +59,14 @@ class SchedulingConfig:
     lock_memory: mlockall in every process. Off by default: a locked process
     takes 10-17 ms (instead of about 2 ms) to die on this machine, which delays
     the manager's detection of a dead worker (docs/PERFORMANCE.md).
+    cpu_latency_us: the CPU wake-up latency every node's manager asks of the
+        kernel's power management while it runs (a PM QoS request through
+        /dev/cpu_dma_latency, as cyclictest makes): 0 keeps idle CPUs out of
+        halt, so a process woken by its timer, a semaphore or a socket runs
+        at once. On this virtual machine a halted vCPU costs every wake-up
+        a trip through the hypervisor (the DDM's command path: 200 µs p50
+        halted, 40 µs polling). The price is power: idle CPUs poll. null
+        leaves the kernel's choice alone; refused (not root), it is reported.
     """
 
     policy: Literal["auto", "rr", "nice", "none"] = "auto"
@@ -67,6 +75,7 @@ class SchedulingConfig:
         metadata={"ge": 1, "le": 99, "keys": tuple(PAPER_PRIORITIES)},
     )
     lock_memory: bool = False
+    cpu_latency_us: int | None = field(default=0, metadata={"ge": 0, "le": 1_000_000})
 
 
 @dataclass(frozen=True)

@@ -136,6 +136,7 @@ def esc_spec(
         shutdown_timeout_s=cfg.session.shutdown_timeout_s,
         sched_policy=cfg.scheduling.policy,
         lock_memory=cfg.scheduling.lock_memory,
+        cpu_latency_us=cfg.scheduling.cpu_latency_us,
         manager_priority=prio.get("manager", 20),
         cpus=list(cfg.esc.cpus),
         messages_path=messages_path,

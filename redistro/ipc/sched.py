@@ -1,5 +1,6 @@
 """Scheduling: SCHED_RR with the paper's relative priorities when permitted,
-nice values otherwise; CPU affinity; memory locking. Reports what was granted."""
+nice values otherwise; CPU affinity; memory locking; the CPUs' wake-up
+latency (PM QoS). Reports what was granted."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ class Granted:
     nice: int = 0
     cpus: list[int] = field(default_factory=list)
     memory_locked: bool = False
+    cpu_latency_us: int | None = None  # the PM QoS request held (None: none)
     refused: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -114,6 +116,31 @@ def normal_policy() -> Iterator[None]:
         if real_time and param is not None:
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(0, policy, param)
+
+
+CPU_LATENCY_PATH = "/dev/cpu_dma_latency"
+
+
+def hold_cpu_latency(us: int, granted: Granted, path: str = CPU_LATENCY_PATH) -> int | None:
+    """Ask the kernel's power management to keep every CPU's wake-up latency
+    within ``us`` (a PM QoS request: 0 keeps idle CPUs polling instead of
+    halting). The request lasts while the returned descriptor is open: the
+    caller keeps it for its lifetime, and the kernel drops it when the
+    process ends, however it ends. None (and the refusal noted in
+    ``granted``) where the device is missing or not permitted."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        granted.refused.append(f"cpu latency {us} us: {exc.strerror}")
+        return None
+    try:
+        os.write(fd, int(us).to_bytes(4, "little", signed=True))
+    except OSError as exc:
+        os.close(fd)
+        granted.refused.append(f"cpu latency {us} us: {exc.strerror}")
+        return None
+    granted.cpu_latency_us = int(us)
+    return fd
 
 
 def _mlockall(granted: Granted) -> bool:

@@ -124,6 +124,7 @@ class Manager:
         self._tick_ns = 0
         self._estop = False
         self.wake_fd = -1
+        self.cpu_latency_fd: int | None = None  # the PM QoS request, held while the node runs
         # the node cannot carry its e-stop to the group itself: it has no DDM
         # (an ESC-only session), or its DDM is what failed
         self._no_door = not any(w.role == "ddm" for w in spec.workers)
@@ -234,6 +235,9 @@ class Manager:
         self.granted = sched.apply(
             spec.manager_priority, spec.cpus, spec.sched_policy, spec.lock_memory
         )
+        if spec.cpu_latency_us is not None:
+            # held until this process ends (the kernel drops it then)
+            self.cpu_latency_fd = sched.hold_cpu_latency(spec.cpu_latency_us, self.granted)
 
         lock_fd = os.environ.get(LOCK_FD_ENV)
         # the node's wake event: what its event-driven worker (the ddm) waits on
@@ -569,6 +573,9 @@ class Manager:
             if self.wake_fd >= 0:
                 os.close(self.wake_fd)
                 self.wake_fd = -1
+            if self.cpu_latency_fd is not None:
+                os.close(self.cpu_latency_fd)  # the request ends with it
+                self.cpu_latency_fd = None
             for sem in self.sems:
                 sem.close()
                 sem.unlink()

@@ -59,6 +59,7 @@ class NodeSpec:
     shutdown_timeout_s: float = 3.0
     sched_policy: str = "auto"
     lock_memory: bool = False
+    cpu_latency_us: int | None = None  # held by the manager (PM QoS); None: not asked
     manager_priority: int = 15
     cpus: list[int] = field(default_factory=list)
     owner_pid: int = 0

@@ -99,6 +99,7 @@ def ssc_spec(
         shutdown_timeout_s=cfg.session.shutdown_timeout_s,
         sched_policy=cfg.scheduling.policy,
         lock_memory=cfg.scheduling.lock_memory,
+        cpu_latency_us=cfg.scheduling.cpu_latency_us,
         manager_priority=prio.get("manager", 20),
         cpus=list(cfg.ssc.cpus),
         messages_path=messages_path,

@@ -46,6 +46,9 @@ def test_five_workers_at_1khz_keep_every_heartbeat(tmp_path: Path) -> None:
     # machine a host stall of one vCPU can hold a worker back ~20 ms.
     assert r["lateness_us"]["p50"] > 0 and r["makespan_us"]["p50"] > 0
     assert r["scheduling"]["manager"]["policy"] in ("SCHED_RR", "nice", "default")
+    # the manager held the CPUs awake (PM QoS 0), or says why not
+    manager = r["scheduling"]["manager"]
+    assert manager["cpu_latency_us"] == 0 or any("cpu latency" in x for x in manager["refused"])
 
 
 @contextlib.contextmanager

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import pytest
 
@@ -168,3 +169,24 @@ def test_a_chore_runs_at_the_normal_policy_and_real_time_returns() -> None:
     if code == 3:
         pytest.skip("SCHED_RR is refused on this host")
     assert code == 0, code
+
+
+def _cpu_latency_now() -> int:
+    with open(sched.CPU_LATENCY_PATH, "rb") as f:
+        return int.from_bytes(f.read(4), "little", signed=True)
+
+
+def test_the_cpu_latency_request_holds_while_its_descriptor_is_open(tmp_path: Path) -> None:
+    g = sched.Granted()
+    assert sched.hold_cpu_latency(0, g, str(tmp_path / "missing")) is None
+    assert g.cpu_latency_us is None and "cpu latency 0 us" in g.refused[0]
+    if not os.access(sched.CPU_LATENCY_PATH, os.W_OK):
+        pytest.skip("the PM QoS device is not writable here")
+    g = sched.Granted()
+    fd = sched.hold_cpu_latency(7, g)
+    assert fd is not None and g.cpu_latency_us == 7 and not g.refused
+    try:
+        # the kernel's target is the lowest of the requests held
+        assert _cpu_latency_now() <= 7
+    finally:
+        os.close(fd)
