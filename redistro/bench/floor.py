@@ -17,8 +17,10 @@ copied into Local Data.
 - ``latency_us``: from the worker's stamp to the replier's clock after its
   receive: the floor under the DDM command latency (two wake-ups, one TCP hop).
 
-Run as ``python -m redistro.bench.floor --rate HZ --seconds S``; prints one
-JSON line. Every process is started with fork+exec.
+The caller holds the CPUs' wake-up latency as the nodes do
+(``--cpu-latency US``, ``scheduling.cpu_latency_us``). Run as
+``python -m redistro.bench.floor --rate HZ --seconds S``; prints one JSON
+line. Every process is started with fork+exec.
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ import subprocess
 import sys
 import time
 from typing import Any
+
+from redistro.ipc import sched
 
 COMMAND_BYTES = 120  # about a command record
 REPLY_BYTES = 180  # about a feedback record
@@ -109,10 +113,17 @@ def _module(*args: str) -> list[str]:
     return [sys.executable, "-m", "redistro.bench.floor", *args]
 
 
-def measure(rate_hz: float, seconds: float, priority: int) -> dict[str, Any]:
-    """The floor at ``rate_hz`` for ``seconds`` (run in a fresh interpreter)."""
+def measure(
+    rate_hz: float, seconds: float, priority: int, cpu_latency_us: int | None = None
+) -> dict[str, Any]:
+    """The floor at ``rate_hz`` for ``seconds`` (run in a fresh interpreter),
+    with the CPUs' wake-up latency held at ``cpu_latency_us`` as the nodes
+    hold it (None: left alone)."""
+    latency = [] if cpu_latency_us is None else ["--cpu-latency", str(cpu_latency_us)]
     out = subprocess.run(
-        _module("--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority)),
+        _module(
+            "--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority), *latency
+        ),
         capture_output=True,
         text=True,
         timeout=seconds + 30,
@@ -124,8 +135,10 @@ def measure(rate_hz: float, seconds: float, priority: int) -> dict[str, Any]:
         return {"error": (out.stderr.strip().splitlines() or ["no output"])[-1]}
 
 
-def _worker(rate_hz: float, seconds: float, priority: int) -> int:
+def _worker(rate_hz: float, seconds: float, priority: int, cpu_latency_us: int | None) -> int:
     count = max(1, int(rate_hz * seconds))
+    granted = sched.Granted()
+    held = None if cpu_latency_us is None else sched.hold_cpu_latency(cpu_latency_us, granted)
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
     listener.listen(1)
@@ -187,7 +200,10 @@ def _worker(rate_hz: float, seconds: float, priority: int) -> int:
         "latency_us": figures["latency"],
         "rate_hz": rate_hz,
         "seconds": seconds,
+        "cpu_latency_us": granted.cpu_latency_us,
     }
+    if held is not None:
+        os.close(held)
     print(json.dumps(result), flush=True)
     return 0
 
@@ -197,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=1000.0)
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--priority", type=int, default=19)
+    ap.add_argument("--cpu-latency", type=int, default=None, help="hold the PM QoS at this [us]")
     ap.add_argument("--reply", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--forward", default="", help=argparse.SUPPRESS)
     ap.add_argument("--count", type=int, default=0, help=argparse.SUPPRESS)
@@ -206,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.forward:
         efd, sock_fd, stamp_fd = (int(v) for v in a.forward.split(","))
         return _forwarder(efd, sock_fd, stamp_fd, a.count, a.priority)
-    return _worker(a.rate, a.seconds, a.priority)
+    return _worker(a.rate, a.seconds, a.priority, a.cpu_latency)
 
 
 if __name__ == "__main__":

@@ -182,7 +182,9 @@ def run(
     # the node rate (after the session: beside it, it would be load)
     from redistro.bench import floor
 
-    out["socket_floor"] = floor.measure(rate, 3.0, cfg.scheduling.priorities.get("ddm", 19))
+    out["socket_floor"] = floor.measure(
+        rate, 3.0, cfg.scheduling.priorities.get("ddm", 19), cfg.scheduling.cpu_latency_us
+    )
     out["exit_code"] = rc
     out["transport"] = cfg.ddm.transport
     out["rates_hz"] = {"esc": cfg.esc.rate_hz, "ssc": cfg.ssc.rate_hz, "ddm": cfg.ddm.rate_hz}
