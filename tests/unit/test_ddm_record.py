@@ -182,6 +182,19 @@ def test_a_record_without_the_links_key_is_refused_as_forged() -> None:
     assert len(good) == BODY + 32
 
 
+@settings(max_examples=60, deadline=None)
+@given(key=st.binary(min_size=16, max_size=200), body=st.binary(min_size=0, max_size=400))
+def test_the_records_tag_is_hmac_sha256(key: bytes, body: bytes) -> None:
+    """The tag from the two padded-key states is RFC 2104's HMAC-SHA256
+    (keys longer than the block included), the standard library's bytes."""
+    import hmac
+
+    from redistro.ddm.record import BODY, _tag
+
+    buf = body.ljust(BODY, b"\x5a")
+    assert _tag(key, buf) == hmac.digest(key, buf[:BODY], "sha256")
+
+
 def test_a_key_file_must_be_private(tmp_path: Path) -> None:
     from redistro.ddm.record import load_key, new_key
 
