@@ -195,12 +195,17 @@ class Ddm(Worker):
         self.manager_block.read_into(self.mgr.bytes)
         estop = bool(self.mgr["estop"])
         try:
-            fresh = self._receive()
-            new_estop = estop and not self.estop_sent
-            if not (self.replying and self.commanded and not fresh and not new_estop):
-                self._send(estop)  # (replying, feedback goes out with a command only)
-            if self.kind != "esc":  # the connecting side loses one robot's link at a time
-                self._check_links()
+            if self.kind == "esc":
+                fresh = self._receive()
+                new_estop = estop and not self.estop_sent
+                if not (self.replying and self.commanded and not fresh and not new_estop):
+                    self._send(estop)  # (replying, feedback goes out with a command only)
+            else:
+                # the SSC sends first: the worker woke it for a fresh command,
+                # which must not wait behind the feedback's admission
+                self._send(estop)
+                self._receive()
+                self._check_links()  # the connecting side loses one robot's link at a time
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the
             # managers' starving checks end the session within their limits
