@@ -68,17 +68,8 @@ def run(
         drivers: list[RobotDriver] = []
         try:
             out["plant_alone"] = _plant_window(plant, seconds)
-            c = cfg.plant.can
             for hw in hardware.values():
-                bp = open_backplane(
-                    cfg.plant.backplane,
-                    session.id,
-                    cfg.plant.io_timeout_ms / 1e3,
-                    interface=c.interface,
-                    channel=c.channel,
-                    port=c.port,
-                    loopback_only=c.loopback_only,
-                )
+                bp = open_backplane(cfg.plant, session.id)
                 d = RobotDriver(hw, bp, cfg.plant.physics_hz)
                 d.open()
                 drivers.append(d)

@@ -16,6 +16,7 @@ import contextlib
 import socket
 import struct
 import zlib
+from typing import TYPE_CHECKING
 
 from redistro.ddm.record import SIZE
 from redistro.ddm.transport import Transport
@@ -23,6 +24,9 @@ from redistro.errors import IPCError, TransportError
 from redistro.ipc.session import Manifest
 from redistro.ipc.sysv import Card, card_key
 from redistro.localdata.layout import MAX_ROBOTS
+
+if TYPE_CHECKING:
+    from redistro.config import Config
 
 KINDS = 2
 MAX_DATAGRAMS = 256  # per receive(): a flood waits in the socket for the next
@@ -37,6 +41,33 @@ def group_port(session_id: str) -> int:
 
 
 class ReflectiveTransport(Transport):
+    @classmethod
+    def for_node(
+        cls,
+        cfg: Config,
+        session_id: str,
+        link: str,
+        node: str,
+        kind: str,
+        robots: list[str],
+        key: bytes,
+    ) -> ReflectiveTransport:
+        """Every node alike: its own memory card, the group's multicast
+        address (``ddm.group``, ``ddm.port``) and the hosts in ``ddm.peers``."""
+        peers = []
+        for p in cfg.ddm.peers:
+            host, _, port = p.rpartition(":")
+            peers.append((host, int(port)))
+        return cls(
+            session_id,
+            node,
+            link=link,
+            group=cfg.ddm.group,
+            port=cfg.ddm.port,
+            peers=peers,
+            manifest=Manifest.for_session(session_id),
+        )
+
     def __init__(
         self,
         session_id: str,

@@ -23,11 +23,18 @@ import os
 import select
 import socket
 import time
+import zlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
+from redistro.ddm import record as wire
 from redistro.ddm.record import SIZE
 from redistro.ddm.transport import Transport
 from redistro.errors import TransportError
+from redistro.localdata.layout import COUNTER
+
+if TYPE_CHECKING:
+    from redistro.config import Config
 
 
 class _Link:
@@ -58,6 +65,12 @@ class _Pending:
     sock: socket.socket | None = None
     next_try: float = 0.0
     error: str = "no answer"
+
+
+def esc_port(cfg: Config, link: str, robot: str) -> int:
+    """Where the ESC of ``robot`` listens: from config, else derived from the link id."""
+    port = cfg.ddm.esc_ports.get(robot, 0)
+    return port or 41000 + zlib.crc32(f"{link}/{robot}".encode()) % 19000
 
 
 class SocketTransport(Transport):
@@ -108,6 +121,36 @@ class SocketTransport(Transport):
             addr = info[0][4]
             self.pending[robot] = _Pending((str(addr[0]), int(addr[1])), name)
         self._progress()
+
+    @classmethod
+    def for_node(
+        cls,
+        cfg: Config,
+        session_id: str,
+        link: str,
+        node: str,
+        kind: str,
+        robots: list[str],
+        key: bytes,
+    ) -> SocketTransport:
+        """An ESC listens on its robot's port (``ddm.listen_host``); the SSC
+        connects to every robot's ESC (``ddm.esc_hosts``), while running: an
+        ESC may start later."""
+        if kind == "esc":
+            listen = (cfg.ddm.listen_host, esc_port(cfg, link, robots[0]))
+            return cls(listen=listen, authenticate=True)
+        index = list(cfg.robots)
+        hello = wire.encode(
+            wire.KIND_HELLO, 0, node, 1, time.monotonic_ns(), bytes(COUNTER.itemsize), key=key
+        )
+        return cls(
+            hello=hello,
+            peers={
+                index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, link, r))
+                for r in robots
+            },
+            connect_timeout_s=cfg.ddm.connect_timeout_s,
+        )
 
     @property
     def address(self) -> tuple[str, int]:

@@ -11,9 +11,13 @@ chosen by ``ddm.transport`` and imported only when used.
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
-from typing import Any
+from typing import TYPE_CHECKING
+
+from redistro.lazy import load
+
+if TYPE_CHECKING:
+    from redistro.config import Config
 
 
 class Transport(ABC):
@@ -55,6 +59,24 @@ class Transport(ABC):
         """Connections refused so far (the link already had its peer)."""
         return 0
 
+    @classmethod
+    def for_node(
+        cls,
+        cfg: Config,
+        session_id: str,
+        link: str,
+        node: str,
+        kind: str,
+        robots: list[str],
+        key: bytes,
+    ) -> Transport:
+        """This transport set up for one node's side from the config:
+        session_id names the node's own objects; link derives where the
+        nodes of one group meet; kind (esc, ssc) and robots say which side;
+        key signs what the transport itself sends (a connecting side's
+        hello)."""
+        raise NotImplementedError(f"{cls.__name__} cannot be set up from the config")
+
     def __enter__(self) -> Transport:
         return self
 
@@ -68,10 +90,6 @@ TRANSPORTS: dict[str, str] = {
 }
 
 
-def transport_class(key: str) -> Any:
-    try:
-        target = TRANSPORTS[key]
-    except KeyError:
-        raise KeyError(f"unknown transport {key!r} (known: {', '.join(TRANSPORTS)})") from None
-    module, _, name = target.partition(":")
-    return getattr(importlib.import_module(module), name)
+def transport_class(key: str) -> type[Transport]:
+    cls: type[Transport] = load(TRANSPORTS, key, "transport")
+    return cls

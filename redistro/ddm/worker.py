@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-import zlib
 from typing import Any
 
 import numpy as np
@@ -41,15 +40,10 @@ from redistro.errors import TransportError, WireError
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, COUNTER, EXCHANGE, FEEDBACK, MANAGER, SessionStatus
+from redistro.process import hooks
 from redistro.process.spec import NodeSpec
 from redistro.process.stats import Samples
 from redistro.process.worker import Worker
-
-
-def esc_port(cfg: Config, link: str, robot: str) -> int:
-    """Where the ESC of ``robot`` listens: from config, else derived from the link id."""
-    port = cfg.ddm.esc_ports.get(robot, 0)
-    return port or 41000 + zlib.crc32(f"{link}/{robot}".encode()) % 19000
 
 
 def link_id(spec: NodeSpec) -> str:
@@ -74,40 +68,11 @@ def open_transport(
     kind: str,
     robots: list[str],
     key: bytes = b"",
-) -> Any:
-    """The transport ``ddm.transport`` names, set up for this node's side.
-    session_id names this node's own objects (its memory card); link derives
-    the ports the nodes meet on; key signs the connecting side's hello."""
+) -> Transport:
+    """The transport ``ddm.transport`` names, set up for this node's side
+    (each transport reads its own part of the config)."""
     cls = transport_class(cfg.ddm.transport)
-    index = list(cfg.robots)
-    if cfg.ddm.transport == "reflective":
-        peers = []
-        for p in cfg.ddm.peers:
-            host, _, port = p.rpartition(":")
-            peers.append((host, int(port)))
-        return cls(
-            session_id,
-            node,
-            link=link,
-            group=cfg.ddm.group,
-            port=cfg.ddm.port,
-            peers=peers,
-            manifest=Manifest.for_session(session_id),
-        )
-    if kind == "esc":
-        return cls(listen=(cfg.ddm.listen_host, esc_port(cfg, link, robots[0])), authenticate=True)
-    timeout = cfg.ddm.connect_timeout_s  # connects while running: an ESC may start later
-    hello = wire.encode(
-        wire.KIND_HELLO, 0, node, 1, time.monotonic_ns(), bytes(COUNTER.itemsize), key=key
-    )
-    return cls(
-        hello=hello,
-        peers={
-            index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, link, r))
-            for r in robots
-        },
-        connect_timeout_s=timeout,
-    )
+    return cls.for_node(cfg, session_id, link, node, kind, robots, key)
 
 
 class Ddm(Worker):
@@ -163,26 +128,15 @@ class Ddm(Worker):
             self.key,
         )
         self.refused_seen = 0
-        self._arm_injections()
+        # what acts on this ddm from outside (the fault harness; none normally)
+        make = hooks.factory("ddm_hooks")
+        self.hooks = make(self.spec.node, self.kind) if make else None
+        if self.hooks is not None:
+            names = {g: r for r, g in self.gid.items()}
+            self.transport = self.hooks.transport(self.transport, names)
         self.replying = self.kind == "esc" and self.transport.replies
         for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
             ex["feedback_wanted"] = 1
-
-    def _arm_injections(self) -> None:
-        """The fault harness's points in this ddm (none in a normal run)."""
-        from redistro.faults import inject
-
-        self.cmd_inj = (
-            inject.injection("ddm.command", self.spec.node) if self.kind == "esc" else None
-        )
-        self.cmd_rec = Record(COMMAND)
-        from redistro.faults.wire import POINTS, InjectedTransport
-
-        for point in POINTS:
-            inj = inject.injection(point, self.spec.node)
-            if inj is not None:
-                names = {g: r for r, g in self.gid.items()}
-                self.transport = InjectedTransport(self.transport, inj, names)
 
     # -- one tick --
 
@@ -301,8 +255,8 @@ class Ddm(Worker):
                 self.post(f"e-stop from {name.decode(errors='replace')}", logging.ERROR)
                 self.estop_request = True
             payload: Any = memoryview(raw)[wire.PAYLOAD_AT : wire.PAYLOAD_AT + self.in_size]
-            if self.cmd_inj is not None and self.cmd_inj.live():
-                payload = self._corrupt_command(payload)
+            if self.hooks is not None:
+                payload = self.hooks.command(payload)
             self.in_blocks[i].publish(payload)
             fresh += 1
             if not ex["fresh"]:
@@ -325,15 +279,6 @@ class Ddm(Worker):
                 if 0 < stamp <= now:
                     self.latency.add(now - stamp)
         return fresh
-
-    def _corrupt_command(self, payload: Any) -> Any:
-        """The harness's bad command: ``arg`` (NaN, inf or a torque) on joint 1
-        of every command from the trigger on, the joint under control."""
-        assert self.cmd_inj is not None
-        bad = np.frombuffer(bytes(payload), dtype=COMMAND).copy().reshape(())
-        bad["tau_nm"][0] = self.cmd_inj.arg
-        bad["joint_on"][0] = 1
-        return bad
 
     def _send(self, estop: bool) -> None:
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):

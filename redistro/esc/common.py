@@ -28,16 +28,7 @@ class EscContext:
     def driver(self, session_id: str) -> RobotDriver:
         """A robot-level driver over its own backplane connection (not yet opened)
         to the plant of ``session_id``."""
-        c = self.cfg.plant.can
-        bp = open_backplane(
-            self.cfg.plant.backplane,
-            session_id,
-            self.cfg.plant.io_timeout_ms / 1e3,
-            interface=c.interface,
-            channel=c.channel,
-            port=c.port,
-            loopback_only=c.loopback_only,
-        )
+        bp = open_backplane(self.cfg.plant, session_id)
         return RobotDriver(self.hw, bp, self.cfg.plant.physics_hz)
 
 

@@ -107,9 +107,7 @@ def run_can_noise(out_dir: Path, config_args: list[str], forged: bool = False) -
         sid = session.id
         try:
             assert plant.bank is not None
-            c = cfg.plant.can
-            bp = open_backplane("can", sid, cfg.plant.io_timeout_ms / 1e3,
-                                interface=c.interface, channel=c.channel, port=c.port)  # fmt: skip
+            bp = open_backplane(cfg.plant, sid)  # plant.backplane=can above
             d = RobotDriver(hw, bp, cfg.plant.physics_hz)
             d.open()
             truth = plant.bank.truth(plant.bank.robot_names.index("r2"))

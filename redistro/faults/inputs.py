@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from redistro.faults.catalogue import Scenario
-from redistro.faults.runner import die_with_parent, one_line_refusal
+from redistro.faults.common import die_with_parent, one_line_refusal
 
 TASK = Path("tasks/fault_drill.yaml")
 CONFIG = Path("config/redistro.yaml")

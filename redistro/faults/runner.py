@@ -28,18 +28,11 @@ from redistro.drivers import positions
 from redistro.errors import RedistroError
 from redistro.esc.plan import RECORDERS
 from redistro.faults.catalogue import Scenario
+from redistro.faults.common import die_with_parent, one_line_refusal
 
 TASK = "tasks/fault_drill.yaml"
 ROBOT = 1  # r2, the robot that moves (index in the task's robots)
 SESSION_TIMEOUT_S = 240.0
-
-
-def die_with_parent() -> None:
-    """preexec_fn of every child the harness starts: SIGTERM when the harness
-    dies (a killed harness must not leave a session running beside the next)."""
-    from redistro.ipc import signals
-
-    signals.set_parent_death_signal(signal.SIGTERM)
 
 
 def _cli(runs: Path, config_args: list[str]) -> list[str]:
@@ -217,8 +210,10 @@ def _break_session(
     trigger = out_dir / "inject.trigger"
     if sc.kind in ("inject", "calibration"):
         from redistro.faults.inject import ENV, arm
+        from redistro.process import hooks
 
         env[ENV] = arm(sc.action, str(trigger), node=sc.node, robot="r2", arg=sc.arg)
+        env[hooks.ENV] = "redistro.faults.hooks"  # the plant and the ddms take their part
     calibration = sc.kind == "calibration"
     if calibration:
         trigger.touch()  # stuck from the start
@@ -502,17 +497,6 @@ class Baseline:
 
 
 # -- what the next start finds --
-
-
-def one_line_refusal(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
-    """How a refused command line ended: exit code, its one line, no traceback."""
-    lines = [ln for ln in done.stderr.strip().splitlines() if ln.strip()]
-    return {
-        "got": "refused" if done.returncode == 2 else f"exit {done.returncode}",
-        "exit_code": done.returncode,
-        "cause": lines[-1] if lines else "",
-        "one_line": len(lines) == 1 and "Traceback" not in done.stderr,
-    }
 
 
 def _refused_start(

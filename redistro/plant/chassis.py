@@ -34,6 +34,7 @@ from redistro.drivers.io.bank import TRUTH
 from redistro.drivers.io.image import RegisterImage
 from redistro.drivers.io.registers import BOARD_NAMES, BoardType
 from redistro.plant.devices import Encoders, HomeSwitches, Motors, WristSensors
+from redistro.plant.disturbance import Disturbance
 from redistro.plant.world import BRAKE_STOPPED_RAD_S, Arm, World
 
 DOF = 7
@@ -91,9 +92,11 @@ class Chassis:
         hardware: dict[str, RobotHardware],
         *,
         use_kernels: bool | None = None,
+        disturbance: Disturbance | None = None,
     ) -> None:
         """use_kernels: the compiled kernels (default: when built), or the numpy
-        reference (False)."""
+        reference (False); disturbance: what acts on the plant from outside
+        (:mod:`redistro.plant.disturbance`; none normally)."""
         self.world = world
         self.kernels = kernels.AVAILABLE if use_kernels is None else use_kernels
         self.boards: dict[int, BoardType] = {}
@@ -110,11 +113,11 @@ class Chassis:
         q0 = np.concatenate(
             [np.asarray(cfg.robots[r].initial_q_rad, dtype=np.float64) for r in names]
         )
-        disturbance = np.concatenate(
+        enc_disturbance = np.concatenate(
             [np.asarray(cfg.plant.encoder_disturbance_rad.get(r, [0.0] * DOF)) for r in names]
         )
         self.motors = Motors(sensors)
-        self.encoders = Encoders(sensors, q0, disturbance)
+        self.encoders = Encoders(sensors, q0, enc_disturbance)
         self.homes = HomeSwitches(sensors)
         wrists: list[tuple[int, int, Any, str]] = []  # robot, force board row, calibration
         for i, name in enumerate(names):
@@ -304,21 +307,7 @@ class Chassis:
         self._contact = [
             (rig, self.truth[self.rigs.index(rig)]["contact_world"]) for rig, _ in self._wrist_rigs
         ]
-        # the fault harness's point in the boards and devices (None normally)
-        from redistro.faults import inject
-
-        self.injection = inject.injection("plant.")
-        if self.injection is not None:
-            self.injection.defer_record = True  # the loop records it once on the boards
-        self._inj_rig = next(
-            (
-                i
-                for i, r in enumerate(self.rigs)
-                if self.injection and self.injection.concerns(r.name)
-            ),
-            0,
-        )
-        self._inj_done = False
+        self.disturbance = disturbance
         if self.kernels:
             self._plans()
         for rig in self.rigs:  # brakes on at power-up: the arms hold until released
@@ -582,36 +571,37 @@ class Chassis:
 
     # -- physics --
 
-    def _injected(self) -> str:
-        """The live injected fault ('' when none)."""
-        inj = self.injection
-        if inj is None or not inj.live():
-            return ""
-        return inj.point.split(".", 1)[1]
-
     def step(self) -> None:
         """One physics step, then every board sampled."""
         self.step_physics()
         self.sample()
 
-    def _inject(self) -> None:
-        if self.injection is None:
-            return
-        what = self._injected()
-        if what == "wrist-push":  # pressed down hard on the peg, every step
-            rig = self.rigs[self._inj_rig]
-            self.world.push(rig.arm, np.array([0.0, 0.0, -(self.injection.arg or 300.0)]))
-        elif what == "encoder-jump" and not self._inj_done:  # one counter glitch
-            self._inj_done = True
-            self.rigs[self._inj_rig].encoder_offset[1] += int(self.injection.arg or 5000)
-        # a stuck home switch: every switch of the robot, while the fault lasts
-        stuck = {"home-stuck-on": HOME_STUCK_ON, "home-stuck-off": HOME_STUCK_OFF}
-        self._home_force[self.rigs[self._inj_rig].sl] = stuck.get(what, HOME_AS_SWITCH)
+    # -- where a disturbance acts (robot: its index among the rigs) --
+
+    def push_wrist(self, robot: int, force_xyz: np.ndarray[Any, Any]) -> None:
+        """A force [N] on the robot's last link during the next step (world axes)."""
+        self.world.push(self.rigs[robot].arm, force_xyz)
+
+    def glitch_encoder(self, robot: int, joint: int, counts: int) -> None:
+        """The joint's counter jumps by ``counts`` (and stays off by as much)."""
+        self.rigs[robot].encoder_offset[joint] += counts
+
+    def force_home_switches(self, robot: int, state: bool | None) -> None:
+        """Every home switch of the robot stuck on (True) or off (False), or
+        working again (None)."""
+        mode = HOME_AS_SWITCH if state is None else HOME_STUCK_ON if state else HOME_STUCK_OFF
+        self._home_force[self.rigs[robot].sl] = mode
+
+    def corrupt_wrist_calibration(self, robot: int) -> None:
+        """The wrist receiver's calibration memory gives NaN (from the next sample)."""
+        row = self.rigs[robot].ft_row
+        if row >= 0:
+            self.ft_calibration[row, 0, 0] = np.nan
 
     def step_physics(self) -> None:
-        """PyBullet's step alone (a fault injected into the devices first)."""
-        if self.injection is not None:
-            self._inject()
+        """PyBullet's step alone (a disturbance acting on the devices first)."""
+        if self.disturbance is not None:
+            self.disturbance.before_physics(self)
         self.world.step()
         self.step_arr[0] += 1
 
@@ -637,10 +627,8 @@ class Chassis:
                 self.wrists.refill()
         else:
             self._sample_numpy()
-        if self.injection is not None and self._injected() == "sensor-nan":
-            rig = self.rigs[self._inj_rig]  # the receiver's calibration memory corrupted
-            if rig.ft_row >= 0:
-                self.ft_calibration[rig.ft_row, 0, 0] = np.nan
+        if self.disturbance is not None:
+            self.disturbance.after_sample(self)
 
     def _settle(self) -> None:
         """Braked joints that have stopped are held at their angle from now on."""

@@ -24,12 +24,14 @@ import numpy as np
 
 from redistro.config.hardware import load_hardware
 from redistro.config.loader import load_config
-from redistro.drivers.io.backplane import BoardPort, ShmPort
+from redistro.drivers.io.backplane import BoardPort
 from redistro.drivers.io.bank import TRUTH, PlantState, RegisterBank
 from redistro.drivers.io.registers import ENC_MODULO
+from redistro.drivers.io.shm import ShmPort
 from redistro.ipc import signals
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
+from redistro.process import hooks
 
 log = logging.getLogger(__name__)
 # How far behind the wall clock the plant still catches up, stepping flat
@@ -70,7 +72,9 @@ def run_plant(
         start_q = read_pose(cfg.plant.pose_file, list(cfg.robots))
         result["started_from"] = "pose file" if start_q else "initial_q_rad"
         world = World(cfg, gui=gui or cfg.plant.gui, start_q=start_q)
-        chassis = Chassis(cfg, world, hardware)
+        # what disturbs the plant from outside (the fault harness; none normally)
+        make = hooks.factory("plant_disturbance")
+        chassis = Chassis(cfg, world, hardware, disturbance=make() if make else None)
         shm = cfg.plant.backplane == "shm"
         bank = RegisterBank.create(
             session_id,
@@ -186,6 +190,7 @@ def _loop(
     status = Record(bank.status.data.dtype)
     status["state"] = PlantState.RUNNING
     read_outputs = port.outputs_reader(chassis.outputs_wanted, chassis.image)
+    disturbance = chassis.disturbance
     publish_boards = port.publisher(chassis.inp, chassis.image)
     publish_truth = _truth_publisher(bank, chassis)
     physics = Samples()
@@ -227,9 +232,8 @@ def _loop(
         whole.add(cpu_ns() - c0)
         physics.add(ph1 - ph0)
         now = monotonic_ns()
-        inj = chassis.injection
-        if inj is not None and inj.fired_ns and not inj.recorded:
-            inj.record(now)  # the fault is on the boards from this step
+        if disturbance is not None:
+            disturbance.on_boards(now)  # this step's disturbance is on the boards
         if now - last_step_ns > max_gap_ns:
             max_gap_ns, max_gap_at_ns = now - last_step_ns, last_step_ns
         last_step_ns = now

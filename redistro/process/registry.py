@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from redistro.lazy import load
 
 if TYPE_CHECKING:
     from redistro.process.manager import Manager
@@ -29,17 +30,12 @@ MANAGERS: dict[str, str] = {
 
 
 def manager_class(kind: str) -> type[Manager]:
-    target = MANAGERS.get(kind, "redistro.process.manager:Manager")
-    module, _, name = target.partition(":")
-    cls: type[Manager] = getattr(importlib.import_module(module), name)
+    cls: type[Manager] = load(
+        {kind: MANAGERS.get(kind, "redistro.process.manager:Manager")}, kind, "node kind"
+    )
     return cls
 
 
 def worker_class(role: str) -> type[Worker]:
-    try:
-        target = ROLES[role]
-    except KeyError:
-        raise KeyError(f"unknown worker role {role!r} (known: {', '.join(ROLES)})") from None
-    module, _, name = target.partition(":")
-    cls: type[Worker] = getattr(importlib.import_module(module), name)
+    cls: type[Worker] = load(ROLES, role, "worker role")
     return cls

@@ -72,16 +72,7 @@ def plant_rig(backplane: str, tmp: Path, overrides: list[str] | None = None) -> 
         try:
             assert plant.bank is not None
             for name, hw in hardware.items():
-                c = cfg.plant.can
-                bp = open_backplane(
-                    backplane,
-                    session.id,
-                    cfg.plant.io_timeout_ms / 1e3,
-                    interface=c.interface,
-                    channel=c.channel,
-                    port=c.port,
-                    loopback_only=c.loopback_only,
-                )
+                bp = open_backplane(cfg.plant, session.id)
                 drivers[name] = RobotDriver(hw, bp, cfg.plant.physics_hz)
                 drivers[name].open()
             names = plant.bank.robot_names

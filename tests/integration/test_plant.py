@@ -212,7 +212,7 @@ def test_a_killed_plant_is_an_io_fault(backplane: str, tmp_path: Path) -> None:
 def test_driver_config_must_match_the_chassis(tmp_path: Path) -> None:
     from redistro.config.hardware import load_hardware
     from redistro.config.loader import load_config
-    from redistro.drivers.io.backplane import open_backplane
+    from redistro.drivers.io.shm import ShmBackplane
     from redistro.drivers.robot import RobotDriver
 
     with plant_rig("shm", tmp_path) as rig:
@@ -221,7 +221,7 @@ def test_driver_config_must_match_the_chassis(tmp_path: Path) -> None:
         other.write_text(text)
         cfg = load_config(None, [f"robots.r1.io={other}"])
         hw = load_hardware(cfg)["r1"]
-        bp = open_backplane("shm", rig.session.id, 0.02)
+        bp = ShmBackplane(rig.session.id, 0.02)
         drv = RobotDriver(hw, bp, 1000.0)
         with pytest.raises(
             ConfigError, match=r"r1.io.yaml: boards.dac.address: no board at address 99"

@@ -32,8 +32,8 @@ class Pair:
 @pytest.fixture(params=["shm", "can-virtual"])
 def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
     if request.param == "shm":
-        from redistro.drivers.io.backplane import ShmBackplane, ShmPort
         from redistro.drivers.io.bank import RegisterBank
+        from redistro.drivers.io.shm import ShmBackplane, ShmPort
         from redistro.ipc.session import Session
 
         with Session.create() as session:

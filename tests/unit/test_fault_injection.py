@@ -130,3 +130,60 @@ def test_records_of_another_robot_are_left_alone(tmp_path: Path) -> None:
     t = InjectedTransport(inner, _armed(tmp_path, "ddm.drop"), {0: "r1", 1: "r2"})
     t.send(_record(1), 0)
     assert len(inner.receive()) == 1
+
+
+def test_the_harness_hooks_are_found_only_when_a_session_names_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from redistro.process import hooks
+
+    monkeypatch.delenv(hooks.ENV, raising=False)
+    assert hooks.factory("plant_disturbance") is None  # a normal run: nothing imported
+    monkeypatch.setenv(hooks.ENV, "redistro.faults.hooks")
+    make = hooks.factory("plant_disturbance")
+    assert make is not None and make() is None  # named, but no point armed
+    assert hooks.factory("no_such_hook") is None
+    monkeypatch.setenv(inject.ENV, inject.arm("ddm.drop", str(tmp_path / "t"), node="ssc"))
+    ddm = hooks.factory("ddm_hooks")
+    assert ddm is not None
+    assert ddm("esc.r1", "esc") is None  # armed for another node
+    faults = ddm("ssc", "ssc")
+    assert faults is not None and isinstance(faults.transport(Loop(), {1: "r2"}), InjectedTransport)
+    monkeypatch.setenv(hooks.ENV, "redistro.no_such_module")
+    with pytest.raises(ImportError):
+        hooks.factory("plant_disturbance")
+
+
+def test_the_plants_faults_act_through_the_chassis_points(tmp_path: Path) -> None:
+    """The harness's plant faults on a real chassis and PyBullet world: a
+    counter glitch once, a stuck switch while live, the receiver corrupted."""
+    import numpy as np
+
+    from redistro.config.hardware import load_hardware
+    from redistro.config.loader import load_config
+    from redistro.faults.hooks import PlantFaults
+    from redistro.plant.chassis import HOME_AS_SWITCH, HOME_STUCK_ON, Chassis
+    from redistro.plant.world import World
+
+    root = Path(__file__).parents[2]
+    cfg = load_config(root / "config" / "redistro.yaml")
+    world = World(cfg)
+    try:
+        glitch = PlantFaults(_armed(tmp_path, "plant.encoder-jump", 700))
+        chassis = Chassis(cfg, world, load_hardware(cfg), disturbance=glitch)
+        r2 = [r.name for r in chassis.rigs].index("r2")
+        before = chassis.rigs[r2].encoder_offset.copy()
+        for _ in range(3):
+            chassis.step()
+        jumped = chassis.rigs[r2].encoder_offset - before
+        assert jumped[1] == 700 and not jumped[[0, 2, 3, 4, 5, 6]].any()  # once, joint 1
+        chassis.disturbance = PlantFaults(_armed(tmp_path, "plant.home-stuck-on"))
+        chassis.step()
+        assert (chassis._home_force[chassis.rigs[r2].sl] == HOME_STUCK_ON).all()
+        assert (chassis._home_force[chassis.rigs[1 - r2].sl] == HOME_AS_SWITCH).all()
+        chassis.disturbance = PlantFaults(_armed(tmp_path, "plant.sensor-nan"))
+        chassis.step()
+        assert np.isnan(chassis.ft_calibration[chassis.rigs[r2].ft_row, 0, 0])
+        assert (chassis._home_force == HOME_AS_SWITCH).all()  # the switch works again
+    finally:
+        world.close()

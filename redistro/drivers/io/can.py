@@ -30,13 +30,16 @@ import struct
 import time
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from redistro.drivers.io.backplane import Backplane, BoardPort
 from redistro.drivers.io.registers import BANKS, BoardType
 from redistro.errors import IOFault
+
+if TYPE_CHECKING:
+    from redistro.config.model import PlantConfig
 
 FRAME = 64
 HEAD = struct.Struct("<HBBH")
@@ -183,6 +186,19 @@ def _message(arbitration_id: int, data: bytes) -> Any:
 
 class CanBackplane(Backplane):
     """The controller's end: requests banks, writes banks, waits with deadlines."""
+
+    @classmethod
+    def from_config(cls, plant: PlantConfig, session_id: str) -> CanBackplane:
+        """The bus of ``plant.can`` (interface, channel, port, loopback only)."""
+        c = plant.can
+        return cls(
+            session_id,
+            plant.io_timeout_ms / 1e3,
+            interface=c.interface,
+            channel=c.channel,
+            port=c.port,
+            loopback_only=c.loopback_only,
+        )
 
     def __init__(
         self,

@@ -1,0 +1,103 @@
+"""The fault harness's hooks, installed into a session's processes from outside.
+
+The runner arms one injection point for a session (:mod:`redistro.faults.inject`)
+and names this module as the session's hooks (:mod:`redistro.process.hooks`);
+the plant and the ddms then ask it for their part:
+
+- :func:`plant_disturbance`: the plant's faults (a
+  :class:`~redistro.plant.disturbance.Disturbance`):
+  ``plant.wrist-push`` (pressed down hard on the peg, every step),
+  ``plant.encoder-jump`` (one counter glitch on joint 1),
+  ``plant.home-stuck-on`` / ``-off`` (every home switch of the robot stuck),
+  ``plant.sensor-nan`` (the wrist receiver's calibration memory corrupted);
+- :func:`ddm_hooks`: a ddm's faults: its transport wrapped
+  (:mod:`redistro.faults.wire`), and ``ddm.command``, a bad command written
+  into an ESC's Local Data.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from redistro.faults import inject
+from redistro.faults.wire import POINTS, InjectedTransport
+from redistro.localdata.layout import COMMAND
+
+STUCK = {"home-stuck-on": True, "home-stuck-off": False}
+
+
+class PlantFaults:
+    """One armed plant point, acting on the robot it concerns."""
+
+    def __init__(self, injection: inject.Injection) -> None:
+        self.injection = injection
+        injection.defer_record = True  # recorded once the faulty step is on the boards
+        self.robot = -1  # the rig it concerns (found at the first step)
+        self.glitched = False
+
+    def _live(self, chassis: Any) -> str:
+        if self.robot < 0:
+            names = [r.name for r in chassis.rigs]
+            self.robot = next((i for i, n in enumerate(names) if self.injection.concerns(n)), 0)
+        if not self.injection.live():
+            return ""
+        return self.injection.point.split(".", 1)[1]
+
+    def before_physics(self, chassis: Any) -> None:
+        what = self._live(chassis)
+        arg = self.injection.arg
+        if what == "wrist-push":
+            chassis.push_wrist(self.robot, np.array([0.0, 0.0, -(arg or 300.0)]))
+        elif what == "encoder-jump" and not self.glitched:
+            self.glitched = True
+            chassis.glitch_encoder(self.robot, 1, int(arg or 5000))
+        chassis.force_home_switches(self.robot, STUCK.get(what))
+
+    def after_sample(self, chassis: Any) -> None:
+        if self._live(chassis) == "sensor-nan":
+            chassis.corrupt_wrist_calibration(self.robot)
+
+    def on_boards(self, now_ns: int) -> None:
+        inj = self.injection
+        if inj.fired_ns and not inj.recorded:
+            inj.record(now_ns)  # the fault is on the boards from this step
+
+
+def plant_disturbance() -> PlantFaults | None:
+    """The plant's armed point, or None."""
+    inj = inject.injection("plant.")
+    return None if inj is None else PlantFaults(inj)
+
+
+class DdmFaults:
+    """A ddm's armed points: its transport wrapped, its commands corrupted."""
+
+    def __init__(self, node: str, kind: str) -> None:
+        self.node = node
+        self.command_injection = inject.injection("ddm.command", node) if kind == "esc" else None
+        self.wire = [inj for p in POINTS if (inj := inject.injection(p, node)) is not None]
+
+    def transport(self, transport: Any, names: dict[int, str]) -> Any:
+        """The transport with the armed link and record faults around it."""
+        for inj in self.wire:
+            transport = InjectedTransport(transport, inj, names)
+        return transport
+
+    def command(self, payload: Any) -> Any:
+        """The command to write: from the trigger on, ``arg`` (NaN, inf or a
+        torque) on joint 1 of every command, the joint under control."""
+        inj = self.command_injection
+        if inj is None or not inj.live():
+            return payload
+        bad = np.frombuffer(bytes(payload), dtype=COMMAND).copy().reshape(())
+        bad["tau_nm"][0] = inj.arg
+        bad["joint_on"][0] = 1
+        return bad
+
+
+def ddm_hooks(node: str, kind: str) -> DdmFaults | None:
+    """The ddm's armed points, or None."""
+    hooks = DdmFaults(node, kind)
+    return hooks if hooks.command_injection is not None or hooks.wire else None
