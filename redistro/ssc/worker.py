@@ -269,13 +269,16 @@ class SscWorker(Worker):
             else:
                 pl["moving"] = 0
                 self._hold(st, dt)
+            self.plan_blocks[i].publish(pl.bytes)
+        # every robot's command at once, then one wake of the ddm: it sends
+        # them together (a wake per robot cost the ddm a whole step each)
+        for i, st in enumerate(self.states):
             c = st.cmd
             c["stamp_ns"] = time.monotonic_ns()
             c["seq_src"] = self.produced
             c["session_status"] = status
-            self.plan_blocks[i].publish(pl.bytes)
             self.cmd_blocks[i].publish(c.bytes)
-            self.wake_ddm()  # this robot's command goes out now
+        self.wake_ddm()
 
     # -- task planning --
 
