@@ -58,7 +58,7 @@ run: install
 test: install-test system-deps
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy redistro
+	$(BIN)/mypy redistro tools
 	$(BIN)/pytest
 
 # The front door's fuzzing at full strength: 2 000 hypothesis examples per

@@ -1089,12 +1089,23 @@ static PyObject *cartesian_law(PyObject *mod, PyObject *arg) {
     if (any_force) {
         double fx = sel[0] * app_task[0], fy = sel[1] * app_task[1], fz = sel[2] * app_task[2];
         if (st[33] == 0 && sqrt(fx * fx + fy * fy + fz * fz) >= contact_n) {
+            /* bumpless handover: the approach's speed stops, and the spring's
+             * push along the force axes is handed over to the goal's ramp */
+            double pr[3], pt[3];
+            m3t_vec(Rt, p_ref, pr);
+            m3t_vec(Rt, p, pt);
             st[33] = 1;
             st[34] = t_s;
+            for (i = 0; i < 3; i++) {
+                st[36 + i] = sel[i] * (pr[i] + xi[i] - pt[i]);
+                xi_v[i] = 0.0;
+            }
         }
         if (st[33] != 0) {
-            double ramp = st[35] + dt / (ramp_s > 1e-9 ? ramp_s : 1e-9);
+            double before = st[35], ramp = st[35] + dt / (ramp_s > 1e-9 ? ramp_s : 1e-9);
             st[35] = ramp < 1.0 ? ramp : 1.0;
+            for (i = 0; i < 3; i++)
+                xi[i] -= st[36 + i] * (st[35] - before);
         }
         for (i = 0; i < 6; i++) {
             double err = goal_w[i] - app_task[i];

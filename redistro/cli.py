@@ -245,23 +245,19 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
     if args.command == "clean":
         return _clean()
     if args.command == "check":
-        from redistro.decision import preflight
+        from redistro.session.preflight import preflight
 
         task = preflight(cfg, args.task)
         segments = f"{len(task.segments)} segments"
         print(f"ok: {task.task} ({task.kind}, {segments}) on {', '.join(task.robots)}")
         return 0
     if args.command == "session":
-        from redistro.decision import run_session
+        from redistro.session.run import run_session
 
-        config, overrides = _config_args(args)
-        return run_session(
-            cfg, args.task, config_path=config, overrides=overrides, out_dir=args.out
-        )
+        return run_session(cfg, args.task, out_dir=args.out)
     if args.command == "node":
-        from redistro.node import run_node
+        from redistro.session.node import run_node
 
-        config, overrides = _config_args(args)
         return run_node(
             cfg,
             args.node_kind,
@@ -269,8 +265,6 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
             robot=getattr(args, "robot", ""),
             plant_session=getattr(args, "plant", ""),
             link=args.link,
-            config_path=config,
-            overrides=overrides,
             out_dir=args.out,
         )
     if args.command == "faults":
@@ -408,12 +402,12 @@ def _bench_group(args: argparse.Namespace, cfg: Any) -> int:
     from redistro.bench import group
     from redistro.process.owner import write_json
 
-    config, overrides = _config_args(args)
+    _, overrides = _config_args(args)
     if args.json_path:
         parent = Path(args.json_path).resolve().parent
         if not parent.is_dir() or not os.access(parent, os.W_OK):
             raise ConfigError(f"--json {args.json_path}: {parent} is not a writable folder")
-    out = group.run(cfg, args.task, config, overrides)
+    out = group.run(cfg, args.task, overrides)
     group.print_figures(out)
     if args.json_path:
         write_json(Path(args.json_path), out)
@@ -486,16 +480,14 @@ def _bench_plant(args: argparse.Namespace, cfg: Any) -> int:
         raise ConfigError(f"--seconds: expected > 0, got {args.seconds}")
     if not 0 < args.rate <= 10000:
         raise ConfigError(f"--rate: expected a number in (0, 10000] Hz, got {args.rate}")
-    config, overrides = _config_args(args)
     if args.backplane:
-        overrides = [*overrides, f"plant.backplane={args.backplane}"]
         cfg = dataclasses.replace(
             cfg, plant=dataclasses.replace(cfg.plant, backplane=args.backplane)
         )
     load_hardware(cfg)  # bad hardware files fail here, before any process starts
     for name in session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
-    out = plant.run(cfg, overrides, config, args.seconds, args.rate)
+    out = plant.run(cfg, args.seconds, args.rate)
     plant.print_summary(out)
     if args.json_path:
         write_json(Path(args.json_path), out)
@@ -509,22 +501,19 @@ def _plant(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
     from redistro.config.hardware import load_hardware
-    from redistro.decision import plant_overrides
     from redistro.ipc import session
     from redistro.plant.launch import PlantProcess
+    from redistro.session.run import plant_config
 
     if args.seconds < 0:
         raise ConfigError(f"--seconds: expected >= 0, got {args.seconds}")
     load_hardware(cfg)
-    config, overrides = _config_args(args)
     for name in session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     with session.Session.create() as s:
         print(f"session {s.id}", flush=True)
         run_dir = Path(cfg.session.runs_dir) / s.id
-        plant = PlantProcess.start(
-            s, run_dir, config=config, overrides=plant_overrides(cfg, overrides), gui=args.gui
-        )
+        plant = PlantProcess.start(s, run_dir, plant_config(cfg), gui=args.gui)
         try:
             end = time.monotonic() + args.seconds if args.seconds else None
             while plant.proc.poll() is None and (end is None or time.monotonic() < end):

@@ -156,10 +156,9 @@ def measured(out: dict[str, Any], rate_hz: float, priority: int) -> Iterator[Non
         out["seconds"] = round(seconds, 2)
 
 
-def run(
-    cfg: Config, task_path: str, config_path: str | None, overrides: list[str]
-) -> dict[str, Any]:
-    from redistro.decision import run_session
+def run(cfg: Config, task_path: str, overrides: list[str]) -> dict[str, Any]:
+    """overrides: the --set options, for the record (cfg holds them already)."""
+    from redistro.session.run import run_session
 
     rate = max(cfg.esc.rate_hz, cfg.ssc.rate_hz)
     host: dict[str, Any] = {}
@@ -167,8 +166,6 @@ def run(
     rc = run_session(
         cfg,
         task_path,
-        config_path=config_path,
-        overrides=overrides,
         out_dir=str(out_dir),
         around_task=lambda: measured(host, rate, cfg.scheduling.priorities.get("manager", 20)),
     )

@@ -51,9 +51,7 @@ def _plant_window(plant: PlantProcess, seconds: float) -> dict[str, float]:
     }
 
 
-def run(
-    cfg: Config, overrides: list[str], config_path: str | None, seconds: float, rate_hz: float
-) -> dict[str, Any]:
+def run(cfg: Config, seconds: float, rate_hz: float) -> dict[str, Any]:
     hardware = load_hardware(cfg)
     out: dict[str, Any] = {
         "backplane": cfg.plant.backplane,
@@ -64,7 +62,7 @@ def run(
         out["can"] = dataclasses.asdict(cfg.plant.can)
     with ipc_session.Session.create() as session:
         run_dir = Path(cfg.session.runs_dir) / session.id
-        plant = PlantProcess.start(session, run_dir, config=config_path, overrides=overrides)
+        plant = PlantProcess.start(session, run_dir, cfg)
         drivers: list[RobotDriver] = []
         try:
             out["plant_alone"] = _plant_window(plant, seconds)

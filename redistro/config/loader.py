@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from pathlib import Path
-from typing import Any, get_args, get_origin, get_type_hints
+from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -107,3 +107,53 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
 
     check_config(cfg)
     return cfg
+
+
+T = TypeVar("T")
+
+
+def resolved(obj: Any) -> dict[str, Any]:
+    """A loaded, checked config or task as plain data (JSON), its internal
+    fields included: what the session owner hands down to every process of
+    a session, so that none of them reads the YAML again (a file edited
+    during start-up cannot give two processes different limits)."""
+
+    def plain(v: Any) -> Any:
+        if dataclasses.is_dataclass(v) and not isinstance(v, type):
+            out = {}
+            for f in dataclasses.fields(v):
+                x = getattr(v, f.name)
+                if _is_default(f, x):
+                    continue  # left out: rebuilt from the default, which may not pass as a value
+                out[f.name] = plain(x)
+            return out
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        if isinstance(v, list | tuple):
+            return [plain(x) for x in v]
+        return v
+
+    out: dict[str, Any] = plain(obj)
+    return out
+
+
+def _is_default(f: dataclasses.Field[Any], value: Any) -> bool:
+    """Whether ``value`` is an unset container field's default (an empty
+    joint goal, say, which is unset and not a goal of no joints)."""
+    if f.default_factory is not dataclasses.MISSING:
+        default = f.default_factory()
+    elif f.default is not dataclasses.MISSING:
+        default = f.default
+    else:
+        return False
+    return isinstance(default, list | dict | tuple) and not default and value == default
+
+
+def from_resolved(cls: type[T], data: dict[str, Any]) -> T:
+    """The config or task :func:`resolved` gave, rebuilt (and its types
+    checked again, cheaply) without any file."""
+    fields = dataclasses.fields(cls)  # type: ignore[arg-type]
+    internal = {f.name for f in fields if f.metadata.get("internal")}
+    obj = build(cls, {k: v for k, v in data.items() if k not in internal}, origin="<resolved>")
+    kept = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in internal}
+    return dataclasses.replace(obj, **kept)  # type: ignore[type-var]

@@ -161,6 +161,7 @@ class HybridState:
     contact: bool = False
     contact_t_s: float = 0.0  # time in the segment when contact was first felt
     ramp: float = 0.0
+    spring0: F64 = field(default_factory=lambda: np.zeros(3))  # spring offset at contact (task)
 
 
 def start_state(cmd: TaskFrameCommand, kin: Kinematics) -> HybridState:
@@ -246,8 +247,15 @@ def hybrid_update(
         if not state.contact and float(np.linalg.norm((s * applied)[:3])) >= force.contact_n:
             state.contact = True
             state.contact_t_s = t_s
+            # bumpless handover: the approach's speed stops, and what the
+            # spring already pushes along the force axes is handed over to
+            # the goal's ramp (else the two add up and overshoot the goal)
+            state.spring0 = s[:3] * (Rt.T @ p_ref + state.xi[:3] - Rt.T @ kin.p)
+            state.xi_v[:3] = 0.0
         if state.contact:
+            before_ramp = state.ramp
             state.ramp = min(1.0, state.ramp + dt_s / max(force.ramp_s, 1e-9))
+            state.xi[:3] -= state.spring0 * (state.ramp - before_ramp)
         err = goal_w - applied
         want = np.concatenate(
             [
@@ -321,7 +329,8 @@ class CartesianLaw:
     - ``gains``: k, d, ki, i_max (6 each), k_null, d_joint (7 each), zeta,
       the force parameters (8), the TCP offset [m], the base (3);
     - ``state``: R_task (3x3), xi, xi_v, a_ref, integral (6 each), contact,
-      contact_t, ramp (what :class:`HybridState` holds);
+      contact_t, ramp, the spring's offset at contact (3) (what
+      :class:`HybridState` holds);
     - ``out``: tau (7), the applied wrench in task axes (6), TCP position
       (3), TCP rotation vector (3), the position reference (3).
     """
@@ -341,7 +350,7 @@ class CartesianLaw:
         self.ref = np.zeros(28)
         self.cmd = np.zeros(19)
         self.gains = np.zeros(51)
-        self.state = np.zeros(36)
+        self.state = np.zeros(39)
         self.out = np.zeros(22)
         g = self.gains
         g[0:6], g[6:12], g[12:18], g[18:24] = gains.k, gains.d, gains.ki, gains.i_max
@@ -464,6 +473,7 @@ class CartesianLaw:
             contact=bool(st[33]),
             contact_t_s=float(st[34]),
             ramp=float(st[35]),
+            spring0=st[36:39].copy(),
         )
         tau, applied = hybrid_update(
             self.impedance,
@@ -487,6 +497,7 @@ class CartesianLaw:
         )
         st[9:15], st[15:21], st[21:27], st[27:33] = hs.xi, hs.xi_v, hs.a_ref, hs.integral
         st[33], st[34], st[35] = float(hs.contact), hs.contact_t_s, hs.ramp
+        st[36:39] = hs.spring0
         self.tau[...], self.applied[...] = tau, applied
         self.tcp_p[...], self.tcp_rot[...], self.ref_p[...] = kin.p, matrix_to_rotvec(R), p_ref
         return 0

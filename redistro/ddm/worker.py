@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config import Config, load_config
+from redistro.config import Config
 from redistro.ddm import record as wire
 from redistro.ddm.transport import Transport, transport_class
 from redistro.errors import TransportError, WireError
@@ -49,8 +49,7 @@ from redistro.process.worker import Worker
 def link_id(spec: NodeSpec) -> str:
     """What the nodes of one robot group meet on (derived ports): the session
     id in a session; the ``link`` param of nodes started alone."""
-    params = spec.workers[0].params if spec.workers else {}
-    return str(params.get("link") or spec.session_id)
+    return spec.link
 
 
 def link_key(cfg: Config, session_id: str) -> bytes:
@@ -77,7 +76,7 @@ def open_transport(
 
 class Ddm(Worker):
     def initialize(self) -> None:
-        self.cfg = load_config(self.params.get("config"), list(self.params.get("overrides", [])))
+        self.cfg = self.spec.cfg()
         self.kind = self.spec.kind
         self.robots = list(self.spec.robots)
         self.gid = {r: list(self.cfg.robots).index(r) for r in self.robots}  # group-wide ids

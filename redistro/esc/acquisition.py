@@ -20,7 +20,7 @@ from redistro.process.worker import Worker
 
 class Acquisition(Worker):
     def initialize(self) -> None:
-        ctx = EscContext.load(self.params)
+        ctx = EscContext.load(self.spec)
         self.driver = ctx.driver(plant_session(self.spec))
         self.driver.open(owner=False)  # the manager froze the robot before we existed
         self.driver.jump_limit_rad_s = ctx.cfg.esc.safety.encoder_jump_rad_s
@@ -34,8 +34,8 @@ class Acquisition(Worker):
         self.offset = np.zeros(7)
         self.offset_seq = 0
         self.samples = 0
-        self.calibrating = bool(self.params.get("calibrates", False))
-        self.to_ddm = self.params.get("commands") == "ssc"  # a strategy session: a ddm
+        self.calibrating = self.spec.node_params.calibrates
+        self.to_ddm = self.spec.node_params.from_ssc  # a strategy session: a ddm
         if self.to_ddm:
             self.exchange_block = self.ld.block("exchange", 0)
             self.exchange = Record(EXCHANGE)

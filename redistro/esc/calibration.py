@@ -74,7 +74,7 @@ def zero_offsets(
 
 class Calibration(Worker):
     def initialize(self) -> None:
-        ctx = EscContext.load(self.params)
+        ctx = EscContext.load(self.spec)
         s = ctx.hw.sensors
         self.robot = ctx.robot
         self.home_angle = np.asarray(s.home_angle_rad, dtype=np.float64)
@@ -87,9 +87,9 @@ class Calibration(Worker):
                 delta_rad=float(d.get("delta_rad", 0.0)),
                 goal_rad=np.asarray(d["goal_rad"], dtype=np.float64) if "goal_rad" in d else None,
             )
-            for d in self.params["segments"]
+            for d in self.spec.node_params.segments
         ]
-        self.settle_s = float(self.params.get("settle_s", 0.5))
+        self.settle_s = self.spec.node_params.settle_s
         # Segments are timed by the boards' sample clock (home.step): the same
         # as wall time on real hardware; on a simulation that falls behind real
         # time the reference slows with the physics instead of running ahead.

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
-from redistro.config import Config, load_config
+from redistro.config import Config
 from redistro.config.hardware import RobotHardware, load_hardware
 from redistro.drivers.io.backplane import open_backplane
 from redistro.drivers.robot import RobotDriver
@@ -19,10 +18,11 @@ class EscContext:
     hw: RobotHardware
 
     @classmethod
-    def load(cls, params: dict[str, Any]) -> EscContext:
-        """params: robot, config (path or None), overrides (list of KEY=VALUE)."""
-        cfg = load_config(params.get("config"), list(params.get("overrides", [])))
-        robot = str(params["robot"])
+    def load(cls, spec: NodeSpec) -> EscContext:
+        """The node's config (resolved by the session owner, in its spec) and
+        its robot's hardware."""
+        cfg = spec.cfg()
+        robot = spec.robots[0]
         return cls(cfg, robot, load_hardware(cfg)[robot])
 
     def driver(self, session_id: str) -> RobotDriver:
@@ -35,5 +35,4 @@ class EscContext:
 def plant_session(spec: NodeSpec) -> str:
     """The session whose plant the node drives: its own, or the one named in
     the params (a node started alone beside a plant of another session)."""
-    params = spec.workers[0].params if spec.workers else {}
-    return str(params.get("plant_session") or spec.session_id)
+    return spec.plant_session

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from redistro.ddm.exchange import exchange_report
 from redistro.drivers import positions
 from redistro.drivers.robot import RobotDriver
 from redistro.errors import NodeFault
@@ -45,12 +46,12 @@ class EscManager(Manager):
         self.blocks: dict[str, Block] = {}
 
     def initialize(self) -> None:
-        params = self.spec.workers[0].params  # every ESC worker carries the node's params
-        self.ctx = EscContext.load(params)
+        params = self.spec.node_params
+        self.ctx = EscContext.load(self.spec)
         self.robot = self.ctx.robot
-        self.positions_path = str(params.get("positions_file", ""))
-        self.calibrating = bool(params.get("calibrates", False))
-        self.from_ssc = params.get("commands") == "ssc"
+        self.positions_path = params.positions_file
+        self.calibrating = params.calibrates
+        self.from_ssc = params.from_ssc
         ld = self.ld
         assert ld is not None
         self.blocks = {
@@ -190,7 +191,7 @@ class EscManager(Manager):
         extra["freeze_monotonic_ns"] = self.frozen_ns
         if self.from_ssc:
             ex = self.blocks["exchange"].read()
-            extra["ddm"] = _exchange_dict(ex)
+            extra["ddm"] = exchange_report(ex)
             extra["ddm"]["starving_index_max"] = self.starving_max
         final = None
         if self.driver is not None:
@@ -213,28 +214,3 @@ class EscManager(Manager):
         if self.driver is not None:
             self.driver.close()
         self.result.update(extra)
-
-
-def _exchange_dict(ex: Any) -> dict[str, Any]:
-    """The exchange block as JSON (counts, e-stop, command latency)."""
-    out: dict[str, Any] = {
-        k: int(ex[k])
-        for k in (
-            "updates",
-            "sent",
-            "dropped",
-            "malformed",
-            "duplicate",
-            "out_of_order",
-            "stale",
-            "forged",
-            "foreign",
-            "latency_n",
-        )
-    }
-    out["estop_in"] = bool(ex["estop_in"])
-    out["estop_source"] = bytes(ex["estop_source"]).decode(errors="replace")
-    out["link_lost"] = bool(ex["link_lost"])
-    lat = [float(v) for v in ex["latency_us"]]
-    out["command_latency_us"] = {"p50": lat[0], "p99": lat[1], "max": lat[2]}
-    return out

@@ -20,7 +20,7 @@ from redistro.robotmodel import Peg
 
 class Pid(Worker):
     def initialize(self) -> None:
-        ctx = EscContext.load(self.params)
+        ctx = EscContext.load(self.spec)
         cfg = ctx.cfg
         g = cfg.esc.pid
         self.gains = PidGains(

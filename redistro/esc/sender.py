@@ -131,7 +131,7 @@ def check(
 
 class Sender(Worker):
     def initialize(self) -> None:
-        ctx = EscContext.load(self.params)
+        ctx = EscContext.load(self.spec)
         self.robot = ctx.robot
         lim = ctx.cfg.esc.safety
         self.qd_max = np.asarray(lim.qd_max_rad_s, dtype=np.float64)
@@ -147,7 +147,7 @@ class Sender(Worker):
         self.guard_block = ld.writer("guard", 0, role="sender")
         self.feedback_block = ld.block("feedback", 0)
         self.home_block = ld.block("home", 0)
-        self.from_ssc = self.params.get("commands") == "ssc"
+        self.from_ssc = self.spec.node_params.from_ssc
         if self.from_ssc:
             self.command_block = ld.block("command", 0)
             self.cmd = Record(COMMAND)

@@ -103,7 +103,7 @@ def run_can_noise(out_dir: Path, config_args: list[str], forged: bool = False) -
     worst_counts = 0.0
     fault = ""
     with Session.create() as session:
-        plant = PlantProcess.start(session, out_dir / "run", overrides=sets)
+        plant = PlantProcess.start(session, out_dir / "run", cfg)
         sid = session.id
         try:
             assert plant.bank is not None

@@ -26,9 +26,9 @@ from typing import Any
 from redistro.config.model import Config
 from redistro.drivers import positions
 from redistro.errors import RedistroError
-from redistro.esc.plan import RECORDERS
 from redistro.faults.catalogue import Scenario
 from redistro.faults.common import die_with_parent, one_line_refusal
+from redistro.process.plan import RECORDERS
 
 TASK = "tasks/fault_drill.yaml"
 ROBOT = 1  # r2, the robot that moves (index in the task's robots)
@@ -333,7 +333,7 @@ def _limit_cycles(sc: Scenario, cfg: Config, node: str) -> float | None:
     if sc.limit == "heartbeat":
         hb = cfg.ssc.heartbeat_limit_cycles if node == "ssc" else cfg.esc.heartbeat_limit_cycles
         if sc.proc in RECORDERS:  # the session log's recorders have their own
-            from redistro.esc.plan import recorder_heartbeat_limit
+            from redistro.process.plan import recorder_heartbeat_limit
 
             hb = recorder_heartbeat_limit(cfg, rate)
         return hb + 2

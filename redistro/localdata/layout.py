@@ -141,6 +141,8 @@ PROC_STATUS = np.dtype(
             "<u8",
         ),  # cycles skipped: a previous stage did not finish, or no consistent input
         ("torn_reads", "<u8"),  # snapshot attempts that had to be retried
+        ("idle_slices", "<u8"),  # slices of Idle work run between cycles
+        ("idle_late", "<u8"),  # ... of which ended past their deadline (a host stall)
         ("cpu_s", "<f8"),  # CPU time spent in Routine (written at Cleanup)
         ("lateness_us", "<f4", (3,)),  # p50, p99, max over the run (written at Cleanup)
         ("compute_us", "<f4", (3,)),  # per step, wall time (preemption included)

@@ -55,7 +55,7 @@ def log_topics(spec: NodeSpec) -> list[tuple[str, str, int | None]]:
     """The channels a node logs, (topic, block, robot index); [] when it has
     no logging worker (or no run folder to log into)."""
     roles = {w.role: w for w in spec.workers}
-    if "logger" in roles and roles["logger"].params.get("run_dir"):  # the SSC
+    if "logger" in roles and spec.node_params.run_dir:  # the SSC
         topics: list[tuple[str, str, int | None]] = []
         for i, r in enumerate(spec.robots):
             topics += [

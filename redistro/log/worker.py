@@ -8,7 +8,6 @@ strategy session is logged by the SSC's logger instead.
 
 from __future__ import annotations
 
-from redistro.esc.common import EscContext
 from redistro.localdata.layout import GUARD, SETPOINT
 from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
 from redistro.process.worker import Worker
@@ -16,15 +15,14 @@ from redistro.process.worker import Worker
 
 class EscRecorder(Worker):
     def initialize(self) -> None:
-        ctx = EscContext.load(self.params)
-        r = ctx.robot
-        self.segments = [str(s["name"]) for s in self.params.get("segments", [])]
-        meta = robots_meta(ctx.cfg, [r])
-        meta["task"] = str(self.params.get("task_name", ""))
+        r = self.spec.robots[0]
+        self.segments = [str(s["name"]) for s in self.spec.node_params.segments]
+        meta = robots_meta(self.spec.cfg(), [r])
+        meta["task"] = self.spec.node_params.task_name
         meta["segments"] = {r: self.segments}
         topics = log_topics(self.spec)  # the manager captures the same
         self.robot = r
-        self.rec = CycleRecorder(self.ld, self.spec, topics, str(self.params["run_dir"]), meta)
+        self.rec = CycleRecorder(self.ld, self.spec, topics, self.spec.node_params.run_dir, meta)
         self.sp = self.rec.view(1, SETPOINT)  # the recorded cycle's, in the frame
         self.guard = self.rec.view(3, GUARD)
         self.segment = 0

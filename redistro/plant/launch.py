@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from redistro.config.loader import resolved
+from redistro.config.model import Config
 from redistro.drivers.io.bank import PlantState, RegisterBank
 from redistro.errors import IPCError, LayoutError, RedistroError
 from redistro.ipc.session import Session
@@ -34,19 +36,20 @@ class PlantProcess:
         cls,
         session: Session,
         run_dir: Path,
+        cfg: Config,
         *,
-        config: str | None = None,
-        overrides: list[str] | None = None,
         gui: bool = False,
         timeout_s: float = 30.0,
     ) -> PlantProcess:
+        """cfg: the plant's config, loaded and checked by the caller; handed
+        down resolved (``plant.config.json`` in ``run_dir``), never re-read
+        from YAML."""
         run_dir.mkdir(parents=True, exist_ok=True)
         result = run_dir / "plant.json"
+        resolved_path = run_dir / "plant.config.json"
+        resolved_path.write_text(json.dumps(resolved(cfg)))
         args = ["plant", "--session", session.id, "--result", str(result)]
-        if config:
-            args += ["--config", config]
-        for o in overrides or []:
-            args += ["--set", o]
+        args += ["--resolved", str(resolved_path)]
         if gui:
             args.append("--gui")
         proc = spawn(args, pass_fds=[session.lock_fd], env=session.child_env())

@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from redistro.config.hardware import load_hardware
-from redistro.config.loader import load_config
+from redistro.config.loader import from_resolved
+from redistro.config.model import Config
 from redistro.drivers.io.backplane import BoardPort
 from redistro.drivers.io.bank import TRUTH, PlantState, RegisterBank
 from redistro.drivers.io.registers import ENC_MODULO
@@ -50,8 +51,7 @@ DUTY_LIMIT = 0.5
 
 def run_plant(
     session_id: str,
-    config: str | None,
-    overrides: list[str],
+    resolved_path: str,
     *,
     result_path: str | None = None,
     gui: bool = False,
@@ -61,7 +61,8 @@ def run_plant(
     from redistro.plant.world import World
 
     signals.set_parent_death_signal(signal.SIGTERM)
-    cfg = load_config(config, overrides)
+    # the config its starter loaded and checked, handed down resolved
+    cfg = from_resolved(Config, json.loads(Path(resolved_path).read_text()))
     hardware = load_hardware(cfg)
     world: World | None = None
     bank: RegisterBank | None = None

@@ -31,8 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--wake-fd", type=int, default=-1)
     p = sub.add_parser("plant")
     p.add_argument("--session", required=True)
-    p.add_argument("--config")
-    p.add_argument("--set", action="append", default=[])
+    p.add_argument("--resolved", required=True, help="the config, resolved (JSON)")
     p.add_argument("--result")
     p.add_argument("--gui", action="store_true")
     p.add_argument("--seconds", type=float, default=0.0)
@@ -55,8 +54,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_plant(
             args.session,
-            args.config,
-            args.set,
+            args.resolved,
             result_path=args.result,
             gui=args.gui,
             seconds=args.seconds,

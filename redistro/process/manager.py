@@ -32,6 +32,7 @@ from redistro.localdata.layout import MANAGER, MSG_TEXT, PROC_STATUS
 from redistro.process.spawn import spawn
 from redistro.process.spec import EXIT_FAILED, NodeSpec
 from redistro.process.stats import Samples
+from redistro.process.worker import IDLE_GUARD_NS
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ ROUTINE_WAIT = (
     | signals.STOP_SIGNALS
 )
 RELAY_FILE = "estop"  # in the session folder, estop.<node>: a faulted node asks for a relay
-START_WAIT = frozenset({signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
+START_WAIT = frozenset({signals.SIG_ORPHAN, signals.SIG_ESTOP}) | signals.STOP_SIGNALS
 
 
 def describe_status(status: int) -> str:
@@ -124,6 +125,7 @@ class Manager:
         self._tick_ns = 0
         self._estop = False
         self.wake_fd = -1
+        self.idle_slices = 0  # slices of Idle work between ticks (message boxes first)
         self.cpu_latency_fd: int | None = None  # the PM QoS request, held while the node runs
         # the node cannot carry its e-stop to the group itself: it has no DDM
         # (an ESC-only session), or its DDM is what failed
@@ -273,6 +275,10 @@ class Manager:
                 continue
             self._check_children()
             info = signals.wait(START_WAIT, 0)
+            if info is not None and info.si_signo == signals.SIG_ESTOP:
+                # another node faulted while this one started: its robot
+                # stays frozen, and the node ends on the group's e-stop
+                raise NodeFault("estop", self._relayed_estop() + " during start-up")
             if info is not None:
                 raise NodeFault("abnormal", self._stop_text(info.si_signo) + " during start-up")
             self._drain_messages()
@@ -337,7 +343,6 @@ class Manager:
                     if self.capture is not None:  # the cycle that ended, for the session log
                         self.capture(self.cycle, self._due_ns, self._tick_ns, self._estop)
                     self._check_heartbeats()
-                self._drain_messages()
                 if spec.cycles and self.cycle >= spec.cycles:
                     return
                 try:
@@ -360,11 +365,32 @@ class Manager:
                 self._due_ns = due
                 self._tick_ns = now
                 self.tick_work.add(time.monotonic_ns() - now)
+                # Idle: what need not hold the cycle back, after the syncs
+                self._idle(due + self.timer.period_ns - IDLE_GUARD_NS)
         finally:
             self.timer.stop()
             self._routine_end = time.monotonic()
             self._cpu_end = time.process_time()
             gc.enable()
+
+    def idle(self, deadline_ns: int) -> bool:
+        """A node's own Idle work (see :meth:`Worker.idle`): one short slice
+        per call, True while there is more. Default: nothing."""
+        return False
+
+    def _idle(self, deadline_ns: int) -> None:
+        """The manager's Idle state, after the tick's syncs went out: the
+        workers' message boxes to the log and messages.log, then the node's
+        own idle work in slices, until the deadline or the next tick (pending,
+        it is taken by the wait that follows)."""
+        self._drain_messages()
+        self.idle_slices += 1
+        clock = time.monotonic_ns
+        while clock() < deadline_ns and signal.SIGALRM not in signal.sigpending():
+            more = self.idle(deadline_ns)
+            self.idle_slices += 1
+            if not more:
+                return
 
     def _relayed_estop(self) -> str:
         source = "another node"
@@ -634,6 +660,8 @@ class Manager:
                     "skipped": int(row["skipped"]),
                     "stage_timeouts": int(row["stage_timeouts"]),
                     "torn_reads": int(row["torn_reads"]),
+                    "idle_slices": int(row["idle_slices"]),
+                    "idle_late": int(row["idle_late"]),
                     "lateness_us": _triple(row["lateness_us"]),
                     "compute_us": _triple(row["compute_us"]),
                     "step_cpu_us": _triple(row["step_cpu_us"]),
@@ -675,6 +703,7 @@ class Manager:
                 "deadline_misses": self.deadline_misses,
                 "incomplete_cycles": self.incomplete_cycles,
                 "torn_ticks": self.torn_ticks,
+                "idle_slices": self.idle_slices,
                 # timer periods without a completed cycle: finished late,
                 # unfinished at the next tick, or a tick never taken
                 "overrun_cycles": self.deadline_misses + self.incomplete_cycles + self.missed_ticks,

@@ -5,7 +5,11 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from redistro.config.model import Config
+    from redistro.config.task import Task
 
 # a worker that failed (an exception in its initialize or step) exits with
 # this code, its reason in its message box, no traceback
@@ -46,6 +50,31 @@ class WorkerSpec:
 
 
 @dataclass
+class NodeParams:
+    """A node's place in its session, the same for every process of the node.
+
+    robot: an ESC's robot; plant_session: the session whose plant an ESC
+    drives ("": its own); link: what the node's DDM meets the other nodes on
+    ("": the session id); run_dir: the session's run folder; positions_file:
+    where an ESC keeps its robot's joint positions; calibrates: an ESC in a
+    self-calibration; from_ssc: an ESC commanded by the SSC (a strategy
+    session); segments: an ESC's own segments (calibration moves); settle_s:
+    settling time before the end; task_name: the task's name.
+    """
+
+    robot: str = ""
+    plant_session: str = ""
+    link: str = ""
+    run_dir: str = ""
+    positions_file: str = ""
+    calibrates: bool = False
+    from_ssc: bool = False
+    segments: list[dict[str, Any]] = field(default_factory=list)
+    settle_s: float = 0.5
+    task_name: str = ""
+
+
+@dataclass
 class NodeSpec:
     session_id: str
     node: str
@@ -65,6 +94,26 @@ class NodeSpec:
     owner_pid: int = 0
     result_path: str = ""
     messages_path: str = ""
+    # the session's config and task, loaded and checked once by the session
+    # owner (config.loader.resolved); every process of the node rebuilds them
+    # from here and never reads the YAML (``cfg()``, ``task()``)
+    config: dict[str, Any] = field(default_factory=dict)
+    task_data: dict[str, Any] = field(default_factory=dict)
+    node_params: NodeParams = field(default_factory=NodeParams)
+
+    def cfg(self) -> Config:
+        """The session's config."""
+        from redistro.config.loader import from_resolved
+        from redistro.config.model import Config
+
+        return from_resolved(Config, self.config)
+
+    def task(self) -> Task:
+        """The session's task."""
+        from redistro.config.loader import from_resolved
+        from redistro.config.task import Task
+
+        return from_resolved(Task, self.task_data)
 
     def stages(self) -> list[list[int]]:
         """Indices of the workers on the cycle, grouped by stage, in stage order."""
@@ -81,4 +130,17 @@ class NodeSpec:
     def load(cls, path: Path | str) -> NodeSpec:
         data = json.loads(Path(path).read_text())
         data["workers"] = [WorkerSpec(**w) for w in data["workers"]]
+        data["node_params"] = NodeParams(**data.get("node_params", {}))
         return cls(**data)
+
+    @property
+    def plant_session(self) -> str:
+        """The session whose plant the node drives: its own, or the one named
+        for a node started alone beside a plant of another session."""
+        return self.node_params.plant_session or self.session_id
+
+    @property
+    def link(self) -> str:
+        """What the node's DDM meets the other nodes of its group on: the
+        session id in a session; the ``link`` of nodes started alone."""
+        return self.node_params.link or self.session_id

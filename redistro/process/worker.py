@@ -20,6 +20,7 @@ from redistro.ipc.sem import Semaphore
 from redistro.localdata import LocalData, MessageBox, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, PROC_STATUS
+from redistro.process import hooks
 from redistro.process.spec import EXIT_FAILED, NodeSpec, WorkerSpec
 from redistro.process.stats import Samples
 
@@ -31,6 +32,9 @@ class WorkerFailed(Exception):
 
 
 WAIT_SET = frozenset({signals.SIG_SYNC, signals.SIG_END, signals.SIG_ORPHAN}) | signals.STOP_SIGNALS
+# Idle work ends this long before the next tick is due: the slice that runs
+# when the deadline passes still ends before the sync comes
+IDLE_GUARD_NS = 200_000
 
 
 class Worker:
@@ -51,6 +55,21 @@ class Worker:
         # after this cycle's heartbeat, once
         self.wake_manager = False
         self.wake_fd = -1  # the node's wake event (the runner sets it)
+
+    def idle(self, deadline_ns: int) -> bool:
+        """The Idle state: work that need not be in the cycle (statistics,
+        reports, flushing), run after this cycle's step and heartbeat, before
+        the next sync, in slices: do one short slice (tens of µs) and return
+        whether there is more. The runner calls again while the clock is
+        before ``deadline_ns`` (CLOCK_MONOTONIC) and the next sync has not
+        come, so the cycle never waits on it. Default: nothing (a worker that
+        does not override this pays nothing)."""
+        return False
+
+    def wants_idle(self) -> bool:
+        """Whether this worker has Idle work at all (asked once, after
+        Initialization): by default, whether it overrides :meth:`idle`."""
+        return type(self).idle is not Worker.idle
 
     def wake_ddm(self) -> None:
         """Tell the node's ddm there is data to move (a fresh command or
@@ -105,6 +124,8 @@ class _Runner:
         self.cpu_start_s = 0.0
         self.estop_woken = False
         self.manager_fd = -1
+        self.idle_slices = 0
+        self.idle_late = 0
 
     def run(self) -> int:
         spec, i = self.spec, self.index
@@ -166,14 +187,17 @@ class _Runner:
                 d["state"] = ProcState.ROUTINE
             ready.release()
 
-            if me.on_cycle:
-                reason = self._routine(
-                    worker, row, manager_block, rows, preds, succs, go, manager_fd
-                )
-            elif me.rate_hz > 0:
-                reason = self._routine_timed(worker, row, manager_block, me.rate_hz, manager_fd)
-            else:
-                reason = self._routine_events(worker, row, manager_block, manager_fd)
+            # a developer's profile of this process (tools/profile.py; none normally)
+            profiled = hooks.profile(f"{spec.node}/{me.name}")
+            with profiled if profiled is not None else contextlib.nullcontext():
+                if me.on_cycle:
+                    reason = self._routine(
+                        worker, row, manager_block, rows, preds, succs, go, manager_fd
+                    )
+                elif me.rate_hz > 0:
+                    reason = self._routine_timed(worker, row, manager_block, me.rate_hz, manager_fd)
+                else:
+                    reason = self._routine_events(worker, row, manager_block, manager_fd)
             if reason:
                 worker.post(reason, logging.WARNING)
             with row.write() as d:
@@ -213,6 +237,7 @@ class _Runner:
         row.read_into(mine.bytes)  # this process is the row's one writer
         tick = Record(MANAGER)
         pred_recs = [(rows[p], Record(PROC_STATUS)) for p in preds]
+        idles = worker.wants_idle()  # the Idle state, if it has work
         while True:
             # Every worker wakes at the tick; a later stage then waits at its
             # collecting point. (Waiting at the collecting point first and taking
@@ -246,6 +271,20 @@ class _Runner:
             self._wake_for_estop(worker, manager_fd)
             for j in succs:
                 go[j].release()
+            if idles:
+                self._idle(worker, due_ns + self.period_ns - IDLE_GUARD_NS)
+
+    def _idle(self, worker: Worker, deadline_ns: int) -> None:
+        """Idle work in slices until the deadline or the next sync (pending,
+        it is taken by the wait that follows)."""
+        clock = time.monotonic_ns
+        while clock() < deadline_ns and signals.SIG_SYNC not in signal.sigpending():
+            more = worker.idle(deadline_ns)
+            self.idle_slices += 1
+            if clock() > deadline_ns:
+                self.idle_late += 1
+            if not more:
+                return
 
     @staticmethod
     def _wait_for(
@@ -467,6 +506,8 @@ class _Runner:
                 d["overruns"] = self.overruns
                 d["skipped"] = self.skipped
                 d["stage_timeouts"] = self.stage_timeouts
+                d["idle_slices"] = self.idle_slices
+                d["idle_late"] = self.idle_late
                 d["state"] = ProcState.IDLE
         except Exception:  # finishing must never mask the real exit path
             log.debug("could not publish final status", exc_info=True)

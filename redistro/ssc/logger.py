@@ -20,8 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config import load_config
-from redistro.config.task import load_task
 from redistro.control.cartesian import pose_error, rotvec_to_matrix
 from redistro.localdata.block import Record
 from redistro.localdata.layout import PLAN
@@ -70,8 +68,8 @@ class SegmentFigures:
 
 class SscLogger(Worker):
     def initialize(self) -> None:
-        cfg = load_config(self.params.get("config"), list(self.params.get("overrides", [])))
-        task = load_task(self.params["task"], cfg)
+        cfg = self.spec.cfg()
+        task = self.spec.task()
         self.plans = segment_plans(task, cfg)
         self.robots = list(self.spec.robots)
         self.figures = [SegmentFigures(p.name, p.robot, p.scheme) for p in self.plans]
@@ -85,7 +83,7 @@ class SscLogger(Worker):
         self.peg_index = self.robots.index(pegs[0]) if pegs else -1
         self.depth = 0.0
         self.depth_t: float | None = None
-        run_dir = str(self.params.get("run_dir", ""))
+        run_dir = self.spec.node_params.run_dir
         self.out_path = os.path.join(run_dir, "ssc-segments.json") if run_dir else ""
         self.cycles = 0
         self.recorder: CycleRecorder | None = None

@@ -15,9 +15,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from redistro.config import load_config
+from redistro.ddm.exchange import exchange_report
 from redistro.errors import NodeFault
-from redistro.esc.manager import _exchange_dict
 from redistro.localdata.block import Block, Record
 from redistro.localdata.layout import EXCHANGE, PLAN
 from redistro.process.manager import Manager
@@ -33,11 +32,10 @@ class SscManager(Manager):
         self.ex_blocks: list[Block] = []
 
     def initialize(self) -> None:
-        params = self.spec.workers[0].params
-        cfg = load_config(params.get("config"), list(params.get("overrides", [])))
+        cfg = self.spec.cfg()
         self.limit = cfg.ddm.starving_limit_cycles
         self.wait_first_s = cfg.ddm.connect_timeout_s
-        self.run_dir = str(params.get("run_dir", ""))
+        self.run_dir = self.spec.node_params.run_dir
         ld = self.ld
         assert ld is not None
         n = len(self.spec.robots)
@@ -85,7 +83,7 @@ class SscManager(Manager):
         extra: dict[str, Any] = {"robots": list(self.spec.robots)}
         if self.ex_blocks:
             extra["ddm"] = {
-                r: _exchange_dict(b.read())
+                r: exchange_report(b.read())
                 for r, b in zip(self.spec.robots, self.ex_blocks, strict=True)
             }
             extra["starving_cycles_max"] = self.starving_max

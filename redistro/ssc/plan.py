@@ -7,10 +7,11 @@ from typing import Any
 
 import numpy as np
 
+from redistro.config.loader import resolved
 from redistro.config.model import Config
 from redistro.config.task import MoveSegment, Task
-from redistro.esc.plan import worker_specs
-from redistro.process.spec import NodeSpec
+from redistro.process.plan import worker_specs
+from redistro.process.spec import NodeParams, NodeSpec
 
 SCHEMES = {"hold": 0, "joint": 1, "position": 2, "force": 3}
 # Within an SSC cycle: the worker computes the commands, then the logger records them.
@@ -71,22 +72,14 @@ def ssc_spec(
     task: Task,
     session_id: str,
     *,
-    config_path: str | None,
-    overrides: list[str],
     run_dir: str,
     messages_path: str = "",
     link: str = "",
 ) -> NodeSpec:
     """link: the id the DDMs meet on, for a node started alone (default: the session id)."""
-    params: dict[str, Any] = {
-        "config": config_path,
-        "overrides": list(overrides),
-        "task": task.source,
-        "run_dir": run_dir,
-        "link": link,
-    }
+    node_params = NodeParams(run_dir=run_dir, link=link, task_name=task.task)
     prio = cfg.scheduling.priorities
-    workers = worker_specs(cfg, SSC_WORKERS, params, cfg.ssc.rate_hz)
+    workers = worker_specs(cfg, SSC_WORKERS, {}, cfg.ssc.rate_hz)
     return NodeSpec(
         session_id=session_id,
         node="ssc",
@@ -103,4 +96,7 @@ def ssc_spec(
         manager_priority=prio.get("manager", 20),
         cpus=list(cfg.ssc.cpus),
         messages_path=messages_path,
+        config=resolved(cfg),
+        task_data=resolved(task),
+        node_params=node_params,
     )

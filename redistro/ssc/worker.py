@@ -27,8 +27,6 @@ from typing import Any
 import numpy as np
 
 from redistro import kernels
-from redistro.config import load_config
-from redistro.config.task import load_task
 from redistro.control.cartesian import (
     CartesianLaw,
     ForceParams,
@@ -166,9 +164,8 @@ def f64(values: list[float]) -> np.ndarray[Any, Any]:
 
 class SscWorker(Worker):
     def initialize(self) -> None:
-        cfg = load_config(self.params.get("config"), list(self.params.get("overrides", [])))
-        self.cfg = cfg
-        task = load_task(self.params["task"], cfg)
+        cfg = self.cfg = self.spec.cfg()
+        task = self.spec.task()
         self.settle_s = task.settle_s
         self.plans: list[SegmentPlan] = segment_plans(task, cfg)
         self.robots = list(self.spec.robots)

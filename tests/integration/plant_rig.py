@@ -67,7 +67,7 @@ def plant_rig(backplane: str, tmp: Path, overrides: list[str] | None = None) -> 
     cfg = load_config(None, sets)
     hardware = load_hardware(cfg)
     with Session.create() as session:
-        plant = PlantProcess.start(session, tmp / "run", overrides=sets)
+        plant = PlantProcess.start(session, tmp / "run", cfg)
         drivers: dict[str, RobotDriver] = {}
         try:
             assert plant.bank is not None

@@ -125,7 +125,7 @@ def test_a_slow_plant_is_no_fault(tmp_path: Path) -> None:
     of real time (a loaded host's figure) takes longer than the budget would in
     wall time, and the calibration still ends ok."""
     from redistro.config.task import load_task
-    from redistro.decision import budget_s
+    from redistro.session.summary import budget_s
 
     cfg = load_config(None)
     out = tmp_path / "r"

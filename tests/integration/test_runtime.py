@@ -291,3 +291,31 @@ def _node_at_100hz(sid: str, heartbeat_limit: int, workers: list[Any], cycles: i
         workers=workers,
         cycles=cycles,
     )
+
+
+def test_idle_work_runs_between_cycles_and_gives_way_to_the_sync() -> None:
+    """The Idle state: a worker whose idle work never ends (it always says
+    there is more) runs it between its cycles, in slices, and still takes
+    every sync: the cycle never waits on it. The manager drains the message
+    boxes in its own Idle, after the syncs went out."""
+    from redistro.ipc.session import Session
+    from redistro.process.owner import run_node
+    from redistro.process.spec import WorkerSpec
+
+    workers = [
+        WorkerSpec(name="a", role="busy", stage=0, params={"idle_us": 50}),
+        WorkerSpec(name="b", role="busy", stage=1, params={"message_every": 50}),
+    ]
+    with Session.create() as s:
+        r = run_node(_node_at_100hz(s.id, 20, workers, 200), s)
+    assert r["result"] == "ok", r["reason"]
+    a, b = (next(w for w in r["workers"] if w["name"] == n) for n in ("a", "b"))
+    # every cycle was taken (run, or skipped and counted on a host stall),
+    # though the idle work always had more to do
+    assert a["cycles"] + a["skipped"] + a["stage_timeouts"] == 200, a
+    # ... and it ran: 10 ms periods less the guard, in 50 us slices
+    assert a["idle_slices"] > 20 * a["cycles"], a
+    assert b["idle_slices"] == 0  # no idle work: nothing run, nothing paid
+    assert r["idle_slices"] >= 200  # the manager's: the message boxes, after each tick
+    texts = [m["text"] for m in r["messages"]]
+    assert "cycle 150: 0 us of work done" in texts  # drained in the manager's Idle

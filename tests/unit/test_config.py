@@ -155,3 +155,36 @@ def test_the_reflective_network_and_the_can_bus_stay_on_loopback() -> None:
         assert socket.inet_ntoa(struct.pack("4s", iface)) == "127.0.0.1"
     finally:
         bus.shutdown()
+
+
+def test_a_resolved_config_and_task_come_back_equal(tmp_path: Path) -> None:
+    """What the session owner hands down (resolved, in the node's spec file)
+    rebuilds the same config and task in every process, without the YAML."""
+    import json
+
+    from redistro.config.loader import from_resolved, resolved
+    from redistro.config.model import Config
+    from redistro.config.task import Task, load_task
+    from redistro.process.spec import NodeSpec
+
+    root = Path(__file__).parents[2]
+    cfg = load_config(
+        root / "config" / "redistro.yaml", ["esc.rate_hz=1000", "ddm.transport=reflective"]
+    )
+    back = from_resolved(Config, json.loads(json.dumps(resolved(cfg))))
+    assert back == cfg
+    assert back.source == cfg.source and back.overridden == cfg.overridden
+    assert back.origin("esc.rate_hz") == "--set"
+    tasks = sorted((root / "tasks").glob("*.yaml")) + sorted(
+        p for p in (root / "tests" / "data").glob("*.yaml") if "segments:" in p.read_text()
+    )
+    for path in tasks:  # the tests' tasks too: joint goals, unset fields
+        task = load_task(path, cfg)
+        again = from_resolved(Task, json.loads(json.dumps(resolved(task))))
+        assert again == task and again.source == task.source, path
+    spec = NodeSpec(
+        "s", "ssc", "ssc", 200.0, 25, [], config=resolved(cfg), task_data=resolved(task)
+    )
+    spec.save(tmp_path / "spec.json")
+    loaded = NodeSpec.load(tmp_path / "spec.json")
+    assert loaded.cfg() == cfg and loaded.task() == task

@@ -99,3 +99,17 @@ def test_backends_come_from_one_table_each() -> None:
         backplane_class("pci")
     with pytest.raises(KeyError, match="unknown transport 'carrier-pigeon'"):
         transport_class("carrier-pigeon")
+
+
+def test_the_sub_controllers_do_not_import_each_other() -> None:
+    """ESC and SSC share what they need through lower layers (process/, ddm/,
+    config/); the session log imports neither."""
+    rules = {"esc": ("ssc",), "ssc": ("esc",), "log": ("esc", "ssc")}
+    offenders = [
+        f"{path.relative_to(PACKAGE)} imports {m}"
+        for layer, banned in rules.items()
+        for path in sorted((PACKAGE / layer).rglob("*.py"))
+        for m in sorted(_imports(path))
+        if any(m == f"redistro.{b}" or m.startswith(f"redistro.{b}.") for b in banned)
+    ]
+    assert not offenders, offenders

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from redistro.decision import Progress
 from redistro.process.spec import NodeSpec, WorkerSpec
+from redistro.session.progress import Progress
 
 
 class FakeBlock:
@@ -17,9 +17,9 @@ class FakeBlock:
 
 
 def _progress(segments: list[dict[str, Any]]) -> tuple[Progress, dict[str, Any]]:
-    worker = WorkerSpec(name="calibration", role="calibration", stage=1, params={})
-    worker.params["segments"] = segments
+    worker = WorkerSpec(name="calibration", role="calibration", stage=1)
     spec = NodeSpec("sid", "esc.r1", "esc", 200.0, 25, [worker])
+    spec.node_params.segments = segments
     lines: list[str] = []
     p = Progress("sid", [spec], lines.append, live=False)
     sp = {"segment": 0, "done": 0, "segment_t_s": 0.0}

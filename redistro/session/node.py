@@ -28,20 +28,13 @@ from pathlib import Path
 from redistro.config.hardware import load_hardware
 from redistro.config.model import Config
 from redistro.config.task import load_task
-from redistro.decision import (
-    Progress,
-    build_summary,
-    check_key,
-    check_motion,
-    ddm_pace,
-    positions_file,
-    unknown_positions,
-    wall_budget_s,
-)
 from redistro.errors import ConfigError, IPCError, LayoutError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
 from redistro.process.owner import run_nodes, write_json
+from redistro.session.preflight import check_key, check_motion, positions_file, unknown_positions
+from redistro.session.progress import Progress, ddm_pace
+from redistro.session.summary import build_summary, wall_budget_s
 from redistro.ssc.plan import ssc_spec
 
 DEFAULT_LINK = "redistro"
@@ -55,8 +48,6 @@ def run_node(
     robot: str = "",
     plant_session: str = "",
     link: str = DEFAULT_LINK,
-    config_path: str | None,
-    overrides: list[str],
     out_dir: str | None = None,
     say: Callable[[str], None] | None = None,
 ) -> int:
@@ -96,8 +87,6 @@ def run_node(
                 robot,
                 hardware[robot],
                 s.id,
-                config_path=config_path,
-                overrides=overrides,
                 positions_file=str(positions_file(cfg, robot)),
                 messages_path=messages,
                 link=link,
@@ -110,8 +99,6 @@ def run_node(
                 cfg,
                 task,
                 s.id,
-                config_path=config_path,
-                overrides=overrides,
                 run_dir=str(run_dir),
                 messages_path=messages,
                 link=link,

@@ -1,0 +1,101 @@
+"""Pre-flight: every check of a session's input before anything is reaped,
+created or started (``redistro check TASK`` runs these alone): the task
+against the config, the joint positions, the motions against the limits,
+the DDM key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from redistro.config.hardware import load_hardware
+from redistro.config.model import Config
+from redistro.config.task import Task, load_task
+from redistro.drivers import positions
+from redistro.errors import ConfigError
+
+
+def positions_file(cfg: Config, robot: str) -> Path:
+    return Path(cfg.session.runs_dir) / cfg.session.positions_dir / f"{robot}.json"
+
+
+def unknown_positions(cfg: Config, task: Task) -> dict[str, str]:
+    """Robots of the task whose joint positions are not known, and why."""
+    out: dict[str, str] = {}
+    for r in task.robots:
+        try:
+            positions.read(positions_file(cfg, r), [r])
+        except positions.PositionsUnknown as exc:
+            out[r] = str(exc)
+    return out
+
+
+def check_positions(cfg: Config, task: Task) -> None:
+    """Motion needs known joint positions, unless the task is the self-calibration
+    (or a strategy task that runs one first when they are unknown)."""
+    if task.kind == "self_calibration":
+        return
+    if task.kind == "strategy" and task.calibrate_if_needed:
+        return
+    for why in unknown_positions(cfg, task).values():
+        raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
+
+
+def check_motion(cfg: Config, task: Task) -> None:
+    """Every recorded position inside the joint limits (a positions file
+    beyond them cannot be right), every joint goal inside them less the
+    margin, every joint move within the speed limit (redistro/config/limits.py)."""
+    from redistro.config.limits import joint_limits, task_motion_problems
+
+    limits = joint_limits(cfg)
+    start: dict[str, list[float]] = {}
+    for r in task.robots:
+        path = positions_file(cfg, r)
+        try:
+            q = positions.read(path, [r]).q_rad[r]
+        except positions.PositionsUnknown:
+            continue
+        problem = limits.outside(q, margin=False)
+        if problem:
+            raise ConfigError(
+                f"{path}: q_rad.{r}: {problem}; the file cannot be right "
+                "(run tasks/self_calibration.yaml)"
+            )
+        start[r] = q
+    for problem in task_motion_problems(cfg, task, start):
+        raise ConfigError(problem)
+
+
+def check_key(cfg: Config, needed: bool = False) -> None:
+    """``ddm.key_file`` readable and private (needed: nodes started alone
+    share no session folder, so they need it)."""
+    from redistro.ddm import record as wire
+
+    if not cfg.ddm.key_file:
+        if needed:
+            raise ConfigError(
+                f"{cfg.origin('ddm.key_file')}: ddm.key_file: nodes started alone need a "
+                "shared key file (32 random bytes as hex, mode 0600, the same on every node; "
+                "e.g. python3 -c 'import os; print(os.urandom(32).hex())' > link.key)"
+            )
+        return
+    try:
+        wire.load_key(cfg.ddm.key_file)
+    except ValueError as exc:
+        raise ConfigError(f"{cfg.origin('ddm.key_file')}: ddm.key_file: {exc}") from None
+
+
+def preflight(cfg: Config, task_path: str) -> Task:
+    """Every check a session makes before it reaps, creates or starts anything:
+    the task against the config, the hardware files and their ratings, the
+    recorded joint positions, joint goals and speeds against the limits, and
+    the Cartesian goals' reach. ConfigError (one line) on the first problem."""
+    task = load_task(task_path, cfg)
+    load_hardware(cfg)
+    check_key(cfg)
+    check_positions(cfg, task)
+    check_motion(cfg, task)
+    from redistro.ssc.reach import unreachable_goals
+
+    for problem in unreachable_goals(cfg, task):
+        raise ConfigError(problem)
+    return task

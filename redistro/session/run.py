@@ -1,0 +1,236 @@
+"""The decision stage: ``redistro session TASK`` runs one task from power-on to power-off.
+
+It checks the task against the config (bad input ends here: nothing has
+started), starts the plant (system on), launches the nodes the task needs,
+prints progress while they run, ends them, powers off, and writes the run
+folder: ``summary.json``, ``messages.log``, ``plant.json`` and a copy of
+the final positions files. Exit code 0 only when the result is ``ok``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from redistro.config.hardware import load_hardware
+from redistro.config.model import Config
+from redistro.config.task import Task
+from redistro.errors import IPCError, LayoutError
+from redistro.esc.plan import esc_spec
+from redistro.ipc import session as ipc_session
+from redistro.process.owner import run_nodes, write_json
+from redistro.process.spec import NodeSpec
+from redistro.session.preflight import positions_file, preflight, unknown_positions
+from redistro.session.progress import Progress, ddm_pace
+from redistro.session.summary import budget_s, build_summary, segment_line
+
+log = logging.getLogger(__name__)
+
+
+def plant_config(cfg: Config) -> Config:
+    """The plant's config: the arms' pose is kept between power-offs in the
+    runs folder (the positions files hold only while the arms stay put)."""
+    if cfg.plant.pose_file:
+        return cfg
+    pose = str(Path(cfg.session.runs_dir) / cfg.session.plant_pose_file)
+    return dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, pose_file=pose))
+
+
+def run_session(
+    cfg: Config,
+    task_path: str,
+    *,
+    out_dir: str | None = None,
+    say: Callable[[str], None] | None = None,
+    around_task: Callable[[], contextlib.AbstractContextManager[Any]] | None = None,
+) -> int:
+    """around_task: a context the task itself runs in (not a self-calibration
+    run first): what ``redistro bench group`` measures."""
+    say = say or (lambda text: print(text, flush=True))
+    task = preflight(cfg, task_path)
+    for name in ipc_session.reap():
+        print(f"reaped {name} (left by a dead session)", file=sys.stderr)
+    if task.kind == "strategy" and task.calibrate_if_needed:
+        unknown = unknown_positions(cfg, task)
+        if unknown:
+            robots = [r for r in task.robots if r in unknown]
+            say(f"joint positions unknown ({'; '.join(unknown.values())})")
+            say(f"self-calibration of {', '.join(robots)} first")
+            cal = Task(
+                task=f"self_calibration (before {task.task})",
+                kind="self_calibration",
+                robots=robots,
+                source=task.source,
+            )
+            cal_dir = str(Path(out_dir) / "self_calibration") if out_dir else None
+            rc = _run_task(cfg, cal, out_dir=cal_dir, say=say)
+            if rc != 0:
+                say(f"{task.task} not started: the self-calibration did not end ok")
+                return rc
+    with around_task() if around_task is not None else contextlib.nullcontext():
+        return _run_task(cfg, task, out_dir=out_dir, say=say)
+
+
+def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
+    """True once every ESC's acquisition has published its first feedback."""
+    from redistro.localdata import LocalData
+
+    seen: set[str] = set()
+
+    def ready() -> bool:
+        for node in nodes:
+            if node in seen:
+                continue
+            try:
+                ld = LocalData.attach(session_id, node)
+            except (IPCError, LayoutError, OSError):
+                return False
+            try:
+                if int(ld.block("feedback", 0).read()["seq_src"]) > 0:
+                    seen.add(node)
+            except Exception:
+                return False
+            finally:
+                ld.close()
+        return len(seen) == len(nodes)
+
+    return ready
+
+
+def _run_task(
+    cfg: Config,
+    task: Task,
+    *,
+    out_dir: str | None,
+    say: Callable[[str], None],
+) -> int:
+    from redistro.plant.launch import PlantProcess
+    from redistro.ssc.plan import ssc_spec
+
+    hardware = load_hardware(cfg)
+    runs = Path(cfg.session.runs_dir)
+    started = time.time()
+    node_results: list[dict[str, Any]] = []
+    plant_result: dict[str, Any] = {}
+    with ipc_session.Session.create() as s:
+        if not cfg.ddm.key_file:  # the link's key: the session's own, in its 0700 folder
+            from redistro.ddm import record as wire
+
+            wire.new_key(s.directory / wire.SESSION_KEY)
+        run_dir = Path(out_dir) if out_dir else runs / s.id
+        run_dir.mkdir(parents=True, exist_ok=True)
+        messages = str(run_dir / "messages.log")
+        say(f"session {s.id}")
+        say(f"task {task.task} ({task.kind}) on {', '.join(task.robots)}; run folder {run_dir}")
+        plant = PlantProcess.start(s, run_dir, plant_config(cfg))
+        say(f"plant running ({cfg.plant.backplane} backplane, {cfg.plant.physics_hz:g} Hz)")
+        try:
+            order = task.calibration.order if task.kind == "self_calibration" else "together"
+            groups = [task.robots] if order == "together" else [[r] for r in task.robots]
+            for group in groups:
+                specs = [
+                    esc_spec(
+                        cfg,
+                        task,
+                        r,
+                        hardware[r],
+                        s.id,
+                        positions_file=str(positions_file(cfg, r)),
+                        messages_path=messages,
+                        run_dir=str(run_dir),
+                    )
+                    for r in group
+                ]
+                later: list[NodeSpec] = []
+                if task.kind == "strategy":
+                    later = [
+                        ssc_spec(
+                            cfg,
+                            task,
+                            s.id,
+                            run_dir=str(run_dir),
+                            messages_path=messages,
+                        )
+                    ]
+                    say(
+                        f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz; "
+                        f"ssc at {cfg.ssc.rate_hz:g} Hz once every ESC has published its "
+                        f"robot's state; ddm {cfg.ddm.transport} {ddm_pace(cfg)}"
+                    )
+                else:
+                    say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
+                progress = Progress(s.id, specs + later, say)
+                progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
+                try:
+                    results = run_nodes(
+                        specs,
+                        s,
+                        budget_s=budget_s(task),
+                        clock=plant.clock_s,
+                        on_wait=progress,
+                        keep=frozenset({plant.pid}),
+                        later=later,
+                        later_ready=_esc_ready(s.id, [sp.node for sp in specs]) if later else None,
+                    )
+                finally:
+                    progress.close()
+                node_results += results
+                for r in results:
+                    say(f"{r.get('node')}: {r.get('result')} {r.get('reason', '')}".rstrip())
+                if any(r.get("result") != "ok" for r in results):
+                    break
+        finally:
+            plant.stop()
+            plant_result = plant.result()
+            say("plant powered off")
+    summary = build_summary(task, node_results, plant_result, started, time.time(), run_dir)
+    cycles = {str(r.get("node")): int(r.get("cycles", 0)) for r in node_results}
+    log_info = _finish_log(run_dir, say, cycles)
+    if log_info:
+        summary["log"] = log_info
+    for robot in task.robots:
+        src = positions_file(cfg, robot)
+        if src.exists():
+            shutil.copyfile(src, run_dir / f"positions.{robot}.json")
+    write_json(run_dir / "summary.json", summary)
+    say(f"result: {summary['result']}" + (f" ({summary['reason']})" if summary["reason"] else ""))
+    if "calibration" in summary:
+        for robot, joints in summary["calibration"].items():
+            errs = [j["error_rad"] for j in joints if j["error_rad"] is not None]
+            worst = max((abs(e) for e in errs), default=float("nan"))
+            say(f"{robot}: {len(errs)}/7 zero offsets found, worst error {worst:.2e} rad")
+    for seg in summary.get("segments", []):
+        say(segment_line(seg))
+    if "inserted" in summary:
+        say(
+            f"inserted: {summary['inserted']} (depth {summary['insertion_depth_m'] * 1e3:.2f} mm "
+            f"of {summary['hole_depth_m'] * 1e3:.1f} mm)"
+        )
+    say(f"wrote {run_dir / 'summary.json'}")
+    return 0 if summary["result"] == "ok" else 1
+
+
+def _finish_log(
+    run_dir: Path, say: Callable[[str], None], cycles: dict[str, int]
+) -> dict[str, Any]:
+    """session.mcap from the nodes' parts, and its counters (never fails the session)."""
+    from redistro.log.mcapfile import finish_run_log
+
+    try:
+        info = finish_run_log(run_dir, cycles)
+    except Exception as exc:
+        log.warning("session log not finished: %s", exc)
+        return {"error": str(exc)}
+    if info:
+        say(
+            f"session log {run_dir / info['file']}: {info['messages']} messages, "
+            f"{info['dropped']} cycles dropped"
+        )
+    return info
