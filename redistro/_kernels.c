@@ -22,9 +22,11 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <dlfcn.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#include <time.h>
 
 #define BARRIER() __asm__ __volatile__("" ::: "memory")
 
@@ -130,6 +132,12 @@ static const Signature SIGNATURES[] = {
     {"quintic", ARGS({"q0", 'd'}, {"d", 'd'}, {"q", 'd'}, {"qd", 'd'}, {"qdd", 'd'}, {"time", 'd'})},
     {"cartesian_law",
      ARGS({"kin", 'd'}, {"ref", 'd'}, {"cmd", 'd'}, {"gains", 'd'}, {"state", 'd'}, {"out", 'd'})},
+    {"ddm_admit",
+     ARGS({"ld", 'B'}, {"codec", 'B'}, {"params", 'q'}, {"rows", 'q'}, {"src", 'B'}, {"ex", 'B'},
+          {"lat", 'q'}, {"state", 'q'})},
+    {"ddm_emit",
+     ARGS({"ld", 'B'}, {"codec", 'B'}, {"params", 'q'}, {"rows", 'q'}, {"out", 'B'},
+          {"wire", 'B'}, {"ex", 'B'})},
     {"guard_prepare",
      ARGS({"fb", 'B'}, {"fb_off", 'q'}, {"src", 'B'}, {"src_off", 'q'}, {"home", 'B'},
           {"home_off", 'q'}, {"limits", 'd'}, {"on", 'B'}, {"released", 'B'}, {"tau", 'd'},
@@ -1271,6 +1279,496 @@ done:
     return result;
 }
 
+/* -- the DDM wire record: its checksum and tag -- */
+
+/* A record's crc32 (zlib's) and its HMAC-SHA256 tag (RFC 2104) under the
+ * link's key. The key's two padded blocks are hashed once, into a codec
+ * (``wire_codec``); sealing or verifying a record then hashes its body and
+ * one more block, with no Python call per step. The layout (where the
+ * checksum and the tag lie) comes from the caller. */
+
+static uint32_t CRC_TABLE[256];
+
+static void crc_init(void) {
+    for (uint32_t i = 0; i < 256; i++) {
+        uint32_t c = i;
+        for (int k = 0; k < 8; k++)
+            c = c & 1 ? 0xEDB88320u ^ (c >> 1) : c >> 1;
+        CRC_TABLE[i] = c;
+    }
+}
+
+/* zlib's own (the one Python's zlib uses) where it loads: faster than the
+ * table loop below */
+typedef unsigned long (*ZlibCrc32)(unsigned long crc, const uint8_t *buf, unsigned int len);
+static ZlibCrc32 ZLIB_CRC32 = NULL;
+
+static uint32_t crc32_update(uint32_t crc, const uint8_t *p, size_t n) {
+    if (ZLIB_CRC32 != NULL)
+        return (uint32_t)ZLIB_CRC32(crc, p, (unsigned int)n);
+    crc = ~crc;
+    while (n--)
+        crc = CRC_TABLE[(crc ^ *p++) & 0xFF] ^ (crc >> 8);
+    return ~crc;
+}
+
+typedef struct {
+    uint32_t h[8];
+    uint64_t len; /* bytes hashed */
+    uint8_t buf[64];
+    uint32_t n; /* bytes waiting in buf */
+} Sha256;
+
+static const uint32_t SHA_K[64] = {
+    0x428a2f98, 0x71374491, 0xb5c0fbcf, 0xe9b5dba5, 0x3956c25b, 0x59f111f1, 0x923f82a4,
+    0xab1c5ed5, 0xd807aa98, 0x12835b01, 0x243185be, 0x550c7dc3, 0x72be5d74, 0x80deb1fe,
+    0x9bdc06a7, 0xc19bf174, 0xe49b69c1, 0xefbe4786, 0x0fc19dc6, 0x240ca1cc, 0x2de92c6f,
+    0x4a7484aa, 0x5cb0a9dc, 0x76f988da, 0x983e5152, 0xa831c66d, 0xb00327c8, 0xbf597fc7,
+    0xc6e00bf3, 0xd5a79147, 0x06ca6351, 0x14292967, 0x27b70a85, 0x2e1b2138, 0x4d2c6dfc,
+    0x53380d13, 0x650a7354, 0x766a0abb, 0x81c2c92e, 0x92722c85, 0xa2bfe8a1, 0xa81a664b,
+    0xc24b8b70, 0xc76c51a3, 0xd192e819, 0xd6990624, 0xf40e3585, 0x106aa070, 0x19a4c116,
+    0x1e376c08, 0x2748774c, 0x34b0bcb5, 0x391c0cb3, 0x4ed8aa4a, 0x5b9cca4f, 0x682e6ff3,
+    0x748f82ee, 0x78a5636f, 0x84c87814, 0x8cc70208, 0x90befffa, 0xa4506ceb, 0xbef9a3f7,
+    0xc67178f2,
+};
+
+#define ROR(x, n) (((x) >> (n)) | ((x) << (32 - (n))))
+
+static void sha256_block(uint32_t h[8], const uint8_t *p) {
+    uint32_t w[64];
+    for (int i = 0; i < 16; i++)
+        w[i] = (uint32_t)p[4 * i] << 24 | (uint32_t)p[4 * i + 1] << 16 |
+               (uint32_t)p[4 * i + 2] << 8 | p[4 * i + 3];
+    for (int i = 16; i < 64; i++) {
+        uint32_t s0 = ROR(w[i - 15], 7) ^ ROR(w[i - 15], 18) ^ (w[i - 15] >> 3);
+        uint32_t s1 = ROR(w[i - 2], 17) ^ ROR(w[i - 2], 19) ^ (w[i - 2] >> 10);
+        w[i] = w[i - 16] + s0 + w[i - 7] + s1;
+    }
+    uint32_t a = h[0], b = h[1], c = h[2], d = h[3], e = h[4], f = h[5], g = h[6], k = h[7];
+    for (int i = 0; i < 64; i++) {
+        uint32_t t1 = k + (ROR(e, 6) ^ ROR(e, 11) ^ ROR(e, 25)) + ((e & f) ^ (~e & g)) +
+                      SHA_K[i] + w[i];
+        uint32_t t2 = (ROR(a, 2) ^ ROR(a, 13) ^ ROR(a, 22)) + ((a & b) ^ (a & c) ^ (b & c));
+        k = g;
+        g = f;
+        f = e;
+        e = d + t1;
+        d = c;
+        c = b;
+        b = a;
+        a = t1 + t2;
+    }
+    h[0] += a;
+    h[1] += b;
+    h[2] += c;
+    h[3] += d;
+    h[4] += e;
+    h[5] += f;
+    h[6] += g;
+    h[7] += k;
+}
+
+/* The block function: OpenSSL's (SHA extensions where the CPU has them,
+ * found in the libcrypto that Python's hashlib uses) or the portable one
+ * above. OpenSSL's SHA256_Transform hashes one block into the state at the
+ * start of its context. */
+typedef void (*Sha256Transform)(void *ctx, const uint8_t *block);
+static Sha256Transform SHA_TRANSFORM = NULL;
+
+static void sha_init_backend(void) {
+    if (getenv("REDISTRO_PORTABLE_WIRE") != NULL)
+        return;
+    void *lib = dlopen("libcrypto.so.3", RTLD_NOW | RTLD_LOCAL);
+    if (lib != NULL)
+        SHA_TRANSFORM = (Sha256Transform)dlsym(lib, "SHA256_Transform");
+    void *z = dlopen("libz.so.1", RTLD_NOW | RTLD_LOCAL);
+    if (z != NULL)
+        ZLIB_CRC32 = (ZlibCrc32)dlsym(z, "crc32");
+}
+
+static inline void sha_block(uint32_t h[8], const uint8_t *p) {
+    if (SHA_TRANSFORM != NULL) {
+        uint32_t ctx[32]; /* an SHA256_CTX (112 bytes): the state first */
+        memcpy(ctx, h, 32);
+        SHA_TRANSFORM(ctx, p);
+        memcpy(h, ctx, 32);
+    } else
+        sha256_block(h, p);
+}
+
+static void sha256_init(Sha256 *s) {
+    static const uint32_t H0[8] = {0x6a09e667, 0xbb67ae85, 0x3c6ef372, 0xa54ff53a,
+                                   0x510e527f, 0x9b05688c, 0x1f83d9ab, 0x5be0cd19};
+    memcpy(s->h, H0, sizeof H0);
+    s->len = 0;
+    s->n = 0;
+}
+
+static void sha256_update(Sha256 *s, const uint8_t *p, size_t n) {
+    s->len += n;
+    if (s->n) {
+        size_t take = 64 - s->n < n ? 64 - s->n : n;
+        memcpy(s->buf + s->n, p, take);
+        s->n += (uint32_t)take;
+        p += take;
+        n -= take;
+        if (s->n < 64)
+            return;
+        sha_block(s->h, s->buf);
+        s->n = 0;
+    }
+    for (; n >= 64; n -= 64, p += 64)
+        sha_block(s->h, p);
+    memcpy(s->buf, p, n);
+    s->n = (uint32_t)n;
+}
+
+static void sha256_final(Sha256 *s, uint8_t out[32]) {
+    uint64_t bits = s->len * 8;
+    uint8_t pad[72] = {0x80};
+    size_t padn = (s->n < 56 ? 56 : 120) - s->n;
+    for (int i = 0; i < 8; i++)
+        pad[padn + i] = (uint8_t)(bits >> (56 - 8 * i));
+    sha256_update(s, pad, padn + 8);
+    for (int i = 0; i < 8; i++) {
+        out[4 * i] = (uint8_t)(s->h[i] >> 24);
+        out[4 * i + 1] = (uint8_t)(s->h[i] >> 16);
+        out[4 * i + 2] = (uint8_t)(s->h[i] >> 8);
+        out[4 * i + 3] = (uint8_t)s->h[i];
+    }
+}
+
+typedef struct {
+    Sha256 inner, outer; /* the key's padded blocks, hashed */
+    int64_t body, crc_at; /* the tag covers [0, body); the crc32 (u4) at crc_at */
+} Codec;
+
+static void codec_tag(const Codec *c, const uint8_t *body, size_t n, uint8_t out[32]) {
+    Sha256 s = c->inner;
+    uint8_t inner[32];
+    sha256_update(&s, body, n);
+    sha256_final(&s, inner);
+    s = c->outer;
+    sha256_update(&s, inner, 32);
+    sha256_final(&s, out);
+}
+
+static uint32_t codec_crc(const Codec *c, const uint8_t *rec) {
+    uint32_t crc = crc32_update(0, rec, (size_t)c->crc_at);
+    return crc32_update(crc, rec + c->crc_at + 4, (size_t)(c->body - c->crc_at - 4));
+}
+
+/* wire_codec(key, body, crc_at) -> bytes: a codec for records of ``body``
+ * bytes plus a 32-byte tag. */
+static PyObject *wire_codec(PyObject *mod, PyObject *args) {
+    Py_buffer key;
+    long long body, crc_at;
+    if (!PyArg_ParseTuple(args, "y*LL", &key, &body, &crc_at))
+        return NULL;
+    if (crc_at < 0 || crc_at + 4 > body) {
+        PyBuffer_Release(&key);
+        PyErr_SetString(PyExc_ValueError, "the checksum must lie inside the body");
+        return NULL;
+    }
+    uint8_t block[64] = {0};
+    if (key.len > 64) {
+        Sha256 s;
+        sha256_init(&s);
+        sha256_update(&s, key.buf, (size_t)key.len);
+        sha256_final(&s, block);
+    } else
+        memcpy(block, key.buf, (size_t)key.len);
+    PyBuffer_Release(&key);
+    Codec c;
+    memset(&c, 0, sizeof c);
+    uint8_t pad[64];
+    for (int i = 0; i < 64; i++)
+        pad[i] = block[i] ^ 0x36;
+    sha256_init(&c.inner);
+    sha256_update(&c.inner, pad, 64);
+    for (int i = 0; i < 64; i++)
+        pad[i] = block[i] ^ 0x5C;
+    sha256_init(&c.outer);
+    sha256_update(&c.outer, pad, 64);
+    c.body = body;
+    c.crc_at = crc_at;
+    return PyBytes_FromStringAndSize((const char *)&c, sizeof c);
+}
+
+static const Codec *codec_arg(PyObject *obj) {
+    if (!PyBytes_Check(obj) || PyBytes_GET_SIZE(obj) != (Py_ssize_t)sizeof(Codec)) {
+        PyErr_SetString(PyExc_TypeError, "expected a codec from wire_codec()");
+        return NULL;
+    }
+    return (const Codec *)PyBytes_AS_STRING(obj);
+}
+
+static PyObject *wire_backend(PyObject *mod, PyObject *unused) {
+    return Py_BuildValue("(ss)", SHA_TRANSFORM != NULL ? "libcrypto" : "portable",
+                         ZLIB_CRC32 != NULL ? "zlib" : "portable");
+}
+
+/* wire_tag(codec, data) -> the 32-byte HMAC-SHA256 of data. */
+static PyObject *wire_tag(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "wire_tag(codec, data)");
+        return NULL;
+    }
+    const Codec *c = codec_arg(args[0]);
+    Py_buffer b;
+    if (c == NULL || PyObject_GetBuffer(args[1], &b, PyBUF_SIMPLE) < 0)
+        return NULL;
+    uint8_t out[32];
+    codec_tag(c, b.buf, (size_t)b.len, out);
+    PyBuffer_Release(&b);
+    return PyBytes_FromStringAndSize((const char *)out, 32);
+}
+
+/* wire_seal(codec, record): write the record's crc32 and tag (in place;
+ * the record is body + 32 bytes). */
+static PyObject *wire_seal(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "wire_seal(codec, record)");
+        return NULL;
+    }
+    const Codec *c = codec_arg(args[0]);
+    Py_buffer b;
+    if (c == NULL || PyObject_GetBuffer(args[1], &b, PyBUF_WRITABLE) < 0)
+        return NULL;
+    if (b.len != c->body + 32) {
+        PyBuffer_Release(&b);
+        PyErr_Format(PyExc_ValueError, "a record of %lld bytes, got %zd", (long long)c->body + 32,
+                     b.len);
+        return NULL;
+    }
+    uint8_t *p = b.buf;
+    st_u32(p + c->crc_at, codec_crc(c, p));
+    codec_tag(c, p, (size_t)c->body, p + c->body);
+    PyBuffer_Release(&b);
+    Py_RETURN_NONE;
+}
+
+/* wire_verify(codec, record) -> 0 sound, 1 wrong size, 2 checksum, 3 tag
+ * (compared in constant time). */
+static PyObject *wire_verify(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "wire_verify(codec, record)");
+        return NULL;
+    }
+    const Codec *c = codec_arg(args[0]);
+    Py_buffer b;
+    if (c == NULL || PyObject_GetBuffer(args[1], &b, PyBUF_SIMPLE) < 0)
+        return NULL;
+    long why = 0;
+    const uint8_t *p = b.buf;
+    if (b.len != c->body + 32)
+        why = 1;
+    else if (ld_u32(p + c->crc_at) != codec_crc(c, p))
+        why = 2;
+    else {
+        uint8_t tag[32], diff = 0;
+        codec_tag(c, p, (size_t)c->body, tag);
+        for (int i = 0; i < 32; i++)
+            diff |= tag[i] ^ p[c->body + i];
+        why = diff ? 3 : 0;
+    }
+    PyBuffer_Release(&b);
+    return PyLong_FromLong(why);
+}
+
+/* -- the DDM's exchange: a record admitted, a record emitted -- */
+
+/* The common case of a ddm's step in one call each way; anything else (a
+ * record to refuse or count, an e-stop, the first record of a link, a torn
+ * read) is left untouched for the ddm's Python, which handles every case.
+ *
+ * ddm_admit(plan, record) -> the local robot whose Local Data block took the
+ * record, or -1 (nothing changed: the Python path decides). It takes a
+ * record only if it is sound (size, magic, version, crc32, tag), of the
+ * kind this ddm receives, for one of its robots, without an e-stop, from
+ * the source that robot's row has claimed (the row's last seq and stamp are
+ * that source's admission state, shared with the Python path), newer than
+ * the last in seq and stamp, and the robot's exchange already fresh. Then:
+ * the payload is published into the robot's block (seqlock), the exchange
+ * record counts the update, an ESC pays back its starving index (the sent
+ * counter copied into the delivered block), and the command latency (now -
+ * the payload's stamp) goes into the ring. */
+enum {
+    DA_MAGIC, DA_VERSION, DA_KIND, DA_PAYLOAD_AT, DA_SIZE, DA_H_MAGIC, DA_H_VERSION, DA_H_KIND,
+    DA_H_ROBOT, DA_H_SOURCE, DA_H_SEQ, DA_H_STAMP, DA_H_ESTOP, DA_EX_SIZE, DA_EX_UPDATES,
+    DA_EX_LAST, DA_EX_FRESH, DA_SENT_SEQ, DA_SENT_PAY, DA_DELIV_SEQ, DA_DELIV_PAY, DA_NPARAMS
+};
+enum { DR_GID, DR_SEQ_OFF, DR_PAY_OFF, DR_CLAIMED, DR_LAST_SEQ, DR_LAST_STAMP, DR_ROW = 8 };
+enum { DS_LAT_COUNT, DS_FAST, DS_NSTATE };
+
+static int64_t now_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+static void seqlock_write(uint8_t *seq_at, uint8_t *dst, const uint8_t *src, size_t n) {
+    volatile uint64_t *seq = (volatile uint64_t *)seq_at;
+    uint64_t s = *seq;
+    s += s & 1;
+    *seq = s + 1;
+    BARRIER();
+    memcpy(dst, src, n);
+    BARRIER();
+    *seq = s + 2;
+}
+
+static int seqlock_read(const uint8_t *seq_at, const uint8_t *src, uint8_t *dst, size_t n) {
+    const volatile uint64_t *seq = (const volatile uint64_t *)seq_at;
+    for (int a = 0; a < ATTEMPTS; a++) {
+        uint64_t s1 = *seq;
+        if (s1 & 1)
+            continue;
+        BARRIER();
+        memcpy(dst, src, n);
+        BARRIER();
+        if (*seq == s1)
+            return 1;
+    }
+    return 0;
+}
+
+enum { DA_LD, DA_CODEC, DA_PARAMS, DA_ROWS, DA_SRC, DA_EX, DA_LAT, DA_STATE };
+
+static PyObject *ddm_admit(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "ddm_admit(plan, record)");
+        return NULL;
+    }
+    PlanObject *pl = plan_arg(args[0], "ddm_admit");
+    if (pl == NULL)
+        return NULL;
+    if (pl->n[DA_PARAMS] < DA_NPARAMS || pl->n[DA_STATE] < DS_NSTATE ||
+        pl->n[DA_CODEC] != (Py_ssize_t)sizeof(Codec)) {
+        PyErr_SetString(PyExc_ValueError, "ddm_admit: a plan of the wrong sizes");
+        return NULL;
+    }
+    Py_buffer b;
+    if (PyObject_GetBuffer(args[1], &b, PyBUF_SIMPLE) < 0)
+        return NULL;
+    const int64_t *P = I64(pl, DA_PARAMS);
+    const Codec *c = (const Codec *)U8(pl, DA_CODEC);
+    const uint8_t *r = b.buf;
+    long result = -1;
+    Py_ssize_t nrows = pl->n[DA_ROWS] / DR_ROW;
+    int64_t *row = NULL;
+    Py_ssize_t i = 0;
+    if (b.len != c->body + 32 || ld_u32(r + P[DA_H_MAGIC]) != (uint32_t)P[DA_MAGIC] ||
+        (r[P[DA_H_VERSION]] | r[P[DA_H_VERSION] + 1] << 8) != P[DA_VERSION] ||
+        r[P[DA_H_KIND]] != P[DA_KIND] || r[P[DA_H_ESTOP]] != 0)
+        goto done;
+    for (i = 0; i < nrows; i++)
+        if (I64(pl, DA_ROWS)[i * DR_ROW + DR_GID] == r[P[DA_H_ROBOT]]) {
+            row = I64(pl, DA_ROWS) + i * DR_ROW;
+            break;
+        }
+    if (row == NULL || !row[DR_CLAIMED] ||
+        memcmp(r + P[DA_H_SOURCE], U8(pl, DA_SRC) + 16 * i, 16) != 0)
+        goto done;
+    uint8_t *ex = U8(pl, DA_EX) + i * P[DA_EX_SIZE];
+    if (!ex[P[DA_EX_FRESH]])
+        goto done;
+    uint64_t seq = ld_u64(r + P[DA_H_SEQ]);
+    int64_t stamp = (int64_t)ld_u64(r + P[DA_H_STAMP]);
+    if (seq <= (uint64_t)row[DR_LAST_SEQ] || stamp <= row[DR_LAST_STAMP])
+        goto done; /* a drop to count: the Python path */
+    if (ld_u32(r + c->crc_at) != codec_crc(c, r))
+        goto done;
+    uint8_t tag[32], diff = 0;
+    codec_tag(c, r, (size_t)c->body, tag);
+    for (int k = 0; k < 32; k++)
+        diff |= tag[k] ^ r[c->body + k];
+    if (diff)
+        goto done;
+    /* admitted */
+    row[DR_LAST_SEQ] = (int64_t)seq;
+    row[DR_LAST_STAMP] = stamp;
+    uint8_t *ld = U8(pl, DA_LD);
+    int64_t now = now_ns();
+    seqlock_write(ld + row[DR_SEQ_OFF], ld + row[DR_PAY_OFF], r + P[DA_PAYLOAD_AT],
+                  (size_t)P[DA_SIZE]);
+    st_u64(ex + P[DA_EX_UPDATES], ld_u64(ex + P[DA_EX_UPDATES]) + 1);
+    st_u64(ex + P[DA_EX_LAST], (uint64_t)now);
+    int64_t *state = I64(pl, DA_STATE);
+    if (P[DA_DELIV_SEQ] >= 0) {
+        uint8_t counter[16];
+        if (seqlock_read(ld + P[DA_SENT_SEQ], ld + P[DA_SENT_PAY], counter, 8)) {
+            st_u64(counter + 8, (uint64_t)now);
+            seqlock_write(ld + P[DA_DELIV_SEQ], ld + P[DA_DELIV_PAY], counter, 16);
+        }
+        int64_t pstamp = (int64_t)ld_u64(r + P[DA_PAYLOAD_AT]);
+        Py_ssize_t ring = pl->n[DA_LAT];
+        if (ring > 0 && 0 < pstamp && pstamp <= now) {
+            I64(pl, DA_LAT)[state[DS_LAT_COUNT] % ring] = now - pstamp;
+            state[DS_LAT_COUNT] += 1;
+        }
+    }
+    state[DS_FAST] += 1;
+    result = (long)i;
+done:
+    PyBuffer_Release(&b);
+    return PyLong_FromLong(result);
+}
+
+/* ddm_emit(plan) -> a bit mask of the robots whose wire buffer holds a new
+ * record to send, or -1 (a torn read: the Python path reads again). For
+ * each robot, the out block (its node's command or feedback) is read into
+ * the local record; a newly produced one (seq_src not 0 and not the last
+ * sent) is encoded behind the row's next seq, now, no e-stop, and sealed;
+ * the exchange record counts it sent. */
+enum {
+    DE_PAYLOAD_AT, DE_SIZE, DE_SEQSRC_AT, DE_H_SEQ, DE_H_STAMP, DE_H_ESTOP, DE_EX_SIZE, DE_EX_SENT,
+    DE_NPARAMS
+};
+enum { DE_SEQ_OFF, DE_PAY_OFF, DE_LAST_OUT, DE_SEQ, DE_ROW = 8 };
+enum { DE_LD, DE_CODEC, DE_PARAMS, DE_ROWS, DE_OUT, DE_WIRE, DE_EX };
+
+static PyObject *ddm_emit(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "ddm_emit");
+    if (pl == NULL)
+        return NULL;
+    if (pl->n[DE_PARAMS] < DE_NPARAMS || pl->n[DE_CODEC] != (Py_ssize_t)sizeof(Codec)) {
+        PyErr_SetString(PyExc_ValueError, "ddm_emit: a plan of the wrong sizes");
+        return NULL;
+    }
+    const int64_t *P = I64(pl, DE_PARAMS);
+    const Codec *c = (const Codec *)U8(pl, DE_CODEC);
+    Py_ssize_t nrows = pl->n[DE_ROWS] / DE_ROW, size = P[DE_SIZE], wsize = c->body + 32;
+    if (nrows > 62 || pl->n[DE_OUT] < nrows * size || pl->n[DE_WIRE] < nrows * wsize) {
+        PyErr_SetString(PyExc_ValueError, "ddm_emit: a plan of the wrong sizes");
+        return NULL;
+    }
+    uint8_t *ld = U8(pl, DE_LD);
+    long mask = 0;
+    for (Py_ssize_t i = 0; i < nrows; i++) {
+        int64_t *row = I64(pl, DE_ROWS) + i * DE_ROW;
+        uint8_t *out = U8(pl, DE_OUT) + i * size;
+        if (!seqlock_read(ld + row[DE_SEQ_OFF], ld + row[DE_PAY_OFF], out, (size_t)size))
+            return PyLong_FromLong(-1);
+        int64_t produced = (int64_t)ld_u64(out + P[DE_SEQSRC_AT]);
+        if (produced == 0 || produced == row[DE_LAST_OUT])
+            continue;
+        row[DE_LAST_OUT] = produced;
+        row[DE_SEQ] += 1;
+        uint8_t *w = U8(pl, DE_WIRE) + i * wsize;
+        st_u64(w + P[DE_H_SEQ], (uint64_t)row[DE_SEQ]);
+        st_u64(w + P[DE_H_STAMP], (uint64_t)now_ns());
+        w[P[DE_H_ESTOP]] = 0;
+        memcpy(w + P[DE_PAYLOAD_AT], out, (size_t)size);
+        st_u32(w + c->crc_at, codec_crc(c, w));
+        codec_tag(c, w, (size_t)c->body, w + c->body);
+        uint8_t *ex = U8(pl, DE_EX) + i * P[DE_EX_SIZE];
+        st_u64(ex + P[DE_EX_SENT], ld_u64(ex + P[DE_EX_SENT]) + 1);
+        mask |= 1L << i;
+    }
+    return PyLong_FromLong(mask);
+}
+
 /* -- introspection -- */
 
 static PyObject *signature(PyObject *mod, PyObject *arg) {
@@ -1312,6 +1810,16 @@ static PyMethodDef METHODS[] = {
     {"guard_prepare", guard_prepare, METH_O, "The sender: a command prepared and screened."},
     {"unpack_states", (PyCFunction)(void (*)(void))unpack_states, METH_FASTCALL,
      "PyBullet joint states -> q, qd, applied torque."},
+    {"wire_codec", wire_codec, METH_VARARGS, "A DDM record codec: the key's HMAC states, the layout."},
+    {"wire_tag", (PyCFunction)(void (*)(void))wire_tag, METH_FASTCALL, "HMAC-SHA256 of data."},
+    {"wire_seal", (PyCFunction)(void (*)(void))wire_seal, METH_FASTCALL,
+     "Write a record's crc32 and tag."},
+    {"wire_verify", (PyCFunction)(void (*)(void))wire_verify, METH_FASTCALL,
+     "Check a record's size, crc32 and tag: 0 sound, 1 size, 2 checksum, 3 tag."},
+    {"ddm_admit", (PyCFunction)(void (*)(void))ddm_admit, METH_FASTCALL,
+     "The DDM: a sound, fresh record of the usual kind admitted into Local Data, or -1."},
+    {"ddm_emit", ddm_emit, METH_O, "The DDM: new records encoded for sending (a bit mask)."},
+    {"wire_backend", wire_backend, METH_NOARGS, "Which SHA-256 block and crc32 functions run."},
     {"signature", signature, METH_O, "A kernel's arguments: ((name, type), ...)."},
     {NULL, NULL, 0, NULL},
 };
@@ -1323,6 +1831,8 @@ static struct PyModuleDef MODULE = {
 };
 
 PyMODINIT_FUNC PyInit__kernels(void) {
+    crc_init();
+    sha_init_backend();
     if (PyType_Ready(&PlanType) < 0)
         return NULL;
     PyObject *m = PyModule_Create(&MODULE);

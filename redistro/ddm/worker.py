@@ -35,9 +35,11 @@ import numpy as np
 
 from redistro.config import Config
 from redistro.ddm import record as wire
+from redistro.ddm.fast import FastPath
 from redistro.ddm.transport import Transport, transport_class
 from redistro.errors import TransportError, WireError
 from redistro.ipc.session import Manifest
+from redistro.kernels import KERNELS
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, COUNTER, EXCHANGE, FEEDBACK, MANAGER, SessionStatus
 from redistro.process import hooks
@@ -88,6 +90,7 @@ class Ddm(Worker):
         n = len(self.robots)
         self.exchange_blocks = [ld.writer("exchange", i, role="ddm") for i in range(n)]
         self.ex = [Record(EXCHANGE) for _ in range(n)]
+        self.fast: FastPath | None = None
         if self.kind == "esc":
             self.in_kind, self.out_kind = wire.KIND_COMMAND, wire.KIND_FEEDBACK
             self.in_blocks = [ld.writer("command", 0, role="ddm")]
@@ -102,13 +105,13 @@ class Ddm(Worker):
             self.in_blocks = [ld.writer("feedback", i, role="ddm") for i in range(n)]
             self.out_blocks = [ld.block("command", i) for i in range(n)]
             self.out_recs = [Record(COMMAND) for _ in range(n)]
-        self.last_out = [0] * n  # seq_src of the last record sent, per robot
+        self.last_out: Any = [0] * n  # seq_src of the last record sent, per robot
         self.in_size = wire.PAYLOADS[self.in_kind].itemsize
         self.key = link_key(self.cfg, self.spec.session_id)
         self.encoders = [
             wire.Encoder(self.out_kind, self.gid[r], self.spec.node, self.key) for r in self.robots
         ]
-        self.seq = [0] * n
+        self.seq: Any = [0] * n  # the last wire seq sent, per robot
         self.admission = wire.Admission()
         self.latency = Samples()
         self.estop_sent = False
@@ -134,8 +137,34 @@ class Ddm(Worker):
             names = {g: r for r, g in self.gid.items()}
             self.transport = self.hooks.transport(self.transport, names)
         self.replying = self.kind == "esc" and self.transport.replies
+        if KERNELS is not None and self.hooks is None:
+            self._plan_fast(ld)
         for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
             ex["feedback_wanted"] = 1
+
+    def _plan_fast(self, ld: Any) -> None:
+        """The compiled common case (:mod:`redistro.ddm.fast`), over records
+        and counters the Python path shares."""
+        n = len(self.robots)
+        esc = self.kind == "esc"
+        fast = FastPath(
+            ld,
+            [self.gid[r] for r in self.robots],
+            [("command", 0)] if esc else [("feedback", i) for i in range(n)],
+            [("feedback", 0)] if esc else [("command", i) for i in range(n)],
+            self.in_kind,
+            self.out_kind,
+            self.spec.node,
+            self.key,
+            starving=esc,
+            latency=self.latency,
+        )
+        self.fast = fast
+        self.ex = fast.ex
+        self.out_recs = fast.out
+        self.seq = fast.seq
+        self.last_out = fast.last_out
+        self.send_to = [self.gid[r] for r in self.robots]
 
     # -- one tick --
 
@@ -213,8 +242,13 @@ class Ddm(Worker):
                 ex["foreign"] += refused - self.refused_seen
             self.refused_seen = refused
             self.dirty = self.urgent = True
+        fast = self.fast
+        taken = 0
         for raw in received:
             self.dirty = True
+            if fast is not None and fast.admit_call(fast.admit_plan, raw) >= 0:
+                taken += 1  # admitted, published and counted (FastPath.admit)
+                continue
             try:
                 kind, robot, source, seq, stamp, estop = wire.check(raw, self.key)
             except WireError as exc:
@@ -239,7 +273,10 @@ class Ddm(Worker):
             if kind != self.in_kind or i is None:
                 continue  # another node's traffic on a broadcast medium
             ex = self.ex[i]
-            why = self.admission.refuse(source, kind, robot, seq, stamp)
+            if fast is not None:
+                why = fast.refuse(self.admission, i, source, kind, robot, seq, stamp)
+            else:
+                why = self.admission.refuse(source, kind, robot, seq, stamp)
             if why:
                 ex[why] += 1
                 ex["dropped"] += 1
@@ -276,10 +313,25 @@ class Ddm(Worker):
                 self.delivered_block.publish(self.delivered_rec.bytes)
                 stamp = wire.payload_stamp(raw)
                 if 0 < stamp <= now:
-                    self.latency.add(now - stamp)
-        return fresh
+                    if fast is not None:
+                        fast.add_latency(now - stamp)
+                    else:
+                        self.latency.add(now - stamp)
+        if taken:
+            self.transport.authenticated()
+        return fresh + taken
 
     def _send(self, estop: bool) -> None:
+        if self.fast is not None and not estop:
+            mask = self.fast.emit_call(self.fast.emit_plan)  # FastPath.emit
+            if mask >= 0:  # else a torn read: the Python path reads again
+                if mask:
+                    views = self.fast.wire_views
+                    for i, robot in enumerate(self.send_to):
+                        if mask >> i & 1:
+                            self.transport.send(bytes(views[i]), robot)
+                    self.dirty = True
+                return
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
             block.read_into(rec.bytes)
             produced = int(rec["seq_src"])
@@ -312,6 +364,8 @@ class Ddm(Worker):
                 for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
                     block.read_into(rec.bytes)
                     self._send_one(i, rec, True)
+        if self.fast is not None:
+            self.latency.count = self.fast.latency_count()
         lat = self.latency.summary_us()
         for ex in self.ex:
             ex.array["latency_us"] = np.array([lat["p50"], lat["p99"], lat["max"]])

@@ -1,0 +1,233 @@
+"""The ddm's compiled common case against the wire format's Python reference.
+
+The codec kernels (crc32 and HMAC-SHA256 of a record) must give the bytes
+zlib and hmac give, with OpenSSL's block function and with the portable
+one; the admit and emit kernels must take exactly the common case and
+leave every other record untouched for the Python path.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import os
+import subprocess
+import sys
+import zlib
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from redistro.ddm import record as wire
+from redistro.ddm.fast import FastPath
+from redistro.ipc.session import Session
+from redistro.kernels import KERNELS
+from redistro.localdata import LocalData
+from redistro.localdata.block import Record
+from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
+from redistro.process.stats import Samples
+
+pytestmark = pytest.mark.skipif(KERNELS is None, reason="the kernels are not built")
+
+KEY = bytes(range(32))
+LONG_KEY = bytes(range(100))  # longer than SHA-256's block: hashed first
+
+
+def _codec_figures() -> dict[str, object]:
+    """Tags, checksums and verdicts from this process's kernels."""
+    assert KERNELS is not None
+    rng = np.random.default_rng(7)
+    out: dict[str, object] = {"backend": list(KERNELS.wire_backend())}
+    tags = []
+    for key in (KEY, LONG_KEY, b"k" * 64, b"short key 16 b.."):
+        codec = KERNELS.wire_codec(key, wire.BODY, wire._CRC_AT)
+        for n in (0, 1, 55, 56, 63, 64, 65, 119, 120, wire.BODY, 1000):
+            data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+            tags.append(
+                [KERNELS.wire_tag(codec, data).hex(), hmac.digest(key, data, "sha256").hex()]
+            )
+    out["tags"] = tags
+    codec = KERNELS.wire_codec(KEY, wire.BODY, wire._CRC_AT)
+    rec = bytearray(wire.encode(wire.KIND_COMMAND, 1, "ssc", 3, 4, np.zeros((), COMMAND), key=KEY))
+    sealed = bytearray(rec)
+    sealed[wire._CRC_AT : wire._CRC_AT + 4] = b"\0\0\0\0"
+    sealed[wire.BODY :] = bytes(32)
+    KERNELS.wire_seal(codec, sealed)
+    out["seal"] = sealed == rec
+    flipped = bytearray(rec)
+    flipped[60] ^= 1
+    other = wire.encode(wire.KIND_COMMAND, 1, "ssc", 3, 4, np.zeros((), COMMAND), key=LONG_KEY)
+    out["verify"] = [
+        KERNELS.wire_verify(codec, rec),
+        KERNELS.wire_verify(codec, rec[:-1]),
+        KERNELS.wire_verify(codec, flipped),
+        KERNELS.wire_verify(codec, other),
+    ]
+    crc = zlib.crc32(rec[wire._CRC_AT + 4 : wire.BODY], zlib.crc32(rec[: wire._CRC_AT]))
+    out["crc"] = int.from_bytes(rec[wire._CRC_AT : wire._CRC_AT + 4], "little") == crc
+    return out
+
+
+def _check_codec(figures: dict[str, object]) -> None:
+    for mine, reference in figures["tags"]:  # type: ignore[attr-defined]
+        assert mine == reference
+    assert figures["seal"] is True
+    assert figures["crc"] is True
+    assert figures["verify"] == [0, 1, 2, 3]  # sound, size, checksum, tag
+
+
+def test_the_codec_gives_zlibs_checksum_and_hmacs_tag() -> None:
+    _check_codec(_codec_figures())
+
+
+def test_the_portable_codec_gives_the_same_bytes() -> None:
+    env = dict(os.environ, REDISTRO_PORTABLE_WIRE="1")
+    code = (
+        "import json; from tests.unit.test_ddm_fast import _codec_figures as f; "
+        "print(json.dumps(f()))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    figures = json.loads(out.stdout)
+    assert figures["backend"] == ["portable", "portable"]
+    _check_codec(figures)
+
+
+# -- admit and emit, on a real Local Data segment --
+
+
+@pytest.fixture
+def ld() -> Iterator[LocalData]:
+    with Session.create() as session:
+        seg = LocalData.create(
+            session.id,
+            "esc.r1",
+            node_kind="esc",
+            proc_names=["acquisition", "sender", "ddm"],
+            proc_roles=["acquisition", "sender", "ddm"],
+            proc_stages=[0, 1, -1],
+            robot_names=["r1"],
+            rate_hz=200.0,
+            period_ns=5_000_000,
+            heartbeat_limit_cycles=5,
+            manifest=session.manifest,
+        )
+        try:
+            yield seg
+        finally:
+            seg.close()
+            seg.unlink()
+
+
+def _esc_fast(ld: LocalData, latency: Samples) -> FastPath:
+    return FastPath(
+        ld,
+        [1],
+        [("command", 0)],
+        [("feedback", 0)],
+        wire.KIND_COMMAND,
+        wire.KIND_FEEDBACK,
+        "esc.r2",
+        KEY,
+        starving=True,
+        latency=latency,
+    )
+
+
+def _command(
+    seq: int,
+    stamp: int,
+    *,
+    robot: int = 1,
+    estop: bool = False,
+    key: bytes = KEY,
+    source: str = "ssc",
+    kind: int = wire.KIND_COMMAND,
+    mark: float = 0.0,
+) -> bytes:
+    payload = np.zeros((), wire.PAYLOADS[kind])
+    payload["stamp_ns"] = 1  # the producer's stamp: long ago
+    if kind == wire.KIND_COMMAND:
+        payload["seq_src"] = seq
+        payload["tau_nm"][0] = mark
+    return wire.encode(kind, robot, source, seq, stamp, payload, estop=estop, key=key)
+
+
+def test_admit_takes_only_the_common_case(ld: LocalData) -> None:
+    latency = Samples(64)
+    fast = _esc_fast(ld, latency)
+    admission = wire.Admission()
+    command = ld.block("command", 0)
+    sent = ld.writer("starving_sent", role="sender")
+    counter = Record(COUNTER)
+    counter["count"] = 17
+    sent.publish(counter.bytes)
+
+    first = _command(1, 100)
+    assert fast.admit(first) == -1  # no source has claimed the robot yet
+    assert command.seq == 0  # ... and nothing was written
+    # the Python path admits it: the source claims the row
+    assert fast.refuse(admission, 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100) == ""
+    assert fast.admit(_command(2, 200)) == -1  # the exchange is not fresh yet
+    fast.ex[0]["fresh"] = 1
+
+    for bad in (
+        _command(3, 300, estop=True),  # an e-stop: the Python path raises it
+        _command(3, 300, robot=0),  # not this ddm's robot
+        _command(3, 300, key=LONG_KEY),  # forged
+        _command(3, 300, source="other"),  # another source
+        _command(3, 300, kind=wire.KIND_FEEDBACK),  # not the kind an ESC receives
+        _command(1, 300),  # a duplicate seq
+        _command(3, 100),  # a replay: a newer seq, an old stamp
+        _command(3, 300)[:-1],  # short
+    ):
+        assert fast.admit(bad) == -1
+    flipped = bytearray(_command(3, 300))
+    flipped[70] ^= 4
+    assert fast.admit(bytes(flipped)) == -1
+    assert command.seq == 0 and int(fast.ex[0]["updates"]) == 0
+
+    assert fast.admit(_command(3, 300, mark=2.5)) == 0
+    got = command.read()
+    assert float(got["tau_nm"][0]) == 2.5 and int(got["seq_src"]) == 3
+    assert int(fast.ex[0]["updates"]) == 1 and int(fast.ex[0]["last_update_ns"]) > 0
+    paid = ld.block("starving_delivered").read()
+    assert int(paid["count"]) == 17 and int(paid["stamp_ns"]) > 0
+    assert fast.latency_count() == 1 and latency._buf[0] > 0  # in the ddm's ring
+    # the Python path sees the kernel's admission state
+    ssc = b"ssc".ljust(16, b"\0")
+    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 3, 300) == "duplicate"
+    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 2, 400) == "out_of_order"
+    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 4, 300) == "stale"
+    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 4, 400) == ""
+    assert fast.admit(_command(4, 400)) == -1  # ... and the kernel the Python path's
+    assert fast.admit(_command(5, 500)) == 0
+
+
+def test_emit_encodes_each_new_sample_once(ld: LocalData) -> None:
+    fast = _esc_fast(ld, Samples(8))
+    feedback = ld.writer("feedback", 0, role="acquisition")
+    assert fast.emit() == 0  # nothing produced yet
+    rec = Record(FEEDBACK)
+    rec["seq_src"] = 5
+    rec["stamp_ns"] = 123
+    feedback.publish(rec.bytes)
+    assert fast.emit() == 1
+    d = wire.decode(bytes(fast.wire_views[0]), KEY)
+    assert (d.kind, d.robot, d.source.rstrip("\0"), d.seq) == (wire.KIND_FEEDBACK, 1, "esc.r2", 1)
+    assert not d.estop and d.payload.tobytes() == rec.bytes.tobytes()
+    assert int(fast.out[0]["seq_src"]) == 5  # the Python path sees what was read
+    assert int(fast.ex[0]["sent"]) == 1
+    assert fast.emit() == 0  # the same sample: nothing new
+    rec["seq_src"] = 6
+    feedback.publish(rec.bytes)
+    assert fast.emit() == 1
+    assert wire.decode(bytes(fast.wire_views[0]), KEY).seq == 2
+    assert list(fast.seq) == [2] and list(fast.last_out) == [6]
