@@ -16,6 +16,7 @@ import contextlib
 import socket
 import struct
 import zlib
+from collections.abc import Collection
 from typing import TYPE_CHECKING
 
 from redistro.ddm.record import SIZE
@@ -133,7 +134,7 @@ class ReflectiveTransport(Transport):
             except OSError as exc:
                 raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
 
-    def receive(self) -> list[bytes]:
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         out: list[bytes] = []
         for _ in range(MAX_DATAGRAMS):  # a flood waits for the next receive
             try:

@@ -24,6 +24,7 @@ import select
 import socket
 import time
 import zlib
+from collections.abc import Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -246,7 +247,7 @@ class SocketTransport(Transport):
         if sent != len(record):  # a partial record would desynchronise the stream
             raise TransportError(f"link to {link.name}: short send ({sent} of {len(record)})")
 
-    def receive(self) -> list[bytes]:
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         """Every whole record that arrived. A link that failed or was closed
         still delivers what came before the end (the last record a peer sends
         before it closes is often its e-stop). The listening side has one
@@ -261,6 +262,8 @@ class SocketTransport(Transport):
             # the usual case of a listening side: its pinned peer sent whole
             # records (one recv into a buffer kept for it, no link to find)
             self._receives += 1
+            if ready is not None and peer.sock.fileno() not in ready:
+                return []  # woken by something else: nothing came
             try:
                 got = peer.sock.recv_into(self.rx)
             except BlockingIOError:
@@ -288,7 +291,11 @@ class SocketTransport(Transport):
         else:
             if self.pending:
                 self._progress()
-            links = dict(self.links)
+            links = {
+                r: link
+                for r, link in self.links.items()
+                if ready is None or link.sock.fileno() in ready
+            }
         out: list[bytes] = []
         budget = MAX_RECORDS * SIZE
         for robot, link in links.items():

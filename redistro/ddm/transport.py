@@ -12,6 +12,7 @@ chosen by ``ddm.transport`` and imported only when used.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Collection
 from typing import TYPE_CHECKING
 
 from redistro.lazy import load
@@ -30,7 +31,10 @@ class Transport(ABC):
     def send(self, record: bytes, robot: int) -> None: ...
 
     @abstractmethod
-    def receive(self) -> list[bytes]: ...
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
+        """ready: the fds (of ``fds()``) the ddm's poll found readable; a
+        transport may skip the others (nothing waits there: the poll is
+        level-triggered). None: look everywhere."""
 
     @abstractmethod
     def close(self) -> None: ...

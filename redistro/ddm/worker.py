@@ -87,6 +87,7 @@ class Ddm(Worker):
         ld = self.ld
         self.manager_block = ld.block("manager")
         self.mgr = Record(MANAGER)
+        self.estop_flag = self.manager_block.word("estop")
         n = len(self.robots)
         self.exchange_blocks = [ld.writer("exchange", i, role="ddm") for i in range(n)]
         self.ex = [Record(EXCHANGE) for _ in range(n)]
@@ -174,8 +175,7 @@ class Ddm(Worker):
     def step(self, cycle: int) -> None:
         if self.lost:
             return  # the managers see the data go stale (starving)
-        self.manager_block.read_into(self.mgr.bytes)
-        estop = bool(self.mgr["estop"])
+        estop = bool(self.estop_flag[0])  # the manager's e-stop, read alone
         try:
             if self.kind == "esc":
                 fresh = self._receive()
@@ -235,7 +235,7 @@ class Ddm(Worker):
     def _receive(self) -> int:
         """Admit what came; the number of fresh records."""
         fresh = 0
-        received = self.transport.receive()
+        received = self.transport.receive(self.ready_fds)
         refused = self.transport.refused()
         if refused != self.refused_seen:
             for ex in self.ex:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import collections
 import time
+from collections.abc import Collection
 
 from redistro.ddm.transport import Transport
 from redistro.errors import TransportError
@@ -156,11 +157,11 @@ class InjectedTransport(Transport):
             _, record, robot = self.delayed.popleft()
             self.inner.send(record, robot)
 
-    def receive(self) -> list[bytes]:
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         if self.closed:
             raise TransportError("link closed (injected fault)")
         self._flush_delayed()
-        return self.inner.receive()
+        return self.inner.receive(ready)
 
     def lost_links(self) -> dict[int, str]:
         return {} if self.closed else self.inner.lost_links()

@@ -87,6 +87,15 @@ class LogRing:
         self.raw = np.frombuffer(shm.buffer, dtype=np.uint8)
         self._mem = memoryview(self.raw)  # type: ignore[arg-type]
         self._captured = self._mem[CAPTURED_AT : CAPTURED_AT + 8].cast("Q")
+        # each slot's counter and payload as views made once (a reader takes
+        # one slot per cycle; making and releasing two views cost more than
+        # the copy)
+        self._seqs: list[Any] = []
+        self._srcs: list[memoryview] = []
+        for k in range(slots):
+            at = HEADER_BYTES + k * layout.slot
+            self._seqs.append(self._mem[at : at + 8].cast("Q"))
+            self._srcs.append(self._mem[at + 8 : at + 8 + layout.payload])
 
     @staticmethod
     def _size(layout: RingLayout, slots: int) -> int:
@@ -133,24 +142,21 @@ class LogRing:
     def read(self, cycle: int, dst: memoryview) -> bool:
         """Cycle ``cycle``'s payload into ``dst``; False when its slot holds
         another cycle by now (overwritten) or is mid-write past a few tries."""
-        at = self.slot_offset(cycle)
-        mem = self._mem
-        seq = mem[at : at + 8].cast("Q")
-        src = mem[at + 8 : at + 8 + self.layout.payload]
-        try:
-            for _ in range(4):
-                s1 = seq[0]
-                if s1 & 1:
-                    continue
-                dst[:] = src
-                if seq[0] == s1:
-                    return bool(FRAME_HEAD.unpack_from(dst, 0)[0] == cycle)
-            return False
-        finally:
-            seq.release()
-            src.release()
+        k = cycle % self.slots
+        seq, src = self._seqs[k], self._srcs[k]
+        for _ in range(4):
+            s1 = seq[0]
+            if s1 & 1:
+                continue
+            dst[:] = src
+            if seq[0] == s1:
+                return bool(FRAME_HEAD.unpack_from(dst, 0)[0] == cycle)
+        return False
 
     def close(self) -> None:
+        for view in (*self._seqs, *self._srcs):
+            view.release()
+        self._seqs, self._srcs = [], []
         self._captured.release()
         self._mem.release()
         self.raw = np.empty(0, dtype=np.uint8)

@@ -55,6 +55,9 @@ class Worker:
         # after this cycle's heartbeat, once
         self.wake_manager = False
         self.wake_fd = -1  # the node's wake event (the runner sets it)
+        # an event-driven worker: the fds its last wake found readable (None:
+        # unknown, look at every one)
+        self.ready_fds: list[int] | None = None
 
     def idle(self, deadline_ns: int) -> bool:
         """The Idle state: work that need not be in the cycle (statistics,
@@ -436,6 +439,7 @@ class _Runner:
                     watched = list(fds)
                 events = poller.poll(wait_s)
                 wake_ns = time.monotonic_ns()
+                worker.ready_fds = [fd for fd, _ev in events]
                 for fd, _ev in events:
                     if fd == sigfd:
                         for sig in signals.read_signalfd(sigfd):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Collection
 from pathlib import Path
 
 import pytest
@@ -24,7 +25,7 @@ class Loop(Transport):
     def send(self, record: bytes, robot: int) -> None:
         self.queue.append(record)
 
-    def receive(self) -> list[bytes]:
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         out, self.queue = self.queue, []
         return out
 
