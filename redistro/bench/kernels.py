@@ -12,7 +12,9 @@ reach. Each piece is called ``calls`` times in a hot loop and timed with
   backplane and decoded) and ``send_torques()`` (screened, encoded, written);
 - cartesian law: one arm's ``CartesianLaw.update`` (the SSC worker runs one
   per arm), with the arm's Pinocchio terms computed outside the timing;
-- pid and quintic: one robot's joint PID update and quintic reference.
+- pid and quintic: one robot's joint PID update and quintic reference;
+- ddm record: a record's crc32 and tag checked, and a record encoded and
+  sealed (the reference: zlib and hashlib from Python).
 """
 
 from __future__ import annotations
@@ -165,6 +167,38 @@ def _joints(use: bool, calls: int) -> Any:
     return {"pid": _time(lambda: loop.update(0.001), calls), "quintic": _time(at, calls)}
 
 
+def _wire(use: bool, calls: int) -> Any:
+    """A DDM record's checksum and tag checked (what every record in costs)
+    and a record encoded, checksummed and signed (every record out)."""
+    from redistro.ddm import record as wire
+    from redistro.kernels import KERNELS
+
+    key = bytes(range(32))
+    payload = np.zeros((), wire.PAYLOADS[wire.KIND_FEEDBACK]).tobytes()
+    raw = wire.encode(
+        wire.KIND_COMMAND, 1, "ssc", 1, 1, bytes(wire.PAYLOADS[wire.KIND_COMMAND].itemsize), key=key
+    )
+    enc = wire.Encoder(wire.KIND_FEEDBACK, 1, "esc.r1", key)
+    if use:
+        codec = wire._codec(key)
+        verify: Callable[[], object] = lambda: KERNELS.wire_verify(codec, raw)  # noqa: E731
+    else:
+        enc.codec = b""  # the Python path
+
+        def verify() -> None:
+            if int.from_bytes(raw[wire._CRC_AT : wire._CRC_AT + 4], "little") != wire._crc(raw):
+                raise AssertionError("checksum")
+            wire._check_tag(key, raw)
+
+    seq = [0]
+
+    def encode() -> None:
+        seq[0] += 1
+        enc.encode(seq[0], seq[0], payload)
+
+    return {"verify": _time(verify, calls), "encode": _time(encode, calls)}
+
+
 def run(cfg: Config, calls: int = 5000) -> dict[str, Any]:
     from redistro import kernels
     from redistro.config.hardware import load_hardware
@@ -186,6 +220,9 @@ def run(cfg: Config, calls: int = 5000) -> dict[str, Any]:
         j = _joints(use, calls)
         rows.setdefault("joint pid", {})[label] = j["pid"]
         rows.setdefault("quintic reference", {})[label] = j["quintic"]
+        w = _wire(use, calls)
+        rows.setdefault("ddm record in: crc32 + tag", {})[label] = w["verify"]
+        rows.setdefault("ddm record out: encoded, sealed", {})[label] = w["encode"]
     return {"calls": calls, "cpu_us_per_call": rows}
 
 

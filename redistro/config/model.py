@@ -198,9 +198,7 @@ class ImpedanceConfig:
     translation along each direction of the arm's own inertia (0: the fixed
     d instead; the TCP's inertia differs tenfold between directions, and a
     fixed d left the heavy one ringing at 1-2 Hz with zeta 0.15); ki: integral
-    gain [N/(m s), N m/(rad s)] (k/ki 0.2 s in translation: a position segment
-    ends within 0.1-0.25 mm, inside the peg's 0.5 mm of play a side); i_max:
-    bound on the integral force [N, N m];
+    gain [N/(m s), N m/(rad s)]; i_max: bound on the integral force [N, N m];
     k_null: posture stiffness in the Jacobian's null space [N m/rad] (7);
     d_joint: joint damping [N m s/rad] (7).
     """
@@ -212,7 +210,7 @@ class ImpedanceConfig:
         default_factory=lambda: _six(10, 10, 10, 0.05, 0.05, 0.05), metadata={"len": 6, "ge": 0}
     )
     ki: list[float] = field(
-        default_factory=lambda: _six(1500, 1500, 1500, 20, 20, 20), metadata={"len": 6, "ge": 0}
+        default_factory=lambda: _six(300, 300, 300, 20, 20, 20), metadata={"len": 6, "ge": 0}
     )
     i_max: list[float] = field(
         default_factory=lambda: _six(10, 10, 10, 2, 2, 2), metadata={"len": 6, "ge": 0}

@@ -13,7 +13,8 @@ The crc32 tells noise from forgery: a flipped bit fails the checksum, a
 record written without the link's key (forged, or renamed to another
 source) fails the tag (``auth``). The key is the session's (``ddm.key`` in
 its runtime directory) or, for nodes started alone, ``ddm.key_file``
-(:func:`load_key`). Computing or checking a tag costs about 1 µs hot.
+(:func:`load_key`). Computing or checking a tag costs about 1 µs hot in Python,
+about 0.5 µs in the kernels (``wire_verify``, ``wire_seal``: the common case).
 
 ``seq`` counts the source's records of that kind and robot; ``stamp_ns`` is
 the source's CLOCK_MONOTONIC when it sent the record (comparable only with
