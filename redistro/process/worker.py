@@ -427,6 +427,10 @@ class _Runner:
         wait_ns = int(wait_s * 1e9)
         wake_fd = self.wake_fd
         last_ns = time.monotonic_ns()
+        cycle = 0
+        with contextlib.suppress(TornReadTimeout):
+            manager_block.read_into(tick.bytes)
+            cycle = tick["cycle"]
         try:
             while True:
                 fds = worker.fds()
@@ -439,21 +443,25 @@ class _Runner:
                     watched = list(fds)
                 events = poller.poll(wait_s)
                 wake_ns = time.monotonic_ns()
-                worker.ready_fds = [fd for fd, _ev in events]
-                for fd, _ev in events:
-                    if fd == sigfd:
-                        for sig in signals.read_signalfd(sigfd):
-                            if sig == signals.SIG_END:
-                                return ""
-                            if sig == signals.SIG_ORPHAN:
-                                return "manager died; stopping"
-                            if sig in signals.STOP_SIGNALS:
-                                return f"stopped by {signal.Signals(sig).name}"
-                    elif fd == manager_fd:
-                        return "manager vanished; stopping"
-                    elif fd == wake_fd:
-                        with contextlib.suppress(BlockingIOError):
-                            os.eventfd_read(wake_fd)
+                ready = [fd for fd, _ev in events]
+                worker.ready_fds = ready
+                if sigfd in ready:
+                    for sig in signals.read_signalfd(sigfd):
+                        if sig == signals.SIG_END:
+                            return ""
+                        if sig == signals.SIG_ORPHAN:
+                            return "manager died; stopping"
+                        if sig in signals.STOP_SIGNALS:
+                            return f"stopped by {signal.Signals(sig).name}"
+                if manager_fd in ready:
+                    return "manager vanished; stopping"
+                if wake_fd in ready:  # (before the step: a wake during it stays)
+                    with contextlib.suppress(BlockingIOError):
+                        os.eventfd_read(wake_fd)
+                # the data first: the step (a command on its way) runs before
+                # the bookkeeping of the wake, which it never needs; it gets
+                # the manager cycle read at the previous wake
+                self._step(worker, cycle, wake_ns)
                 if not events:  # woken by the deadline: how late past it
                     self.lateness.add(max(0, wake_ns - last_ns - wait_ns))
                 last_ns = wake_ns
@@ -463,7 +471,6 @@ class _Runner:
                     self.stage_timeouts += 1  # no cycle to sign: the next wake will
                     continue
                 cycle = tick["cycle"]
-                self._step(worker, cycle, wake_ns)
                 self._sign(mine, row, cycle, wake_ns, worker.estop_request)
                 self._wake_for_estop(worker, manager_fd)
         finally:
