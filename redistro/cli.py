@@ -360,7 +360,7 @@ def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
 
     def once(stage_list: list[int], label: str) -> dict[str, Any]:
         steal0, t0 = cpu_steal_ticks(), time.monotonic()
-        result = cycle.run_once(
+        result, run_dir = cycle.run_once(
             cfg,
             rate_hz=rate,
             workers=args.workers,
@@ -370,7 +370,7 @@ def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
             pin=args.pin,
             message_every=args.message_every,
         )
-        s = cycle.summarize(result, args.workers, args.work_us)
+        s = cycle.summarize(result, args.workers, args.work_us, run_dir)
         s["host_steal"] = steal_report(steal0, cpu_steal_ticks(), time.monotonic() - t0)
         if baseline is not None:
             s["baseline_lateness_us"] = baseline

@@ -12,6 +12,7 @@ from redistro.errors import ConfigError
 from redistro.ipc import session as ipc_session
 from redistro.localdata import MAX_PROCS
 from redistro.process.owner import run_node
+from redistro.process.result import NodeResult
 from redistro.process.spec import NodeSpec, WorkerSpec
 
 
@@ -106,7 +107,8 @@ def run_once(
     pin: bool,
     message_every: int = 0,
     announce: bool = True,
-) -> dict[str, Any]:
+) -> tuple[NodeResult, Path]:
+    """One node run; its result and its run folder."""
     with ipc_session.Session.create() as session:
         if announce:
             print(f"session {session.id}", flush=True)
@@ -125,14 +127,15 @@ def run_once(
         run_dir.mkdir(parents=True, exist_ok=True)
         spec.messages_path = str(run_dir / "messages.log")
         result = run_node(spec, session)
-        result["run_dir"] = str(run_dir)
-    return result
+    return result, run_dir
 
 
-def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str, Any]:
+def summarize(
+    result: NodeResult, workers: int, work_us: float, run_dir: Path | None = None
+) -> dict[str, Any]:
     """The benchmark's figures from a manager result."""
-    cycles = result.get("cycles", 0)
-    comp = [w["compute_us"] for w in result.get("workers", [])]
+    cycles = result.cycles
+    comp = [w.compute_us for w in result.workers]
     # An overrun cycle is a timer period in which the node did not complete a
     # cycle: its last stage finished after the period ended (deadline miss),
     # had not finished at the next tick (incomplete), or the tick was never
@@ -140,49 +143,46 @@ def summarize(result: dict[str, Any], workers: int, work_us: float) -> dict[str,
     # *events* count the processes instead: the manager taking a tick more
     # than one period late, or a worker waking to more than one queued sync;
     # one host stall is one event in every process it holds.
-    missed_ticks = result.get("missed_ticks", 0)
-    overrun_cycles = (
-        result.get("deadline_misses", 0) + result.get("incomplete_cycles", 0) + missed_ticks
-    )
-    periods = cycles + missed_ticks
-    overruns = result.get("manager_overruns", 0) + result.get("worker_overruns", 0)
+    overrun_cycles = result.overruns
+    periods = cycles + result.missed_ticks
+    overruns = result.manager_overruns + result.worker_overruns
     return {
-        "result": result.get("result"),
-        "reason": result.get("reason", ""),
-        "rate_hz": result.get("rate_hz"),
+        "result": result.result,
+        "reason": result.reason,
+        "rate_hz": result.rate_hz,
         "workers": workers,
         "work_us": work_us,
         "cycles": cycles,
         "overrun_cycles": overrun_cycles,
         "overrun_fraction": round(overrun_cycles / periods, 6) if periods else None,
         "overrun_events": overruns,
-        "incomplete_cycles": result.get("incomplete_cycles", 0),
-        "manager_overruns": result.get("manager_overruns", 0),
-        "missed_ticks": result.get("missed_ticks", 0),
-        "worker_overruns": result.get("worker_overruns", 0),
-        "worker_skipped": result.get("worker_skipped", 0),
-        "late_heartbeats": result.get("late_heartbeats", 0),
-        "missed_heartbeats": result.get("missed_heartbeats", 0),
-        "deadline_misses": result.get("deadline_misses", 0),
-        "lateness_us": result.get("lateness_us", {}),
+        "incomplete_cycles": result.incomplete_cycles,
+        "manager_overruns": result.manager_overruns,
+        "missed_ticks": result.missed_ticks,
+        "worker_overruns": result.worker_overruns,
+        "worker_skipped": result.worker_skipped,
+        "late_heartbeats": result.late_heartbeats,
+        "missed_heartbeats": result.missed_heartbeats,
+        "deadline_misses": result.deadline_misses,
+        "lateness_us": result.lateness_us,
         "worker_lateness_us": {
-            "p50": max((w["lateness_us"]["p50"] for w in result.get("workers", [])), default=0),
-            "p99": max((w["lateness_us"]["p99"] for w in result.get("workers", [])), default=0),
+            "p50": max((w.lateness_us["p50"] for w in result.workers), default=0),
+            "p99": max((w.lateness_us["p99"] for w in result.workers), default=0),
         },
         "compute_us": {
             "p50": max((c["p50"] for c in comp), default=0.0),
             "p99": max((c["p99"] for c in comp), default=0.0),
         },
-        "makespan_us": result.get("makespan_us", {}),
-        "cpu_percent": result.get("cpu_percent", 0.0),
+        "makespan_us": result.makespan_us,
+        "cpu_percent": result.cpu_percent,
         "scheduling": {
-            "manager": result.get("manager", {}).get("scheduling", {}),
-            "workers": {w["name"]: w["scheduling"] for w in result.get("workers", [])},
+            "manager": result.manager.get("scheduling", {}),
+            "workers": {w.name: w.scheduling for w in result.workers},
         },
-        "session_id": result.get("session_id"),
-        "run_dir": result.get("run_dir"),
-        "messages": result.get("messages", [])[:20],
-        "node_result": result,
+        "session_id": result.session_id,
+        "run_dir": str(run_dir) if run_dir is not None else None,
+        "messages": result.messages[:20],
+        "node_result": result.as_dict(),
     }
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
 
 import numpy as np
 
@@ -27,6 +26,7 @@ from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Block, Record
 from redistro.localdata.layout import COMMAND, COUNTER, GUARD, SETPOINT, SessionStatus
 from redistro.process.manager import Manager
+from redistro.process.result import EscResult
 from redistro.process.spec import NodeSpec
 
 log = logging.getLogger(__name__)
@@ -159,11 +159,10 @@ class EscManager(Manager):
 
     def cleanup(self) -> None:
         self._freeze("end, workers gone")
-        extra: dict[str, Any] = {"robot": self.robot}
+        esc = self.result.esc = EscResult(robot=self.robot)
         if not self.blocks:  # initialization failed early
             if self.driver is not None:
                 self.driver.close()
-            self.result.update(extra)
             return
         home = self.blocks["home"].read()
         cal = self.blocks["calibration"].read()
@@ -171,14 +170,14 @@ class EscManager(Manager):
         applied = int(home["offset_seq"]) > 0
         offset = np.asarray(home["offset_rad"], dtype=np.float64)
         if self.calibrating:
-            extra["calibration"] = {
+            esc.calibration = {
                 "applied": applied,
                 "found": [bool(v) for v in cal["found"]],
                 "edges": [int(v) for v in cal["edges"]],
                 "offset_found_rad": [float(v) for v in cal["offset_found_rad"]],
             }
         if int(guard["tripped"]):
-            extra["violation"] = {
+            esc.violation = {
                 "quantity": bytes(guard["trip_quantity"]).decode(),
                 "joint": int(guard["trip_joint"]) + 1 if int(guard["trip_joint"]) >= 0 else None,
                 "value": float(guard["trip_value"]),
@@ -188,11 +187,11 @@ class EscManager(Manager):
                 "frozen_monotonic_ns": int(guard["trip_ns"]),
                 "text": bytes(guard["trip_text"]).decode(errors="replace"),
             }
-        extra["freeze_monotonic_ns"] = self.frozen_ns
+        esc.freeze_monotonic_ns = list(self.frozen_ns)
         if self.from_ssc:
             ex = self.blocks["exchange"].read()
-            extra["ddm"] = exchange_report(ex)
-            extra["ddm"]["starving_index_max"] = self.starving_max
+            esc.ddm = exchange_report(ex)
+            esc.ddm["starving_index_max"] = self.starving_max
         final = None
         if self.driver is not None:
             try:
@@ -201,7 +200,7 @@ class EscManager(Manager):
             except Exception as exc:
                 self._message("manager", logging.ERROR, f"final positions unreadable: {exc}")
         known = self.known_at_start or applied
-        extra["positions"] = {
+        esc.positions = {
             "file": self.positions_path,
             "at_start": self.positions_note,
             "known_at_end": bool(known and final is not None),
@@ -213,4 +212,3 @@ class EscManager(Manager):
             )
         if self.driver is not None:
             self.driver.close()
-        self.result.update(extra)

@@ -29,6 +29,7 @@ from redistro.ipc.timer import IntervalTimer
 from redistro.localdata import Block, LocalData, MessageBox, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, MSG_TEXT, PROC_STATUS
+from redistro.process.result import NodeResult, WorkerResult
 from redistro.process.spawn import spawn
 from redistro.process.spec import EXIT_FAILED, NodeSpec
 from redistro.process.stats import Samples
@@ -91,7 +92,7 @@ class Manager:
         self.spec_path = spec_path
         self.timer = IntervalTimer(spec.rate_hz)
         self.cycle = 0
-        self.result: dict[str, Any] = {"result": "ok", "reason": ""}
+        self.result = NodeResult(node=spec.node, kind=spec.kind, session_id=spec.session_id)
         self.children: list[_Child] = []
         self.on_cycle: list[_Child] = []  # the children the sync signal goes to
         self.lateness = Samples()
@@ -177,7 +178,7 @@ class Manager:
             self._fault("abnormal", f"manager error: {exc!r}")
         finally:
             self._cleanup(started)
-        return 0 if self.result["result"] == "ok" else 1
+        return 0 if self.result.ok else 1
 
     def _initialization(self) -> None:
         spec = self.spec
@@ -532,14 +533,11 @@ class Manager:
             )
 
     def _fault(self, reason: str, message: str) -> None:
-        if self.result["result"] != "ok":
+        r = self.result
+        if not r.ok:
             return  # the first fault is the cause; later ones are consequences
-        self.result.update(
-            result=reason,
-            reason=message,
-            fault_monotonic_ns=time.monotonic_ns(),
-            fault_cycle=self.cycle,
-        )
+        r.result, r.reason = reason, message
+        r.fault_monotonic_ns, r.fault_cycle = time.monotonic_ns(), self.cycle
         # act first (e-stop for the workers, the ESC freezes its robot), then tell
         self._estop = True
         if self.block is not None:
@@ -643,94 +641,83 @@ class Manager:
         self._drain_messages()
         self.messages_lost = sum(b.lost for b in self.boxes)
         routine_s = max(0.0, self._routine_end - self._routine_start)
-        workers: list[dict[str, Any]] = []
+        workers: list[WorkerResult] = []
         cpu_s = manager_cpu_s = max(0.0, self._cpu_end - self._cpu_start)
+        policies = {v: k for k, v in sched.POLICY_CODES.items()}
         for j, child in enumerate(self.children):
             row = self.rows[j].read()
             w = self.spec.workers[j]
             cpu_s += float(row["cpu_s"])
             workers.append(
-                {
-                    "name": w.name,
-                    "role": w.role,
-                    "pid": child.pid,
-                    "stage": w.stage,
-                    "cycles": int(row["cycles"]),
-                    "overruns": int(row["overruns"]),
-                    "skipped": int(row["skipped"]),
-                    "stage_timeouts": int(row["stage_timeouts"]),
-                    "torn_reads": int(row["torn_reads"]),
-                    "idle_slices": int(row["idle_slices"]),
-                    "idle_late": int(row["idle_late"]),
-                    "lateness_us": _triple(row["lateness_us"]),
-                    "compute_us": _triple(row["compute_us"]),
-                    "step_cpu_us": _triple(row["step_cpu_us"]),
-                    "cpu_s": round(float(row["cpu_s"]), 3),
-                    "cpu_percent": round(100 * float(row["cpu_s"]) / routine_s, 2)
+                WorkerResult(
+                    name=w.name,
+                    role=w.role,
+                    pid=child.pid,
+                    stage=w.stage,
+                    cycles=int(row["cycles"]),
+                    overruns=int(row["overruns"]),
+                    skipped=int(row["skipped"]),
+                    stage_timeouts=int(row["stage_timeouts"]),
+                    torn_reads=int(row["torn_reads"]),
+                    idle_slices=int(row["idle_slices"]),
+                    idle_late=int(row["idle_late"]),
+                    lateness_us=_triple(row["lateness_us"]),
+                    compute_us=_triple(row["compute_us"]),
+                    step_cpu_us=_triple(row["step_cpu_us"]),
+                    cpu_s=round(float(row["cpu_s"]), 3),
+                    cpu_percent=round(100 * float(row["cpu_s"]) / routine_s, 2)
                     if routine_s
                     else 0.0,
-                    "scheduling": {
-                        "policy": {v: k for k, v in sched.POLICY_CODES.items()}[
-                            int(row["sched_policy"])
-                        ],
+                    scheduling={
+                        "policy": policies[int(row["sched_policy"])],
                         "priority": int(row["sched_priority"]),
                         "nice": int(row["nice"]),
                         "cpus": sched.cpus_of_mask(int(row["cpu_mask"])),
                     },
-                    "exit": describe_status(child.status)
-                    if child.status is not None
-                    else "unknown",
-                }
+                    exit=describe_status(child.status) if child.status is not None else "unknown",
+                )
             )
-        ended = time.time()
-        self.result.update(
-            {
-                "node": self.spec.node,
-                "kind": self.spec.kind,
-                "session_id": self.spec.session_id,
-                "started": iso_time(started),
-                "ended": iso_time(ended),
-                "rate_hz": self.spec.rate_hz,
-                "period_us": self.timer.period_ns / 1e3,
-                "cycles": self.cycle,
-                "routine_s": round(routine_s, 3),
-                "manager_overruns": self.overruns,
-                "missed_ticks": self.missed_ticks,
-                "worker_overruns": sum(int(w["overruns"]) for w in workers),
-                "worker_skipped": sum(int(w["skipped"]) for w in workers),
-                "late_heartbeats": self.late_heartbeats,
-                "missed_heartbeats": self.missed_heartbeats,
-                "deadline_misses": self.deadline_misses,
-                "incomplete_cycles": self.incomplete_cycles,
-                "torn_ticks": self.torn_ticks,
-                "idle_slices": self.idle_slices,
-                # timer periods without a completed cycle: finished late,
-                # unfinished at the next tick, or a tick never taken
-                "overrun_cycles": self.deadline_misses + self.incomplete_cycles + self.missed_ticks,
-                "lateness_us": self.lateness.summary_us(),
-                "makespan_us": self.makespan.summary_us(),
-                "manager_work_us": self.tick_work.summary_us(),
-                "cpu_s": round(cpu_s, 3),
-                "cpu_percent": round(100 * cpu_s / routine_s, 1) if routine_s else 0.0,
-                "manager": {
-                    "pid": os.getpid(),
-                    "scheduling": self.granted.as_dict() if self.granted else {},
-                    "cpu_s": round(manager_cpu_s, 3),
-                    "cpu_percent": round(100 * manager_cpu_s / routine_s, 2) if routine_s else 0.0,
-                    "tick_work_us": self.tick_work.summary_us(),
-                },
-                "workers": workers,
-                "messages": self.messages,
-                "messages_lost": self.messages_lost,
-            }
-        )
+        r = self.result
+        r.started, r.ended = iso_time(started), iso_time(time.time())
+        r.rate_hz = self.spec.rate_hz
+        r.period_us = self.timer.period_ns / 1e3
+        r.cycles = self.cycle
+        r.routine_s = round(routine_s, 3)
+        r.manager_overruns = self.overruns
+        r.missed_ticks = self.missed_ticks
+        r.worker_overruns = sum(w.overruns for w in workers)
+        r.worker_skipped = sum(w.skipped for w in workers)
+        r.late_heartbeats = self.late_heartbeats
+        r.missed_heartbeats = self.missed_heartbeats
+        r.deadline_misses = self.deadline_misses
+        r.incomplete_cycles = self.incomplete_cycles
+        r.torn_ticks = self.torn_ticks
+        r.idle_slices = self.idle_slices
+        # timer periods without a completed cycle: finished late, unfinished
+        # at the next tick, or a tick never taken
+        r.overruns = self.deadline_misses + self.incomplete_cycles + self.missed_ticks
+        r.lateness_us = self.lateness.summary_us()
+        r.makespan_us = self.makespan.summary_us()
+        r.manager_work_us = self.tick_work.summary_us()
+        r.cpu_s = round(cpu_s, 3)
+        r.cpu_percent = round(100 * cpu_s / routine_s, 1) if routine_s else 0.0
+        r.manager = {
+            "pid": os.getpid(),
+            "scheduling": self.granted.as_dict() if self.granted else {},
+            "cpu_s": round(manager_cpu_s, 3),
+            "cpu_percent": round(100 * manager_cpu_s / routine_s, 2) if routine_s else 0.0,
+            "tick_work_us": self.tick_work.summary_us(),
+        }
+        r.workers = workers
+        r.messages = self.messages
+        r.messages_lost = self.messages_lost
 
     def _write_result(self) -> None:
         if not self.spec.result_path:
             return
         path = Path(self.spec.result_path)
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.result, indent=1))
+        tmp.write_text(json.dumps(self.result.as_dict(), indent=1))
         os.replace(tmp, path)
 
 

@@ -21,6 +21,7 @@ from typing import Any, TypeVar
 from redistro.ipc import signals
 from redistro.ipc.session import Session
 from redistro.process.manager import describe_status
+from redistro.process.result import NodeResult
 from redistro.process.spawn import spawn
 from redistro.process.spec import NodeSpec
 
@@ -34,8 +35,8 @@ _T = TypeVar("_T")
 SPARED: set[int] = set()
 
 
-def run_node(spec: NodeSpec, session: Session) -> dict[str, Any]:
-    """Run one node to its end; return the manager's result (always a dict)."""
+def run_node(spec: NodeSpec, session: Session) -> NodeResult:
+    """Run one node to its end; return the manager's result."""
     return run_nodes([spec], session)[0]
 
 
@@ -49,7 +50,7 @@ def run_nodes(
     later: list[NodeSpec] | None = None,
     later_ready: Callable[[], bool] | None = None,
     clock: Callable[[], float | None] | None = None,
-) -> list[dict[str, Any]]:
+) -> list[NodeResult]:
     """Run nodes side by side to their ends; return each manager's result.
 
     The first node that ends with a fault stops the others (one robot's
@@ -98,15 +99,12 @@ def run_nodes(
     results = []
     for n in nodes:
         result = n.result()
-        result["stragglers_killed"] = stragglers
+        result.stragglers_killed = list(stragglers)
         if stragglers:
             log.warning("killed processes that did not end: %s", stragglers)
-        if n.interrupted and (
-            result.get("result") == "ok"
-            or str(result.get("reason", "")).startswith("interrupted by SIGTERM")
-        ):
+        if n.interrupted and (result.ok or result.reason.startswith("interrupted by SIGTERM")):
             # the manager saw our SIGTERM; the reason is why we sent it
-            result.update(result="abnormal", reason=f"interrupted by {n.interrupted}")
+            result.result, result.reason = "abnormal", f"interrupted by {n.interrupted}"
         results.append(result)
     return results
 
@@ -161,16 +159,14 @@ class _Node:
             signals.send(self.pidfd, signal.SIGTERM)
             self.kill_at = now + self.spec.shutdown_timeout_s + 2.0
 
-    def result(self) -> dict[str, Any]:
+    def result(self) -> NodeResult:
         try:
-            out: dict[str, Any] = json.loads(Path(self.spec.result_path).read_text())
-            return out
-        except (OSError, ValueError):
-            return {
-                "node": self.spec.node,
-                "result": "abnormal",
-                "reason": f"manager of {self.spec.node} died: {describe_status(self.status or 0)}",
-            }
+            return NodeResult.from_dict(json.loads(Path(self.spec.result_path).read_text()))
+        except (OSError, ValueError, TypeError, AttributeError):
+            return NodeResult.died(
+                self.spec.node,
+                f"manager of {self.spec.node} died: {describe_status(self.status or 0)}",
+            )
 
 
 # How long the other nodes get to end on the group's e-stop (their DDMs carry
@@ -372,7 +368,7 @@ def _wait_loop(
                 pid, status = os.waitpid(n.pid, os.WNOHANG)
                 if pid:
                     n.status = status
-                    if n.result().get("result") != "ok" and group_stop is None:
+                    if not n.result().ok and group_stop is None:
                         # the group's own e-stop (through the DDMs) ends the
                         # other nodes within a few cycles; stopping them is
                         # the fallback, after a grace

@@ -122,9 +122,7 @@ def run_node(
     from redistro.log.mcapfile import finish_run_log
 
     with contextlib.suppress(Exception):  # the log never fails the node
-        log_info = finish_run_log(
-            run_dir, {str(r.get("node")): int(r.get("cycles", 0)) for r in results}
-        )
+        log_info = finish_run_log(run_dir, {r.node: r.cycles for r in results})
         if log_info:
             summary["log"] = log_info
     summary["node"] = spec.node
@@ -139,7 +137,7 @@ def run_node(
             (run_dir / f"positions.{robot}.json").write_bytes(src.read_bytes())
     write_json(run_dir / "summary.json", summary)
     for r in results:
-        say(f"{r.get('node')}: {r.get('result')} {r.get('reason', '')}".rstrip())
+        say(f"{r.node}: {r.result} {r.reason}".rstrip())
     say(f"result: {summary['result']}" + (f" ({summary['reason']})" if summary["reason"] else ""))
     say(f"wrote {run_dir / 'summary.json'}")
     return 0 if summary["result"] == "ok" else 1

@@ -26,6 +26,7 @@ from redistro.errors import IPCError, LayoutError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
 from redistro.process.owner import run_nodes, write_json
+from redistro.process.result import NodeResult
 from redistro.process.spec import NodeSpec
 from redistro.session.preflight import positions_file, preflight, unknown_positions
 from redistro.session.progress import Progress, ddm_pace
@@ -117,7 +118,7 @@ def _run_task(
     hardware = load_hardware(cfg)
     runs = Path(cfg.session.runs_dir)
     started = time.time()
-    node_results: list[dict[str, Any]] = []
+    node_results: list[NodeResult] = []
     plant_result: dict[str, Any] = {}
     with ipc_session.Session.create() as s:
         if not cfg.ddm.key_file:  # the link's key: the session's own, in its 0700 folder
@@ -183,15 +184,15 @@ def _run_task(
                     progress.close()
                 node_results += results
                 for r in results:
-                    say(f"{r.get('node')}: {r.get('result')} {r.get('reason', '')}".rstrip())
-                if any(r.get("result") != "ok" for r in results):
+                    say(f"{r.node}: {r.result} {r.reason}".rstrip())
+                if not all(r.ok for r in results):
                     break
         finally:
             plant.stop()
             plant_result = plant.result()
             say("plant powered off")
     summary = build_summary(task, node_results, plant_result, started, time.time(), run_dir)
-    cycles = {str(r.get("node")): int(r.get("cycles", 0)) for r in node_results}
+    cycles = {r.node: r.cycles for r in node_results}
     log_info = _finish_log(run_dir, say, cycles)
     if log_info:
         summary["log"] = log_info

@@ -9,6 +9,7 @@ from typing import Any
 from redistro.config.task import Task
 from redistro.esc.plan import task_seconds
 from redistro.process.manager import iso_time
+from redistro.process.result import NodeResult
 
 RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal")
 
@@ -48,123 +49,135 @@ def segment_line(seg: dict[str, Any]) -> str:
     return text
 
 
-def _first_fault(results: list[dict[str, Any]]) -> dict[str, Any] | None:
-    faults = [r for r in results if r.get("result") != "ok"]
+def _first_fault(results: list[NodeResult]) -> NodeResult | None:
+    faults = [r for r in results if not r.ok]
     if not faults:
         return None
     # the earliest fault is the cause; faults of nodes stopped because of it follow
-    return min(faults, key=lambda r: r.get("fault_monotonic_ns", 2**63))
+    return min(faults, key=lambda r: r.fault_monotonic_ns or 2**63)
+
+
+_WORKER_FIGURES = (
+    "name",
+    "pid",
+    "cycles",
+    "overruns",
+    "stage_timeouts",
+    "lateness_us",
+    "compute_us",
+    "step_cpu_us",
+    "cpu_s",
+    "cpu_percent",
+    "scheduling",
+    "exit",
+)
+
+
+def node_entry(r: NodeResult) -> dict[str, Any]:
+    """A node's entry in ``summary.json`` (its figures under the result's names)."""
+    esc = r.esc
+    return {
+        "robot": r.robot,
+        "result": r.result,
+        "reason": r.reason,
+        "rate_hz": r.rate_hz,
+        "cycles": r.cycles,
+        "overruns": r.overruns,
+        "missed_ticks": r.missed_ticks,
+        "missed_heartbeats": r.missed_heartbeats,
+        "lateness_us": r.lateness_us,
+        "makespan_us": r.makespan_us,
+        "cpu_percent": r.cpu_percent,
+        "manager": r.manager,
+        "workers": [{k: getattr(w, k) for k in _WORKER_FIGURES} for w in r.workers],
+        "freeze_monotonic_ns": esc.freeze_monotonic_ns if esc is not None else [],
+        "fault_monotonic_ns": r.fault_monotonic_ns,
+        "fault_cycle": r.fault_cycle,
+        "messages": r.messages,
+    }
+
+
+def _calibration(results: list[NodeResult], plant: dict[str, Any]) -> dict[str, Any]:
+    true = plant.get("encoder_offset_rad", {})
+    cal: dict[str, Any] = {}
+    for r in results:
+        c = r.esc.calibration if r.esc is not None else None
+        if not c:
+            continue
+        robot = r.esc.robot if r.esc is not None else ""
+        rows = []
+        for j in range(7):
+            found = c["found"][j]
+            off = c["offset_found_rad"][j] if found else None
+            tru = true.get(robot, [None] * 7)[j]
+            err = off - tru if off is not None and tru is not None else None
+            rows.append(
+                {
+                    "joint": j + 1,
+                    "edges": c["edges"][j],
+                    "offset_found_rad": off,
+                    "offset_true_rad": tru,
+                    "error_rad": err,
+                }
+            )
+        cal[robot] = rows
+    return cal
+
+
+def _exchange(r: NodeResult) -> dict[str, Any] | None:
+    """A node's DDM exchange figures (an ESC's one robot, the SSC's each)."""
+    if r.esc is not None:
+        return r.esc.ddm
+    return r.ssc.ddm if r.ssc is not None else None
 
 
 def build_summary(
     task: Task,
-    results: list[dict[str, Any]],
+    results: list[NodeResult],
     plant: dict[str, Any],
     started: float,
     ended: float,
     run_dir: Path,
 ) -> dict[str, Any]:
-    fault = _first_fault(results)
+    """``summary.json``: the one place the nodes' results become the session's."""
+    first = _first_fault(results)
+    result, reason = (first.result, first.reason) if first is not None else ("ok", "")
     if not results:
-        fault = {"result": "abnormal", "reason": "no node ran"}
-    if fault is None and plant.get("state") == "failed":
-        fault = {"result": "abnormal", "reason": f"plant failed: {plant.get('error', '')}"}
-    result = fault["result"] if fault else "ok"
+        result, reason = "abnormal", "no node ran"
+    if result == "ok" and plant.get("state") == "failed":
+        result, reason = "abnormal", f"plant failed: {plant.get('error', '')}"
     if result not in RESULTS:
         result = "abnormal"
-    nodes: dict[str, Any] = {}
-    for r in results:
-        nodes[str(r.get("node"))] = {
-            "robot": r.get("robot"),
-            "result": r.get("result"),
-            "reason": r.get("reason", ""),
-            "rate_hz": r.get("rate_hz"),
-            "cycles": r.get("cycles", 0),
-            "overruns": r.get("overrun_cycles", 0),
-            "missed_ticks": r.get("missed_ticks", 0),
-            "missed_heartbeats": r.get("missed_heartbeats", 0),
-            "lateness_us": r.get("lateness_us", {}),
-            "makespan_us": r.get("makespan_us", {}),
-            "cpu_percent": r.get("cpu_percent"),
-            "manager": r.get("manager", {}),
-            "workers": [
-                {
-                    k: w.get(k)
-                    for k in (
-                        "name",
-                        "pid",
-                        "cycles",
-                        "overruns",
-                        "stage_timeouts",
-                        "lateness_us",
-                        "compute_us",
-                        "step_cpu_us",
-                        "cpu_s",
-                        "cpu_percent",
-                        "scheduling",
-                        "exit",
-                    )
-                }
-                for w in r.get("workers", [])
-            ],
-            "freeze_monotonic_ns": r.get("freeze_monotonic_ns", []),
-            "fault_monotonic_ns": r.get("fault_monotonic_ns"),
-            "fault_cycle": r.get("fault_cycle"),
-            "messages": r.get("messages", []),
-        }
     summary: dict[str, Any] = {
         "task": task.task,
         "task_file": task.source,
         "kind": task.kind,
         "robots": task.robots,
         "result": result,
-        "reason": fault.get("reason", "") if fault else "",
+        "reason": reason,
         "started": iso_time(started),
         "ended": iso_time(ended),
         "run_dir": str(run_dir),
-        "nodes": nodes,
+        "nodes": {r.node: node_entry(r) for r in results},
     }
-    violations = {str(r.get("robot")): r["violation"] for r in results if r.get("violation")}
+    escs = [r.esc for r in results if r.esc is not None]
+    violations = {e.robot: e.violation for e in escs if e.violation}
     if violations:
         summary["violations"] = violations
-    summary["positions"] = {str(r.get("robot")): r.get("positions") for r in results}
+    summary["positions"] = {e.robot: e.positions for e in escs}
     if task.kind == "self_calibration":
-        true = plant.get("encoder_offset_rad", {})
-        cal: dict[str, Any] = {}
-        for r in results:
-            robot = str(r.get("robot"))
-            c = r.get("calibration")
-            if not c:
-                continue
-            rows = []
-            for j in range(7):
-                found = c["found"][j]
-                off = c["offset_found_rad"][j] if found else None
-                tru = true.get(robot, [None] * 7)[j]
-                err = off - tru if off is not None and tru is not None else None
-                rows.append(
-                    {
-                        "joint": j + 1,
-                        "edges": c["edges"][j],
-                        "offset_found_rad": off,
-                        "offset_true_rad": tru,
-                        "error_rad": err,
-                    }
-                )
-            cal[robot] = rows
-        summary["calibration"] = cal
-    ssc = next((r for r in results if r.get("kind") == "ssc"), None)
+        summary["calibration"] = _calibration(results, plant)
+    ssc = next((r.ssc for r in results if r.ssc is not None), None)
     if task.kind == "strategy":
-        segs = ssc.get("segments", []) if ssc else []
-        summary["segments"] = segs
-        depth = float(ssc.get("insertion_depth_m", 0.0)) if ssc else 0.0
-        hole_depth = float(ssc.get("hole_depth_m", 0.0)) if ssc else 0.0
+        summary["segments"] = ssc.segments if ssc else []
+        depth = ssc.insertion_depth_m if ssc else 0.0
+        hole_depth = ssc.hole_depth_m if ssc else 0.0
         summary["insertion_depth_m"] = depth
         summary["hole_depth_m"] = hole_depth
-        summary["inserted"] = bool(ssc) and hole_depth > 0 and abs(depth - hole_depth) <= 0.002
-        summary["ddm"] = {
-            str(r.get("node")): r.get("ddm") for r in results if r.get("ddm") is not None
-        }
+        summary["inserted"] = (
+            ssc is not None and hole_depth > 0 and abs(depth - hole_depth) <= 0.002
+        )
+        summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}
     summary["plant"] = {
         k: plant.get(k)
         for k in (

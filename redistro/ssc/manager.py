@@ -13,13 +13,13 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any
 
 from redistro.ddm.exchange import exchange_report
 from redistro.errors import NodeFault
 from redistro.localdata.block import Block, Record
 from redistro.localdata.layout import EXCHANGE, PLAN
 from redistro.process.manager import Manager
+from redistro.process.result import SscResult
 from redistro.process.spec import NodeSpec
 
 FINISH_CYCLES = 20  # cycles the finished status goes out before the node ends
@@ -80,17 +80,20 @@ class SscManager(Manager):
         return self.done_cycles > FINISH_CYCLES
 
     def cleanup(self) -> None:
-        extra: dict[str, Any] = {"robots": list(self.spec.robots)}
+        ssc = self.result.ssc = SscResult(robots=list(self.spec.robots))
         if self.ex_blocks:
-            extra["ddm"] = {
+            ssc.ddm = {
                 r: exchange_report(b.read())
                 for r, b in zip(self.spec.robots, self.ex_blocks, strict=True)
             }
-            extra["starving_cycles_max"] = self.starving_max
+            ssc.starving_cycles_max = self.starving_max
         if self.run_dir:
             path = Path(self.run_dir) / "ssc-segments.json"
             try:
-                extra.update(json.loads(path.read_text()))
-            except (OSError, ValueError) as exc:
+                doc = json.loads(path.read_text())
+                ssc.segments = list(doc["segments"])
+                ssc.insertion_depth_m = float(doc["insertion_depth_m"])
+                ssc.insertion_depth_t_s = doc.get("insertion_depth_t_s")
+                ssc.hole_depth_m = float(doc["hole_depth_m"])
+            except (OSError, ValueError, KeyError, TypeError) as exc:
                 self._message("manager", logging.WARNING, f"segment figures unreadable: {exc}")
-        self.result.update(extra)

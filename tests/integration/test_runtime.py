@@ -224,13 +224,13 @@ def test_an_off_cycle_worker_keeps_its_own_rate_and_is_watched(tmp_path: Path) -
     ]
     with Session.create() as s:
         r = run_node(_node_at_100hz(s.id, 20, workers, 200), s)
-    assert r["result"] == "ok", r["reason"]
-    by_name = {w["name"]: w for w in r["workers"]}
-    assert by_name["a"]["cycles"] + by_name["a"]["stage_timeouts"] + by_name["a"]["skipped"] == 200
-    own = by_name["own"]["cycles"] + by_name["own"]["skipped"]
+    assert r.result == "ok", r.reason
+    by_name = {w.name: w for w in r.workers}
+    assert by_name["a"].cycles + by_name["a"].stage_timeouts + by_name["a"].skipped == 200
+    own = by_name["own"].cycles + by_name["own"].skipped
     # 2 s at 400 Hz beside the 100 Hz cycle (start-up and end give or take)
     assert 600 <= own <= 900, by_name["own"]
-    assert by_name["own"]["exit"] == "exited with code 0"
+    assert by_name["own"].exit == "exited with code 0"
 
 
 def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
@@ -268,10 +268,10 @@ def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
         finally:
             helper.join(timeout=60)
     assert stopped, "the worker was not stopped"
-    assert r["result"] == "abnormal", r["reason"]
+    assert r.result == "abnormal", r.reason
     hung = r"worker rec \(pid (\d+)\) missed (\d+) heartbeats \(limit (\d+)\) at cycle (\d+)"
-    m = re.search(hung, r["reason"])
-    assert m, r["reason"]
+    m = re.search(hung, r.reason)
+    assert m, r.reason
     assert int(m.group(1)) == stopped["pid"] and int(m.group(3)) == own_limit
     # not before its own limit (the node's is 10), and at it
     assert int(m.group(2)) == own_limit
@@ -308,14 +308,14 @@ def test_idle_work_runs_between_cycles_and_gives_way_to_the_sync() -> None:
     ]
     with Session.create() as s:
         r = run_node(_node_at_100hz(s.id, 20, workers, 200), s)
-    assert r["result"] == "ok", r["reason"]
-    a, b = (next(w for w in r["workers"] if w["name"] == n) for n in ("a", "b"))
+    assert r.result == "ok", r.reason
+    a, b = (next(w for w in r.workers if w.name == n) for n in ("a", "b"))
     # every cycle was taken (run, or skipped and counted on a host stall),
     # though the idle work always had more to do
-    assert a["cycles"] + a["skipped"] + a["stage_timeouts"] == 200, a
+    assert a.cycles + a.skipped + a.stage_timeouts == 200, a
     # ... and it ran: 10 ms periods less the guard, in 50 us slices
-    assert a["idle_slices"] > 20 * a["cycles"], a
-    assert b["idle_slices"] == 0  # no idle work: nothing run, nothing paid
-    assert r["idle_slices"] >= 200  # the manager's: the message boxes, after each tick
-    texts = [m["text"] for m in r["messages"]]
+    assert a.idle_slices > 20 * a.cycles, a
+    assert b.idle_slices == 0  # no idle work: nothing run, nothing paid
+    assert r.idle_slices >= 200  # the manager's: the message boxes, after each tick
+    texts = [m["text"] for m in r.messages]
     assert "cycle 150: 0 us of work done" in texts  # drained in the manager's Idle

@@ -1,0 +1,83 @@
+"""A node's typed result: what its manager writes, the owner reads back, and
+``summary.json`` is built from, one name per figure."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from redistro.config.loader import load_config
+from redistro.config.task import load_task
+from redistro.process.result import EscResult, NodeResult, SscResult, WorkerResult
+from redistro.session.summary import build_summary
+
+ROOT = Path(__file__).parents[2]
+
+
+def _esc(robot: str, **kw: object) -> NodeResult:
+    r = NodeResult(node=f"esc.{robot}", kind="esc", rate_hz=200.0, cycles=1000, overruns=3)
+    r.workers = [WorkerResult(name="acquisition", cycles=1000, compute_us={"p50": 12.0})]
+    r.esc = EscResult(robot=robot, ddm={"sent": 10}, positions={"q_rad": [0.0] * 7})
+    for k, v in kw.items():
+        setattr(r, k, v)
+    return r
+
+
+def test_a_result_comes_back_from_its_file_as_it_was_written() -> None:
+    r = _esc("r1", result="unsafe", reason="r1: torque", fault_monotonic_ns=5, fault_cycle=7)
+    assert r.esc is not None
+    r.esc.violation = {"quantity": "torque", "joint": 3}
+    r.esc.freeze_monotonic_ns = [4, 9]
+    back = NodeResult.from_dict(json.loads(json.dumps(r.as_dict())))
+    assert back == r
+    assert back.robot == "r1" and not back.ok
+    assert isinstance(back.workers[0], WorkerResult) and back.workers[0].compute_us["p50"] == 12.0
+    # a file of an older or newer manager: unknown names are left out, not fatal
+    d = r.as_dict()
+    d["overrun_cycles"] = 3
+    assert NodeResult.from_dict(d) == r
+
+
+def test_the_summary_takes_each_figure_from_the_typed_results() -> None:
+    cfg = load_config(ROOT / "config" / "redistro.yaml")
+    task = load_task(ROOT / "tasks" / "peg_insertion_short.yaml", cfg)
+    ssc = NodeResult(node="ssc", kind="ssc", cycles=900, overruns=1)
+    ssc.ssc = SscResult(
+        robots=["r1", "r2"],
+        ddm={"r1": {"sent": 1}, "r2": {"sent": 2}},
+        segments=[{"name": "approach"}],
+        insertion_depth_m=0.0399,
+        hole_depth_m=0.04,
+    )
+    late = _esc("r2", result="estop", reason="e-stop from esc.r1", fault_monotonic_ns=20)
+    first = _esc("r1", result="unsafe", reason="r1: torque limit", fault_monotonic_ns=10)
+    assert first.esc is not None
+    first.esc.violation = {"quantity": "torque"}
+    first.esc.freeze_monotonic_ns = [11]
+    s = build_summary(task, [late, first, ssc], {}, 0.0, 1.0, Path("/tmp/run"))
+    # the earliest fault is the cause
+    assert (s["result"], s["reason"]) == ("unsafe", "r1: torque limit")
+    assert s["nodes"]["esc.r1"]["overruns"] == 3 and s["nodes"]["ssc"]["overruns"] == 1
+    assert s["nodes"]["esc.r1"]["robot"] == "r1" and s["nodes"]["ssc"]["robot"] is None
+    assert s["nodes"]["esc.r1"]["freeze_monotonic_ns"] == [11]
+    assert s["nodes"]["esc.r1"]["workers"][0]["compute_us"] == {"p50": 12.0}
+    assert s["violations"] == {"r1": {"quantity": "torque"}}
+    assert set(s["positions"]) == {"r1", "r2"}  # the robots', nobody else's
+    assert s["ddm"] == {
+        "esc.r2": {"sent": 10},
+        "esc.r1": {"sent": 10},
+        "ssc": {"r1": {"sent": 1}, "r2": {"sent": 2}},
+    }
+    assert s["segments"] == [{"name": "approach"}] and s["inserted"] is True
+
+
+def test_no_node_or_a_failed_plant_is_abnormal() -> None:
+    cfg = load_config(ROOT / "config" / "redistro.yaml")
+    task = load_task(ROOT / "tasks" / "peg_insertion_short.yaml", cfg)
+    s = build_summary(task, [], {}, 0.0, 1.0, Path("/tmp/run"))
+    assert (s["result"], s["reason"]) == ("abnormal", "no node ran")
+    s = build_summary(task, [_esc("r1")], {"state": "failed", "error": "x"}, 0.0, 1.0, Path("/"))
+    assert (s["result"], s["reason"]) == ("abnormal", "plant failed: x")
+    s = build_summary(task, [_esc("r1", result="weird")], {}, 0.0, 1.0, Path("/"))
+    assert s["result"] == "abnormal"
+    assert s["inserted"] is False  # no SSC: nothing inserted
