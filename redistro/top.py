@@ -66,22 +66,22 @@ def _what(pid: int) -> str:
 
 
 def _node(session_id: str, node: str) -> dict[str, Any] | None:
-    from redistro.localdata import LocalData
+    from redistro.localdata.view import NodeView
 
     try:
-        ld = LocalData.attach(session_id, node)
+        view = NodeView.attach(session_id, node)
     except LayoutError as exc:
         return {"node": node, "state": f"unreadable ({exc})", "processes": []}
     except (IPCError, OSError, ValueError):
         return None
     try:
-        st = ld.static
-        m = ld.block("manager").read()
+        st = view.static
+        m = view.manager()
         cycle = int(m["cycle"])
         due = int(m["tick_due_ns"])
         out: dict[str, Any] = {
             "node": node,
-            "kind": ld.node_kind,
+            "kind": view.kind,
             "state": STATES.get(int(m["state"]), "?"),
             "cycle": cycle,
             "rate_hz": float(st["rate_hz"]),
@@ -97,14 +97,14 @@ def _node(session_id: str, node: str) -> dict[str, Any] | None:
             "processes": [],
         }
         if out["kind"] == "esc":
-            sent = int(ld.block("starving_sent").read()["count"])
-            got = int(ld.block("starving_delivered").read()["count"])
+            sent = int(view.read("starving_sent")["count"])
+            got = int(view.read("starving_delivered")["count"])
             if sent:
                 out["starving_index"] = sent - got
-        names, roles = ld.proc_names(), ld.proc_roles()
+        procs = view.procs()
         stages = [int(s) for s in st["proc_stage"]]
-        for j, (name, role) in enumerate(zip(names, roles, strict=True)):
-            r = ld.block("proc", j).read()
+        for j, (name, role) in enumerate(procs):
+            r = view.read("proc", j)
             wake, done, hb = int(r["wake_ns"]), int(r["done_ns"]), int(r["heartbeat_cycle"])
             out["processes"].append(
                 {
@@ -129,8 +129,7 @@ def _node(session_id: str, node: str) -> dict[str, Any] | None:
     except Exception:  # the node ended while we looked: skip it
         return None
     finally:
-        with contextlib.suppress(Exception):
-            ld.close()
+        view.close()
 
 
 def sample(only: str | None = None) -> dict[str, Any]:

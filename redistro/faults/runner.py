@@ -28,6 +28,7 @@ from redistro.drivers import positions
 from redistro.errors import RedistroError
 from redistro.faults.catalogue import Scenario
 from redistro.faults.common import die_with_parent, one_line_refusal
+from redistro.localdata.view import NodeView
 from redistro.process.plan import RECORDERS
 
 TASK = "tasks/fault_drill.yaml"
@@ -85,17 +86,14 @@ def _session_id(proc: subprocess.Popen[str], deadline: float, task: str = "fault
 
 def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> bool:
     """Wait until r2 has been moving ``seconds`` into its first segment."""
-    from redistro.localdata import LocalData
-
-    ld = None
+    view = None
     try:
         while time.monotonic() < deadline and proc.poll() is None:
-            if ld is None:
-                with contextlib.suppress(Exception):
-                    ld = LocalData.attach(sid, "ssc")
-            if ld is not None:
+            if view is None:
+                view = NodeView.open(sid, "ssc")
+            if view is not None:
                 try:
-                    plan = ld.block("plan", ROBOT).read()
+                    plan = view.read("plan", ROBOT)
                     if int(plan["segment"]) >= 1 and float(plan["segment_t_s"]) >= seconds:
                         return True
                 except Exception:
@@ -103,8 +101,8 @@ def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline
             time.sleep(0.01)  # polling a condition with a deadline
         return False
     finally:
-        if ld is not None:
-            ld.close()
+        if view is not None:
+            view.close()
 
 
 def _target_pid(sid: str, sc: Scenario) -> int:
@@ -114,16 +112,11 @@ def _target_pid(sid: str, sc: Scenario) -> int:
             if b"plant" in cmd:
                 return pid
         raise RedistroError("no plant process found")
-    from redistro.localdata import LocalData
-
-    ld = LocalData.attach(sid, sc.node)
-    try:
-        if sc.proc == "manager":
-            return int(ld.block("manager").read()["pid"])
-        names = ld.proc_names()
-        return int(ld.block("proc", names.index(sc.proc)).read()["pid"])
-    finally:
-        ld.close()
+    view = NodeView.open(sid, sc.node)
+    if view is None:
+        raise RedistroError(f"no Local Data of {sc.node}")
+    with view:
+        return view.pid(sc.proc)
 
 
 def _pids_of(sid: str) -> list[int]:
@@ -244,8 +237,8 @@ def _break_session(
             try:
                 inject_ns = _inject(sc, sid, trigger, cfg, managers, cycles_at)
             finally:
-                for _, ld, _ in managers:
-                    ld.close()
+                for view in managers:
+                    view.close()
         proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
     except (RedistroError, subprocess.TimeoutExpired, OSError, ValueError) as exc:
         row["error"] = str(exc)
@@ -260,29 +253,20 @@ def _break_session(
     return row
 
 
-def _managers(sid: str) -> list[tuple[str, Any, Any]]:
-    """(node, its Local Data, its manager block) of every node, attached now
-    so that the cycles at the injection are read in microseconds."""
-    from redistro.localdata import LocalData
-
-    out = []
-    for node in ("esc.r1", "esc.r2", "ssc"):
-        try:
-            ld = LocalData.attach(sid, node)
-        except Exception:
-            continue
-        out.append((node, ld, ld.block("manager")))
-    return out
+def _managers(sid: str) -> list[NodeView]:
+    """A view of every node, attached now so that the cycles at the
+    injection are read in microseconds."""
+    views = (NodeView.open(sid, node) for node in ("esc.r1", "esc.r2", "ssc"))
+    return [v for v in views if v is not None]
 
 
-def _read_cycles(managers: list[tuple[str, Any, Any]], into: dict[str, int]) -> None:
-    for node, _, block in managers:
+def _read_cycles(views: list[NodeView], into: dict[str, int]) -> None:
+    for v in views:
         with contextlib.suppress(Exception):
-            into[node] = int(block.read()["cycle"])
-    for node, ld, _ in managers:  # an ESC's sender: each of its cycles sends a command
+            into[v.node] = v.cycle()
+    for v in views:  # an ESC's sender: each of its cycles sends a command
         with contextlib.suppress(Exception):
-            j = ld.proc_roles().index("sender")
-            into[f"{node}/sender"] = int(ld.block("proc", j).read()["cycles"])
+            into[f"{v.node}/sender"] = int(v.proc("sender")["cycles"])
 
 
 def _end(proc: subprocess.Popen[str]) -> None:
@@ -307,7 +291,7 @@ def _inject(
     sid: str,
     trigger: Path,
     cfg: Config,
-    managers: list[tuple[str, Any, Any]],
+    managers: list[NodeView],
     cycles_at: dict[str, int],
 ) -> int:
     """Break the session now; the injection's time (CLOCK_MONOTONIC ns). Each

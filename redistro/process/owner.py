@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 
 from redistro.ipc import signals
 from redistro.ipc.session import Session
+from redistro.localdata.view import NodeView
 from redistro.process.manager import describe_status
 from redistro.process.result import NodeResult
 from redistro.process.spawn import spawn
@@ -246,7 +247,7 @@ class _Relay:
         self.session_id = session_id
         self.due: list[tuple[float, _Node, str]] = []
         self.done: set[int] = set()
-        self._lds: dict[str, Any] = {}
+        self._views: dict[str, NodeView] = {}
 
     def request(self, pid: int, now: float) -> None:
         """A manager faulted (its SIGCHLD by kill): relay its e-stop."""
@@ -285,29 +286,28 @@ class _Relay:
     def prepare(self) -> None:
         """Attach the running nodes' Local Data ahead of any fault (an attach
         costs milliseconds; the relay has a part of a cycle)."""
-        from redistro.localdata import LocalData
-
         for n in self.nodes:
-            if n.status is None and n.pid and n.spec.node not in self._lds:
-                with contextlib.suppress(Exception):
-                    ld = LocalData.attach(self.session_id, n.spec.node)
-                    self._lds[n.spec.node] = (ld, ld.block("manager"))
+            if n.status is None and n.pid and n.spec.node not in self._views:
+                view = NodeView.open(self.session_id, n.spec.node)
+                if view is not None:
+                    with contextlib.suppress(Exception):
+                        view.block("manager")  # mapped now, read at the fault
+                    self._views[n.spec.node] = view
 
     def _stopped(self, n: _Node) -> bool:
         """Whether node ``n`` has its e-stop already (its manager block says so)."""
-        entry = self._lds.get(n.spec.node)
-        if entry is None:
+        view = self._views.get(n.spec.node)
+        if view is None:
             return False  # not attached: relay (a second e-stop is harmless)
         try:
-            return bool(entry[1].read()["estop"])
+            return view.estop()
         except Exception:
             return False
 
     def close(self) -> None:
-        for ld, _ in self._lds.values():
-            with contextlib.suppress(Exception):
-                ld.close()
-        self._lds.clear()
+        for view in self._views.values():
+            view.close()
+        self._views.clear()
 
 
 def _wait_nodes(
@@ -375,7 +375,7 @@ def _wait_loop(
                         with_ddms = all(_has_ddm(o.spec) for o in nodes)
                         grace = GROUP_STOP_GRACE_S if with_ddms else RELAYED_STOP_GRACE_S
                         group_stop = (now + grace, f"a fault in {n.spec.node}")
-        if not relay.due and len(relay._lds) < len(nodes):
+        if not relay.due and len(relay._views) < len(nodes):
             _chore(relay.prepare)
         if group_stop is not None and now >= group_stop[0]:
             for n in nodes:

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from redistro.config.model import Config
-from redistro.errors import IPCError, LayoutError
+from redistro.localdata.view import NodeView
 from redistro.process.spec import NodeSpec
 
 log = logging.getLogger(__name__)
@@ -32,8 +32,7 @@ class Progress:
         self.out = out
         self.t0 = time.monotonic()
         self.next = self.t0 + 1.0
-        self.lds: dict[str, Any] = {}
-        self.blocks: dict[str, Any] = {}
+        self.views: dict[str, NodeView] = {}
         self.ssc_segments: list[tuple[str, float]] = []
         self.live = sys.stdout.isatty() if live is None else live
         self.bars: Any = None
@@ -72,30 +71,25 @@ class Progress:
 
     def _node(self, spec: NodeSpec) -> tuple[str, float, float]:
         """(text, seconds of segments done, seconds of all segments)."""
-        from redistro.localdata import LocalData
-
         segs: list[dict[str, Any]]
         if spec.kind == "ssc":
             segs = [{"name": n, "duration_s": d} for n, d in self.ssc_segments]
         else:
             segs = list(spec.node_params.segments)
         total = float(sum(float(s["duration_s"]) for s in segs))
-        ld = self.lds.get(spec.node)
-        if ld is None:
-            try:
-                ld = self.lds[spec.node] = LocalData.attach(self.session_id, spec.node)
-            except (IPCError, LayoutError, OSError):
+        view = self.views.get(spec.node)
+        if view is None:
+            view = NodeView.open(self.session_id, spec.node)
+            if view is None:
                 return f"{spec.node} starting", 0.0, total
-        blocks = self.blocks.get(spec.node)
-        if blocks is None:
-            blocks = self.blocks[spec.node] = (ld.block("setpoint", 0), ld.block("manager"))
+            self.views[spec.node] = view
         try:
-            sp = blocks[0].read()
-            mgr = blocks[1].read()
+            sp = view.read("setpoint", 0)
+            mgr = view.manager()
         except Exception:
             return f"{spec.node}", 0.0, total
         if spec.kind == "ssc":
-            return self._ssc(spec, ld, int(mgr["cycle"]), total)
+            return self._ssc(spec, view, int(mgr["cycle"]), total)
         k = int(sp["segment"])
         if int(sp["done"]):
             return f"{spec.node} done", total, total
@@ -110,10 +104,12 @@ class Progress:
             text = f"{spec.node} {k}/{len(segs)} {seg['name']} done, settling"
         return text, done, total
 
-    def _ssc(self, spec: NodeSpec, ld: Any, cycle: int, total: float) -> tuple[str, float, float]:
+    def _ssc(
+        self, spec: NodeSpec, view: NodeView, cycle: int, total: float
+    ) -> tuple[str, float, float]:
         names = self.ssc_segments
         for i in range(len(spec.robots)):
-            pl = ld.block("plan", i).read()
+            pl = view.read("plan", i)
             if not int(pl["moving"]) and not int(pl["done"]):
                 continue
             k = int(pl["segment"])
@@ -132,11 +128,9 @@ class Progress:
             with contextlib.suppress(Exception):
                 self.bars.stop()
             self.bars = None
-        self.blocks.clear()
-        for ld in self.lds.values():
-            with contextlib.suppress(Exception):
-                ld.close()
-        self.lds.clear()
+        for view in self.views.values():
+            view.close()
+        self.views.clear()
 
 
 def ddm_pace(cfg: Config) -> str:

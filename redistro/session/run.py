@@ -22,7 +22,6 @@ from typing import Any
 from redistro.config.hardware import load_hardware
 from redistro.config.model import Config
 from redistro.config.task import Task
-from redistro.errors import IPCError, LayoutError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
 from redistro.process.owner import run_nodes, write_json
@@ -81,7 +80,7 @@ def run_session(
 
 def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
     """True once every ESC's acquisition has published its first feedback."""
-    from redistro.localdata import LocalData
+    from redistro.localdata.view import NodeView
 
     seen: set[str] = set()
 
@@ -89,17 +88,15 @@ def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
         for node in nodes:
             if node in seen:
                 continue
-            try:
-                ld = LocalData.attach(session_id, node)
-            except (IPCError, LayoutError, OSError):
+            view = NodeView.open(session_id, node)
+            if view is None:
                 return False
-            try:
-                if int(ld.block("feedback", 0).read()["seq_src"]) > 0:
-                    seen.add(node)
-            except Exception:
-                return False
-            finally:
-                ld.close()
+            with view:
+                try:
+                    if int(view.read("feedback", 0)["seq_src"]) > 0:
+                        seen.add(node)
+                except Exception:
+                    return False
         return len(seen) == len(nodes)
 
     return ready

@@ -8,12 +8,21 @@ from redistro.process.spec import NodeSpec, WorkerSpec
 from redistro.session.progress import Progress
 
 
-class FakeBlock:
-    def __init__(self, rec: dict[str, Any]) -> None:
-        self.rec = rec
+class FakeView:
+    """A node's view with one robot's setpoint and the manager's cycle."""
 
-    def read(self) -> dict[str, Any]:
-        return self.rec
+    def __init__(self, setpoint: dict[str, Any], cycle: int) -> None:
+        self.setpoint, self.cycle = setpoint, cycle
+
+    def read(self, name: str, index: int | None = None) -> dict[str, Any]:
+        assert (name, index) == ("setpoint", 0)
+        return self.setpoint
+
+    def manager(self) -> dict[str, Any]:
+        return {"cycle": self.cycle}
+
+    def close(self) -> None:
+        pass
 
 
 def _progress(segments: list[dict[str, Any]]) -> tuple[Progress, dict[str, Any]]:
@@ -23,8 +32,7 @@ def _progress(segments: list[dict[str, Any]]) -> tuple[Progress, dict[str, Any]]
     lines: list[str] = []
     p = Progress("sid", [spec], lines.append, live=False)
     sp = {"segment": 0, "done": 0, "segment_t_s": 0.0}
-    p.lds["esc.r1"] = object()  # attached: the fake blocks below stand for it
-    p.blocks["esc.r1"] = (FakeBlock(sp), FakeBlock({"cycle": 7}))
+    p.views["esc.r1"] = FakeView(sp, 7)  # type: ignore[assignment]  # attached
     return p, sp
 
 
