@@ -57,7 +57,52 @@ def _first_fault(results: list[NodeResult]) -> NodeResult | None:
     return min(faults, key=lambda r: r.fault_monotonic_ns or 2**63)
 
 
-_WORKER_FIGURES = (
+# The figures of a node's result that summary.json shows, under the result's
+# own names, and those it leaves out. Adding a figure: a field on the result
+# type (process/result.py), filled by the manager, and its name here.
+NODE_FIGURES = (
+    "result",
+    "reason",
+    "rate_hz",
+    "cycles",
+    "overruns",
+    "missed_ticks",
+    "missed_heartbeats",
+    "lateness_us",
+    "makespan_us",
+    "cpu_percent",
+    "manager",
+    "fault_monotonic_ns",
+    "fault_cycle",
+    "messages",
+)
+NODE_LEFT_OUT = frozenset(
+    {
+        "node",  # the entry's key
+        "kind",
+        "session_id",
+        "started",
+        "ended",
+        "period_us",
+        "routine_s",
+        "manager_overruns",
+        "worker_overruns",
+        "worker_skipped",
+        "late_heartbeats",
+        "deadline_misses",
+        "incomplete_cycles",
+        "torn_ticks",
+        "idle_slices",
+        "manager_work_us",
+        "cpu_s",
+        "messages_lost",
+        "stragglers_killed",
+        "workers",  # each under WORKER_FIGURES
+        "esc",  # the kinds' own figures: robot, freezes, and the sections below
+        "ssc",
+    }
+)
+WORKER_FIGURES = (
     "name",
     "pid",
     "cycles",
@@ -76,25 +121,11 @@ _WORKER_FIGURES = (
 def node_entry(r: NodeResult) -> dict[str, Any]:
     """A node's entry in ``summary.json`` (its figures under the result's names)."""
     esc = r.esc
-    return {
-        "robot": r.robot,
-        "result": r.result,
-        "reason": r.reason,
-        "rate_hz": r.rate_hz,
-        "cycles": r.cycles,
-        "overruns": r.overruns,
-        "missed_ticks": r.missed_ticks,
-        "missed_heartbeats": r.missed_heartbeats,
-        "lateness_us": r.lateness_us,
-        "makespan_us": r.makespan_us,
-        "cpu_percent": r.cpu_percent,
-        "manager": r.manager,
-        "workers": [{k: getattr(w, k) for k in _WORKER_FIGURES} for w in r.workers],
-        "freeze_monotonic_ns": esc.freeze_monotonic_ns if esc is not None else [],
-        "fault_monotonic_ns": r.fault_monotonic_ns,
-        "fault_cycle": r.fault_cycle,
-        "messages": r.messages,
-    }
+    entry: dict[str, Any] = {"robot": r.robot}
+    entry.update((k, getattr(r, k)) for k in NODE_FIGURES)
+    entry["workers"] = [{k: getattr(w, k) for k in WORKER_FIGURES} for w in r.workers]
+    entry["freeze_monotonic_ns"] = esc.freeze_monotonic_ns if esc is not None else []
+    return entry
 
 
 def _calibration(results: list[NodeResult], plant: dict[str, Any]) -> dict[str, Any]:

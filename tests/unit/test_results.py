@@ -81,3 +81,27 @@ def test_no_node_or_a_failed_plant_is_abnormal() -> None:
     s = build_summary(task, [_esc("r1", result="weird")], {}, 0.0, 1.0, Path("/"))
     assert s["result"] == "abnormal"
     assert s["inserted"] is False  # no SSC: nothing inserted
+
+
+def test_every_result_figure_is_shown_or_left_out_on_purpose() -> None:
+    """A figure added to the result type shows in summary.json by its name in
+    the summary builder's list (or is named as left out): nothing else."""
+    import dataclasses
+
+    from redistro.session import summary
+
+    fields = {f.name for f in dataclasses.fields(NodeResult)}
+    shown = set(summary.NODE_FIGURES)
+    assert not shown & summary.NODE_LEFT_OUT
+    assert fields == shown | summary.NODE_LEFT_OUT, fields ^ (shown | summary.NODE_LEFT_OUT)
+    worker_fields = {f.name for f in dataclasses.fields(WorkerResult)}
+    assert set(summary.WORKER_FIGURES) <= worker_fields
+    # a new figure: a field of the result and its name in the list
+    r = _esc("r1")
+    r.idle_slices = 5
+    assert "idle_slices" not in summary.node_entry(r)
+    try:
+        summary.NODE_FIGURES += ("idle_slices",)
+        assert summary.node_entry(r)["idle_slices"] == 5
+    finally:
+        summary.NODE_FIGURES = summary.NODE_FIGURES[:-1]
