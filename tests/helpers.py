@@ -9,7 +9,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -110,3 +110,31 @@ def load_json(path: Path) -> dict[str, Any]:
 
 def session_entries(session_id: str) -> list[str]:
     return sorted(e for e in os.listdir("/dev/shm") if session_id in e)
+
+
+@contextlib.contextmanager
+def esc_segment(procs: list[tuple[str, str, int]]) -> Iterator[tuple[str, LocalData]]:
+    """A real Local Data segment of an ESC node ``esc.r1`` at 200 Hz, in a
+    session of its own, with these (name, role, stage) processes: the
+    session's id and the segment, unlinked at the end."""
+    from redistro.ipc.session import Session
+
+    with Session.create() as session:
+        seg = LocalData.create(
+            session.id,
+            "esc.r1",
+            node_kind="esc",
+            proc_names=[p[0] for p in procs],
+            proc_roles=[p[1] for p in procs],
+            proc_stages=[p[2] for p in procs],
+            robot_names=["r1"],
+            rate_hz=200.0,
+            period_ns=5_000_000,
+            heartbeat_limit_cycles=5,
+            manifest=session.manifest,
+        )
+        try:
+            yield session.id, seg
+        finally:
+            seg.close()
+            seg.unlink()

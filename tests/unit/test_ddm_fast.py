@@ -21,12 +21,12 @@ import pytest
 
 from redistro.ddm import record as wire
 from redistro.ddm.fast import FastPath
-from redistro.ipc.session import Session
 from redistro.kernels import KERNELS
 from redistro.localdata import LocalData
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
 from redistro.process.stats import Samples
+from tests.helpers import esc_segment
 
 pytestmark = pytest.mark.skipif(KERNELS is None, reason="the kernels are not built")
 
@@ -105,25 +105,9 @@ def test_the_portable_codec_gives_the_same_bytes() -> None:
 
 @pytest.fixture
 def ld() -> Iterator[LocalData]:
-    with Session.create() as session:
-        seg = LocalData.create(
-            session.id,
-            "esc.r1",
-            node_kind="esc",
-            proc_names=["acquisition", "sender", "ddm"],
-            proc_roles=["acquisition", "sender", "ddm"],
-            proc_stages=[0, 1, -1],
-            robot_names=["r1"],
-            rate_hz=200.0,
-            period_ns=5_000_000,
-            heartbeat_limit_cycles=5,
-            manifest=session.manifest,
-        )
-        try:
-            yield seg
-        finally:
-            seg.close()
-            seg.unlink()
+    procs = [("acquisition", "acquisition", 0), ("sender", "sender", 1), ("ddm", "ddm", -1)]
+    with esc_segment(procs) as (_, seg):
+        yield seg
 
 
 def _esc_fast(ld: LocalData, latency: Samples) -> FastPath:

@@ -9,32 +9,16 @@ import numpy as np
 import pytest
 
 from redistro.errors import IPCError, LayoutError, TornReadTimeout
-from redistro.ipc.session import Session
 from redistro.localdata import LocalData, segment_dtype
 from redistro.localdata.layout import ALIGN, MSGBOX_SLOTS, layout_hash
+from tests.helpers import esc_segment
 
 
 @pytest.fixture
 def ld() -> Iterator[LocalData]:
-    with Session.create() as session:
-        seg = LocalData.create(
-            session.id,
-            "esc.r1",
-            node_kind="esc",
-            proc_names=["acquisition", "pid", "sender"],
-            proc_roles=["acquisition", "pid", "sender"],
-            proc_stages=[0, 1, 2],
-            robot_names=["r1"],
-            rate_hz=200.0,
-            period_ns=5_000_000,
-            heartbeat_limit_cycles=5,
-            manifest=session.manifest,
-        )
-        try:
-            yield seg
-        finally:
-            seg.close()
-            seg.unlink()
+    procs = [("acquisition", "acquisition", 0), ("pid", "pid", 1), ("sender", "sender", 2)]
+    with esc_segment(procs) as (_, seg):
+        yield seg
 
 
 def test_blocks_sit_on_their_own_cache_lines() -> None:

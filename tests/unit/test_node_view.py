@@ -8,32 +8,17 @@ from collections.abc import Iterator
 
 import pytest
 
-from redistro.ipc.session import Session
 from redistro.localdata import LocalData
 from redistro.localdata.view import NodeView
+from tests.helpers import esc_segment
 
 
 @pytest.fixture
 def node() -> Iterator[tuple[str, LocalData]]:
-    with Session.create() as session:
-        seg = LocalData.create(
-            session.id,
-            "esc.r1",
-            node_kind="esc",
-            proc_names=["acquisition", "sender.main", "ddm"],
-            proc_roles=["acquisition", "sender", "ddm"],
-            proc_stages=[0, 1, -1],
-            robot_names=["r1"],
-            rate_hz=200.0,
-            period_ns=5_000_000,
-            heartbeat_limit_cycles=5,
-            manifest=session.manifest,
-        )
-        try:
-            yield session.id, seg
-        finally:
-            seg.close()
-            seg.unlink()
+    with esc_segment(
+        [("acquisition", "acquisition", 0), ("sender.main", "sender", 1), ("ddm", "ddm", -1)]
+    ) as made:
+        yield made
 
 
 def test_a_view_reads_what_the_writers_published(node: tuple[str, LocalData]) -> None:
