@@ -9,7 +9,7 @@ from typing import Any
 from redistro.config.task import Task
 from redistro.esc.plan import task_seconds
 from redistro.process.manager import iso_time
-from redistro.process.result import NodeResult
+from redistro.process.result import EscResult, NodeResult
 
 RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal")
 
@@ -128,14 +128,13 @@ def node_entry(r: NodeResult) -> dict[str, Any]:
     return entry
 
 
-def _calibration(results: list[NodeResult], plant: dict[str, Any]) -> dict[str, Any]:
+def _calibration(escs: list[EscResult], plant: dict[str, Any]) -> dict[str, Any]:
     true = plant.get("encoder_offset_rad", {})
     cal: dict[str, Any] = {}
-    for r in results:
-        c = r.esc.calibration if r.esc is not None else None
+    for e in escs:
+        c, robot = e.calibration, e.robot
         if not c:
             continue
-        robot = r.esc.robot if r.esc is not None else ""
         rows = []
         for j in range(7):
             found = c["found"][j]
@@ -197,7 +196,7 @@ def build_summary(
         summary["violations"] = violations
     summary["positions"] = {e.robot: e.positions for e in escs}
     if task.kind == "self_calibration":
-        summary["calibration"] = _calibration(results, plant)
+        summary["calibration"] = _calibration(escs, plant)
     ssc = next((r.ssc for r in results if r.ssc is not None), None)
     if task.kind == "strategy":
         summary["segments"] = ssc.segments if ssc else []
