@@ -118,6 +118,11 @@ def load_yaml(text: str, path: Path | str) -> Any:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        if "maximum nesting depth" in problem:
+            # libyaml (PyYAML >= 6.0.3 wheels) has a nesting limit of its own,
+            # far above ours, and may reach it while scanning ahead: the file
+            # is deeper than ours either way, so one message for both.
+            problem = f"nested deeper than {MAX_DEPTH} levels"
         problem = problem if len(problem) <= 120 else problem[:117] + "..."
         raise ConfigError(f"{where}: invalid YAML ({problem})") from None
     except RecursionError:

@@ -188,3 +188,24 @@ def test_a_resolved_config_and_task_come_back_equal(tmp_path: Path) -> None:
     spec.save(tmp_path / "spec.json")
     loaded = NodeSpec.load(tmp_path / "spec.json")
     assert loaded.cfg() == cfg and loaded.task() == task
+
+
+@pytest.mark.parametrize("levels", [65, 100_000])
+@pytest.mark.parametrize("loader", ["libyaml", "python"])
+def test_deep_yaml_is_one_refusal_whichever_parser_finds_it(
+    levels: int, loader: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # libyaml has its own nesting limit (far above ours) that it may reach
+    # while scanning ahead; the pure-Python parser has none.
+    import yaml
+
+    from redistro.config import inputs
+
+    if loader == "python":
+        monkeypatch.setattr(inputs, "_LOADER", yaml.SafeLoader)
+    elif not hasattr(yaml, "CSafeLoader"):
+        pytest.skip("PyYAML without libyaml")
+    text = "task: " + "[" * levels + "]" * levels + "\n"
+    with pytest.raises(ConfigError) as err:
+        inputs.load_yaml(text, "deep.yaml")
+    assert str(err.value) == "deep.yaml:1: invalid YAML (nested deeper than 64 levels)"
