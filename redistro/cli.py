@@ -99,6 +99,34 @@ def _parser() -> argparse.ArgumentParser:
     gr.add_argument("task", help="task file, e.g. tasks/peg_insertion.yaml")
     gr.add_argument("--json", dest="json_path", default=None, help="write the figures here")
 
+    pg = bsub.add_parser(
+        "peg",
+        help="a campaign of peg insertions with the hole off where the controller believes it",
+        parents=[common],
+    )
+    pg.add_argument(
+        "--task", default="tasks/peg_insertion_short.yaml", help="the peg insertion task"
+    )
+    pg.add_argument("--trials", type=_positive_int, default=20, help="sessions to run")
+    pg.add_argument(
+        "--offset-radius-mm",
+        type=float,
+        default=3.0,
+        help="the hole's lateral offset, uniform over the disc of this radius [mm]",
+    )
+    pg.add_argument(
+        "--offset-min-mm",
+        type=float,
+        default=0.0,
+        help="... over the ring outside this radius [mm] (default 0: the whole disc)",
+    )
+    pg.add_argument(
+        "--yaw-deg", type=float, default=2.0, help="the hole's yaw, uniform within +- this [deg]"
+    )
+    pg.add_argument("--seed", type=int, default=0, help="trial k draws with seed + k")
+    pg.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+    pg.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
+
     kb = bsub.add_parser(
         "kernels",
         help="each compiled kernel against its numpy reference, CPU per call",
@@ -287,6 +315,8 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         return _bench_plant(args, cfg)
     if args.command == "bench" and args.bench == "group":
         return _bench_group(args, cfg)
+    if args.command == "bench" and args.bench == "peg":
+        return _bench_peg(args, cfg)
     if args.command == "bench" and args.bench == "kernels":
         return _bench_kernels(args, cfg)
     if args.command == "plant":
@@ -415,6 +445,74 @@ def _bench_group(args: argparse.Namespace, cfg: Any) -> int:
     return 0 if out["result"] == "ok" else 1
 
 
+def _writable(flag: str, path: str | None) -> None:
+    from pathlib import Path
+
+    if path:
+        parent = Path(path).resolve().parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise ConfigError(f"{flag} {path}: {parent} is not a writable folder")
+
+
+def _bench_peg(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from rich.progress import Progress
+
+    from redistro.bench import peg
+    from redistro.process.owner import write_json
+    from redistro.session.preflight import preflight
+
+    _, overrides = _config_args(args)
+    _writable("--json", args.json_path)
+    _writable("--plot", args.plot)
+    radius = args.offset_radius_mm / 1e3
+    if not 0 <= args.offset_radius_mm <= 20:
+        raise ConfigError(f"--offset-radius-mm: expected 0 to 20, got {args.offset_radius_mm:g}")
+    if not 0 <= args.offset_min_mm <= args.offset_radius_mm:
+        raise ConfigError(
+            f"--offset-min-mm: expected 0 to --offset-radius-mm, got {args.offset_min_mm:g}"
+        )
+    if not 0 <= args.yaw_deg <= 10:
+        raise ConfigError(f"--yaw-deg: expected 0 to 10, got {args.yaw_deg:g}")
+    if not 0 <= args.seed <= 2**32 - 1 - args.trials:
+        raise ConfigError(f"--seed: expected 0 to {2**32 - 1 - args.trials}, got {args.seed}")
+    cfg = peg.trial_config(cfg, radius, args.yaw_deg, args.seed, args.offset_min_mm / 1e3)
+    task = preflight(cfg, args.task)
+    if task.kind != "strategy":
+        raise ConfigError(f"{args.task}: bench peg needs a strategy task, not {task.kind}")
+    with Progress(transient=False) as bar:
+        job = bar.add_task(f"bench peg ({cfg.ddm.transport})", total=args.trials)
+
+        def done(row: dict[str, Any]) -> None:
+            bar.advance(job)
+            mark = "inserted" if row["inserted"] else f"not inserted: {row['reason'] or ''}"
+            bar.console.print(
+                f"trial {row['trial']}: offset {row['offset_mm']} mm, yaw {row['yaw_deg']} deg, "
+                f"{row['result']}, {mark}"
+            )
+
+        out = peg.run(
+            cfg,
+            args.task,
+            trials=args.trials,
+            radius_m=radius,
+            yaw_deg=args.yaw_deg,
+            seed=args.seed,
+            min_radius_m=args.offset_min_mm / 1e3,
+            overrides=overrides,
+            on_trial=done,
+        )
+    peg.print_campaign(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    if args.plot:
+        peg.plot_campaign(out, args.plot)
+        print(f"wrote {args.plot}")
+    return 0 if out["summary"]["inserted"] == out["summary"]["trials"] else 1
+
+
 def _bench_kernels(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
@@ -460,6 +558,16 @@ def _bench_ipc(args: argparse.Namespace) -> int:
         write_json(Path(args.json_path), out)
         print(f"wrote {args.json_path}")
     return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected 1 or more, got {value}")
+    return value
 
 
 def _config_args(args: argparse.Namespace) -> tuple[str | None, list[str]]:

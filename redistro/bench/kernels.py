@@ -120,7 +120,7 @@ def _law(cfg: Config, use: bool, calls: int) -> Any:
     force = ForceParams(
         fc.k_adm, fc.k_adm_rot, fc.v_max, fc.w_max, fc.a_max, fc.alpha_max, fc.contact_n, fc.ramp_s
     )
-    peg = cfg.plant.peg
+    peg = cfg.workcell.peg
     base = np.array([0.0, -0.45, 0.0])
     model = ArmModel(Peg(peg.side_m, peg.length_m, peg.mass_kg), list(base))
     law = CartesianLaw(gains, force, peg.length_m, base, use_kernel=use)

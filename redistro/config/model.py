@@ -7,6 +7,7 @@ Constraints understood by the validator (redistro.config.validate):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -338,10 +339,12 @@ def _default_robots() -> dict[str, RobotConfig]:
 
 @dataclass(frozen=True)
 class HoleConfig:
-    """The hole fixture on the table.
+    """The hole fixture on the table, as drawn: what the controller believes.
 
-    xyz_m: centre of the hole's mouth (top face of the fixture), world frame [m].
-    side_m: side of the square hole [m]; the peg's side plus the clearance.
+    xyz_m: nominal centre of the hole's mouth (top face of the fixture),
+        world frame [m]; the hole's axis is the world's z.
+    clearance_m: the hole's side is the peg's side plus this [m].
+    depth_m, wall_m: the hole's depth and the fixture's wall [m].
     """
 
     xyz_m: list[float] = field(default_factory=lambda: [0.55, -0.35, 0.15], metadata={"len": 3})
@@ -351,12 +354,52 @@ class HoleConfig:
 
 
 @dataclass(frozen=True)
+class HoleTruth:
+    """Where the plant's hole really is: the drawn pose (``workcell.hole``)
+    moved by a fixed offset and, when ``offset_radius_m`` or ``yaw_range_deg``
+    is above 0, by a random one drawn from ``seed``. The controller never
+    sees it.
+
+    offset_xyz_m: fixed offset of the mouth's centre [m];
+    yaw_deg: fixed rotation about the hole's axis [deg];
+    tilt_xy_deg: fixed tilt of the fixture about the world's x and y [deg];
+    offset_radius_m: a random lateral offset, uniform over the disc of this
+        radius [m] (over the ring outside ``offset_min_radius_m``, when set);
+    yaw_range_deg: a random yaw, uniform within plus or minus this [deg];
+    seed: the seed of both draws.
+    """
+
+    offset_xyz_m: list[float] = field(
+        default_factory=lambda: [0.0, 0.0, 0.0], metadata={"len": 3, "ge": -0.02, "le": 0.02}
+    )
+    yaw_deg: float = field(default=0.0, metadata={"ge": -10, "le": 10})
+    tilt_xy_deg: list[float] = field(
+        default_factory=lambda: [0.0, 0.0], metadata={"len": 2, "ge": -3, "le": 3}
+    )
+    offset_radius_m: float = field(default=0.0, metadata={"ge": 0, "le": 0.02})
+    offset_min_radius_m: float = field(default=0.0, metadata={"ge": 0, "le": 0.02})
+    yaw_range_deg: float = field(default=0.0, metadata={"ge": 0, "le": 10})
+    seed: int = field(default=0, metadata={"ge": 0, "le": 2**32 - 1})
+
+
+@dataclass(frozen=True)
 class PegConfig:
     """The square peg fixed to a flange: side [m], length [m], mass [kg]."""
 
     side_m: float = field(default=0.02, metadata={"gt": 0.002, "le": 0.1})
     length_m: float = field(default=0.1, metadata={"gt": 0.01, "le": 0.5})
     mass_kg: float = field(default=0.1, metadata={"gt": 0, "le": 5})
+
+
+@dataclass(frozen=True)
+class WorkcellConfig:
+    """The work-cell as the controller knows it (the paper's Work-cell
+    Configuration): the hole fixture as drawn and the tool on the flange.
+    The robots' base poses are ``robots.<name>.base_xyz_m``. The plant builds
+    the same work-cell, with the hole where ``plant.hole`` moves it."""
+
+    hole: HoleConfig = field(default_factory=HoleConfig)
+    peg: PegConfig = field(default_factory=PegConfig)
 
 
 @dataclass(frozen=True)
@@ -392,6 +435,11 @@ class PlantConfig:
     ft_noise_n, ft_noise_nm: standard deviation of the wrist sensor noise.
     ft_bias: per robot, the wrist sensor's bias [N, N, N, N m, N m, N m].
     seed: seed of the plant's noise.
+    hole: where the hole really is (:class:`HoleTruth`).
+
+    The plant's section is the simulated world's truth, apart from what the
+    I/O boards' datasheet tells a driver (``CONTROLLER_KEYS``): controller
+    nodes get a config without the rest (:func:`controller_view`).
     """
 
     backplane: Literal["shm", "can"] = "shm"
@@ -404,8 +452,7 @@ class PlantConfig:
     io_timeout_ms: float = field(default=500.0, metadata={"gt": 0, "le": 10000})
     # 100 ms: 20 cycles at 200 Hz; a sender is seen held off up to ~35 ms
     output_watchdog_ms: float = field(default=100.0, metadata={"ge": 0, "le": 10000})
-    hole: HoleConfig = field(default_factory=HoleConfig)
-    peg: PegConfig = field(default_factory=PegConfig)
+    hole: HoleTruth = field(default_factory=HoleTruth)
     encoder_disturbance_rad: dict[str, list[float]] = field(
         default_factory=lambda: {
             "r1": [0.031, -0.022, 0.045, -0.013, 0.027, -0.038, 0.019],
@@ -453,6 +500,7 @@ class Config:
         default_factory=lambda: NodeConfig(rate_hz=1000.0, heartbeat_limit_cycles=100)
     )
     robots: dict[str, RobotConfig] = field(default_factory=_default_robots)
+    workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)
     esc: EscConfig = field(default_factory=EscConfig)
     ssc: SscConfig = field(default_factory=SscConfig)
@@ -471,3 +519,28 @@ class Config:
             if dotted == key or dotted.startswith(key + ".") or dotted.startswith(key + "["):
                 return "--set"
         return self.source
+
+
+# What a controller node may know of the plant's section: what the I/O
+# boards' datasheet tells its driver (how the boards are reached, their
+# sample rate, their time-outs). The rest is the simulated world's truth.
+CONTROLLER_KEYS = ("backplane", "can", "physics_hz", "io_timeout_ms", "output_watchdog_ms")
+
+
+def controller_view(cfg: Config) -> Config:
+    """The config a controller node (an ESC, the SSC, their ddms) is given:
+    the plant's section cut to :data:`CONTROLLER_KEYS`, everything else in it
+    empty (no hole offset, no encoder disturbance, no sensor bias or noise).
+    What the controller knows of the work-cell is ``workcell`` and
+    ``robots``; what it learns of the plant comes through its sensors."""
+    keep = {k: getattr(cfg.plant, k) for k in CONTROLLER_KEYS}
+    empty = PlantConfig(
+        **keep,
+        hole=HoleTruth(),
+        encoder_disturbance_rad={},
+        ft_noise_n=0.0,
+        ft_noise_nm=0.0,
+        ft_bias={},
+        seed=0,
+    )
+    return dataclasses.replace(cfg, plant=empty)

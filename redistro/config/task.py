@@ -60,7 +60,7 @@ class Goal:
     pos_xyz_rot_xyz: TCP goal pose: position [m] and rotation vector [rad]
         (world from tool; the rotation is always absolute);
     relative_to: ``world``, or ``hole`` (the position is an offset from the
-        hole's mouth centre, ``plant.hole.xyz_m``);
+        hole's mouth centre as drawn, ``workcell.hole.xyz_m``);
     force_xyz_torque_xyz: the wrench the tool applies [N, N m], task axes;
     selection_vector: per task axis, 1 force controlled, 0 position controlled;
     frame: the task frame's axes: ``world``, or ``tool`` (at segment start);
@@ -93,6 +93,33 @@ class EndConditions:
 
 
 @dataclass(frozen=True)
+class Search:
+    """How a force segment finds a hole it does not meet where it believes
+    it is (``pattern: spiral``; ``none``: no search, push where the goal
+    says). After contact the tool pushes ``force_n`` along the force axis
+    while its goal in the hole's plane runs an Archimedean spiral about the
+    believed centre: ``pitch_m`` between turns, ``speed_m_s`` along the path,
+    the plane's stiffness raised to ``stiffness_n_m`` (against the sliding
+    friction). A fall of ``drop_m`` below the contact height means the peg
+    is in: the search stops where the tip is, and the segment's goal wrench
+    pushes it home. Beyond ``max_radius_m`` or after ``timeout_s`` of search
+    the segment ends as a clean failure: the hole was not found."""
+
+    pattern: Literal["none", "spiral"] = "none"
+    force_n: float = field(default=8.0, metadata={"gt": 0, "le": 50})
+    pitch_m: float = field(default=0.0004, metadata={"gt": 0, "le": 0.01})
+    speed_m_s: float = field(default=0.005, metadata={"gt": 0, "le": 0.05})
+    max_radius_m: float = field(default=0.005, metadata={"gt": 0, "le": 0.02})
+    timeout_s: float = field(default=30.0, metadata={"gt": 0, "le": 600})
+    drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
+    stiffness_n_m: float = field(default=1500.0, metadata={"gt": 0, "le": 5000})
+    yaw_stiffness_nm_rad: float = field(default=8.0, metadata={"ge": 0, "le": 100})
+    descent_m_s: float = field(default=0.03, metadata={"gt": 0, "le": 0.1})
+    slow_above_m: float = field(default=0.008, metadata={"ge": 0, "le": 0.1})
+    settle_s: float = field(default=0.3, metadata={"ge": 0, "le": 10})
+
+
+@dataclass(frozen=True)
 class MoveSegment:
     """One segment. joint_move: per robot a joint goal (q_rad), reached in
     duration_s. strategy: ``robot`` moves under ``scheme`` to ``goal``."""
@@ -104,6 +131,7 @@ class MoveSegment:
     scheme: Literal["joint", "position", "force"] = "joint"
     goal: Goal = field(default_factory=Goal)
     end: EndConditions = field(default_factory=EndConditions)
+    search: Search = field(default_factory=Search)
 
 
 @dataclass(frozen=True)
@@ -191,6 +219,18 @@ def _check_strategy(task: Task, where: str) -> None:
                 f"{at}.goal.selection_vector: a position segment has no force axes "
                 "(use scheme: force)"
             )
+        if seg.search.pattern != "none":
+            if (
+                seg.scheme != "force"
+                or list(g.selection_vector[:3]) != [0, 0, 1]
+                or g.frame != "world"
+            ):
+                raise ConfigError(
+                    f"{at}.search: a search needs a force segment pushing along the world's "
+                    "z only (selection_vector [0, 0, 1, ...], frame: world)"
+                )
+            if g.force_xyz_torque_xyz[2] >= 0:
+                raise ConfigError(f"{at}.search: a search needs a goal force down (negative z)")
         if seg.scheme == "force" and not any(g.selection_vector):
             raise ConfigError(
                 f"{at}.goal.selection_vector: a force segment needs at least one force axis"

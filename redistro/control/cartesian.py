@@ -414,6 +414,21 @@ class CartesianLaw:
         if integral is not None:
             s[27:33] = integral
 
+    def release(self) -> None:
+        """Back to free space along the force axes, mid-segment (the peg
+        dropped into a hole): the contact is forgotten, the goal wrench's
+        ramp starts again at the next contact, and the reference stands
+        where the TCP is, still (else the spring's offset and the fed-forward
+        goal throw the tool at whatever it meets next)."""
+        st = self.state
+        sel = self.cmd[0:3] > 0
+        Rt = st[0:9].reshape(3, 3)
+        offset = Rt.T @ (self.tcp_p - self.ref_p)
+        st[9:12][sel] = offset[sel]
+        st[15:18][sel] = 0.0
+        st[21:24][sel] = 0.0
+        st[33:39] = 0.0
+
     @property
     def integral(self) -> F64:
         out: F64 = self.state[27:33]

@@ -31,7 +31,7 @@ class Pid(Worker):
         )
         peg = None
         if cfg.robots[ctx.robot].peg:
-            p = cfg.plant.peg
+            p = cfg.workcell.peg
             peg = Peg(p.side_m, p.length_m, p.mass_kg)
         self.model = ArmModel(peg)
         self.state = PidState()

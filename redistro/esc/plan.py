@@ -7,7 +7,7 @@ from typing import Any
 
 from redistro.config.hardware import RobotHardware
 from redistro.config.loader import resolved
-from redistro.config.model import Config
+from redistro.config.model import Config, controller_view
 from redistro.config.task import Task
 from redistro.process.plan import worker_specs
 from redistro.process.spec import NodeParams, NodeSpec
@@ -101,7 +101,7 @@ def esc_spec(
         manager_priority=prio.get("manager", 20),
         cpus=list(cfg.esc.cpus),
         messages_path=messages_path,
-        config=resolved(cfg),
+        config=resolved(controller_view(cfg)),
         task_data=resolved(task),
         node_params=node_params,
     )

@@ -30,7 +30,8 @@ def run_faults(
         for s in chosen:
             print(f"{s.name:26s} {s.kind:11s} expect {'/'.join(s.expect):30s} {s.what}")
         return 0
-    from redistro.faults.runner import Baseline, ensure_calibrated, run_scenario
+    from redistro.faults.runner import ensure_calibrated, run_scenario
+    from redistro.session.baseline import Baseline
 
     runs = Path(cfg.session.runs_dir).resolve()
     ensure_calibrated(runs, config_args, print)

@@ -454,32 +454,6 @@ def count_of(doc: Any, key: str) -> int:
     return 0
 
 
-# -- the saved state every scenario starts from --
-
-
-class Baseline:
-    """The positions files and the arms' pose, as they were before the first
-    scenario; put back before each (a scenario may leave the arm anywhere, its
-    positions unclean or a file broken on purpose)."""
-
-    def __init__(self, runs: Path) -> None:
-        self.runs = runs
-        self.files: dict[Path, bytes] = {}
-        for p in [*sorted((runs / "positions").glob("*.json")), runs / "plant-pose.json"]:
-            with contextlib.suppress(OSError):
-                self.files[p] = p.read_bytes()
-
-    def restore(self) -> None:
-        for p in (self.runs / "positions").glob("*.json"):
-            if p not in self.files:
-                p.unlink()
-        for p, data in self.files.items():
-            p.parent.mkdir(parents=True, exist_ok=True)
-            tmp = p.with_name(f".{p.name}.restore")
-            tmp.write_bytes(data)
-            os.replace(tmp, p)
-
-
 # -- what the next start finds --
 
 

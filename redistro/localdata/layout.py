@@ -286,6 +286,7 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
         ("scheme", "u1"),  # 0 hold, 1 joint, 2 position, 3 force
         ("contact", "u1"),  # force segments: contact felt
         ("done", "u1"),  # 1: every segment finished
+        ("failed", "u1"),  # 1: the task could not be done (the reason is in the message box)
         ("tcp_xyz_m", "<f8", (3,)),  # TCP position, world [m]
         ("tcp_rot_xyz", "<f8", (3,)),  # TCP rotation vector, world [rad]
         ("goal_xyz_m", "<f8", (3,)),
@@ -295,6 +296,9 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
         ("wrench_goal", "<f8", (6,)),
         ("selection", "u1", (6,)),
         ("q_goal_rad", "<f8", (DOF,)),
+        ("phase", "u1"),  # a force segment's search (control.search.Phase): 0 none, 1 descent, ...
+        ("search_xy_m", "<f8", (2,)),  # the search's goal offset from the believed centre [m]
+        ("search_m", "<f8"),  # the search's path so far [m]
     ]
 )
 

@@ -388,6 +388,11 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
             f"{r} end-effector (TCP) pose, world frame",
         )
         save(fig, f"{r}-end-effector.png")
+    believed = sl.meta("redistro.meta").get("hole_xyz_m")
+    for r in robot_names(sl):
+        fig = _hole_plane(plt, sl.arrays.get(f"/{r}/plan"), believed, r)
+        if fig is not None:
+            save(fig, f"{r}-hole-plane.png")
     nodes = sl.nodes()
     for topic, tm in sorted(sl.arrays.items()):
         if not topic.endswith("/timing") or len(tm) == 0:
@@ -417,3 +422,35 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
         fig.suptitle(f"{node} cycle timing ({len(tm)} cycles)")
         save(fig, f"{node}-timing.png")
     return written
+
+
+def _hole_plane(plt: Any, plan: Any, believed: Any, robot: str) -> Any:
+    """The tip's path in the hole's plane over a force segment's search
+    (from the contact on), by phase, with the search's goal: millimetres
+    from the hole's believed centre. None when the robot never searched."""
+    from redistro.control.search import Phase
+
+    if plan is None or len(plan) == 0 or "phase" not in (plan.dtype.names or ()):
+        return None
+    on = plan["phase"] >= Phase.SETTLE
+    if not on.any():
+        return None
+    tcp = plan["tcp_xyz_m"][on]
+    phase = plan["phase"][on]
+    goal = plan["search_xy_m"][on] * 1e3
+    cx, cy = (believed[0], believed[1]) if believed else (tcp[0, 0], tcp[0, 1])
+    x, y = (tcp[:, 0] - cx) * 1e3, (tcp[:, 1] - cy) * 1e3
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.plot(goal[:, 0], goal[:, 1], lw=0.6, color="0.6", label="search goal")
+    for ph in (Phase.SETTLE, Phase.SEARCH, Phase.IN_HOLE, Phase.NOT_FOUND):
+        k = phase == ph
+        if k.any():
+            ax.plot(x[k], y[k], ".", ms=1.5, label=f"tip: {ph.name.lower().replace('_', ' ')}")
+    ax.plot([0], [0], "k+", ms=12, label="believed centre")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x from the hole's believed centre [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_title(f"{robot}: the tip in the hole's plane, from the contact on")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=7, markerscale=4)
+    return fig

@@ -369,7 +369,7 @@ class CycleRecorder:
 def robots_meta(cfg: Any, robots: list[str]) -> dict[str, Any]:
     """What the inspection tools need to redo the kinematics: per robot its
     base and tool (peg or sensor plate), and the boards' sample rate."""
-    peg = cfg.plant.peg
+    peg = cfg.workcell.peg
     return {
         "physics_hz": cfg.plant.physics_hz,
         "robots": {

@@ -73,6 +73,7 @@ def run_plant(
         start_q = read_pose(cfg.plant.pose_file, list(cfg.robots))
         result["started_from"] = "pose file" if start_q else "initial_q_rad"
         world = World(cfg, gui=gui or cfg.plant.gui, start_q=start_q)
+        result["hole"] = world.hole.as_dict()  # where the hole really is
         # what disturbs the plant from outside (the fault harness; none normally)
         make = hooks.factory("plant_disturbance")
         chassis = Chassis(cfg, world, hardware, disturbance=make() if make else None)

@@ -131,7 +131,7 @@ class World:
             urdf_dir = Path(self._tmp.name)
         self.fixture = self._build_table_and_fixture()
         self.arms: dict[str, Arm] = {}
-        peg_cfg = cfg.plant.peg
+        peg_cfg = cfg.workcell.peg
         for name, rc in cfg.robots.items():
             peg = Peg(peg_cfg.side_m, peg_cfg.length_m, peg_cfg.mass_kg) if rc.peg else None
             path = write_arm_urdf(urdf_dir, name, peg)
@@ -170,7 +170,13 @@ class World:
 
     # -- scene --
 
-    def _box(self, half: list[float], pos: list[float], rgba: list[float]) -> int:
+    def _box(
+        self,
+        half: list[float],
+        pos: list[float],
+        rgba: list[float],
+        orn: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
+    ) -> int:
         pb, cid = self.pb, self.client
         col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
         vis = pb.createVisualShape(
@@ -182,14 +188,20 @@ class World:
                 baseCollisionShapeIndex=col,
                 baseVisualShapeIndex=vis,
                 basePosition=pos,
+                baseOrientation=orn,
                 physicsClientId=cid,
             )
         )
 
     def _build_table_and_fixture(self) -> list[int]:
-        hole = self.cfg.plant.hole
-        peg = self.cfg.plant.peg
-        x, y, top = hole.xyz_m
+        """The table, and on it the fixture as drawn (``workcell.hole``) but
+        where the plant's truth puts it (``plant.hole``: offset, yaw, tilt)."""
+        from redistro.plant.truth import hole_pose
+
+        hole = self.cfg.workcell.hole
+        peg = self.cfg.workcell.peg
+        self.hole = truth = hole_pose(self.cfg)
+        x, y, top = truth.xyz_m
         side = peg.side_m + hole.clearance_m
         depth, wall = hole.depth_m, hole.wall_m
         table_top = top - depth - FIXTURE_FLOOR_M
@@ -197,31 +209,27 @@ class World:
             from redistro.errors import ConfigError
 
             raise ConfigError(
-                f"{self.cfg.source}: plant.hole.xyz_m: the hole's mouth at z={top} m leaves "
+                f"{self.cfg.source}: workcell.hole.xyz_m: the hole's mouth at z={top} m leaves "
                 f"no room for the table under a {depth} m deep fixture"
             )
         grey, steel = [0.6, 0.45, 0.3, 1], [0.5, 0.55, 0.6, 1]
         bodies = [self._box([0.3, 0.6, table_top / 2], [x, y * 0.0, table_top / 2], grey)]
-        # the fixture: a floor plate and four walls around a square hole
+        # the fixture: a floor plate and four walls around a square hole, in
+        # the fixture's frame (origin at the mouth's centre), then placed
+        orn = truth.quaternion()
+        R = truth.rotation()
+        centre = np.array([x, y, top])
+
+        def place(half: list[float], local: list[float]) -> None:
+            pos = centre + R @ np.asarray(local, dtype=np.float64)
+            bodies.append(self._box(half, [float(v) for v in pos], steel, orn))
+
         outer = side / 2 + wall
-        zc = table_top + FIXTURE_FLOOR_M + depth / 2
-        bodies.append(
-            self._box(
-                [outer, outer, FIXTURE_FLOOR_M / 2], [x, y, table_top + FIXTURE_FLOOR_M / 2], steel
-            )
-        )
+        place([outer, outer, FIXTURE_FLOOR_M / 2], [0.0, 0.0, -depth - FIXTURE_FLOOR_M / 2])
         for sx in (-1, 1):  # walls along y, full length
-            bodies.append(
-                self._box(
-                    [wall / 2, outer, depth / 2], [x + sx * (side / 2 + wall / 2), y, zc], steel
-                )
-            )
+            place([wall / 2, outer, depth / 2], [sx * (side / 2 + wall / 2), 0.0, -depth / 2])
         for sy in (-1, 1):  # walls along x, between the others
-            bodies.append(
-                self._box(
-                    [side / 2, wall / 2, depth / 2], [x, y + sy * (side / 2 + wall / 2), zc], steel
-                )
-            )
+            place([side / 2, wall / 2, depth / 2], [0.0, sy * (side / 2 + wall / 2), -depth / 2])
         return bodies
 
     # -- queries --

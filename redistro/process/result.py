@@ -64,6 +64,7 @@ class SscResult:
     insertion_depth_m: float = 0.0
     insertion_depth_t_s: float | None = None
     hole_depth_m: float = 0.0
+    search: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass

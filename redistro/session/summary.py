@@ -11,7 +11,7 @@ from redistro.esc.plan import task_seconds
 from redistro.process.manager import iso_time
 from redistro.process.result import EscResult, NodeResult
 
-RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal")
+RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal", "failed")
 
 
 # The slowest the simulated plant is expected to run beside a strategy
@@ -204,6 +204,8 @@ def build_summary(
         hole_depth = ssc.hole_depth_m if ssc else 0.0
         summary["insertion_depth_m"] = depth
         summary["hole_depth_m"] = hole_depth
+        if ssc is not None and ssc.search:
+            summary["search"] = ssc.search
         summary["inserted"] = (
             ssc is not None and hole_depth > 0 and abs(depth - hole_depth) <= 0.002
         )
@@ -227,6 +229,7 @@ def build_summary(
             "bad_frames",
             "freezes",
             "watchdog_trips",
+            "hole",
         )
         if k in plant
     }

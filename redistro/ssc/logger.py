@@ -21,12 +21,15 @@ from typing import Any
 import numpy as np
 
 from redistro.control.cartesian import pose_error, rotvec_to_matrix
+from redistro.control.search import Phase
 from redistro.localdata.block import Record
 from redistro.localdata.layout import PLAN
 from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
 from redistro.process.worker import Worker
 from redistro.ssc.plan import segment_plans
 from redistro.ssc.worker import AFTER
+
+BOTTOM_M = 0.002  # within this of the hole's depth, the peg is at the bottom
 
 
 @dataclass
@@ -75,10 +78,19 @@ class SscLogger(Worker):
         self.figures = [SegmentFigures(p.name, p.robot, p.scheme) for p in self.plans]
         # per segment: the plan of its robot at the segment's last cycle
         self.last_plan = [np.zeros((), PLAN) for _ in self.plans]
-        hole = cfg.plant.hole
+        hole = cfg.workcell.hole
         self.hole = [float(v) for v in hole.xyz_m]
         self.hole_depth = hole.depth_m
-        self.hole_half = (cfg.plant.peg.side_m + hole.clearance_m) / 2
+        # the peg is in the hole below its mouth, within the hole's half side
+        # and the widest search of the believed centre
+        reach = max(
+            (p.search.max_radius_m for p in self.plans if p.search.pattern != "none"), default=0.0
+        )
+        self.hole_half = (cfg.workcell.peg.side_m + hole.clearance_m) / 2 + reach
+        self.search: dict[str, Any] = {"phase": 0, "search_m": 0.0, "offset_xy_m": [0.0, 0.0]}
+        self.contact_t: float | None = None
+        self.bottom_t: float | None = None
+        self.peak_force = 0.0
         pegs = [r for r in self.robots if cfg.robots[r].peg]
         self.peg_index = self.robots.index(pegs[0]) if pegs else -1
         self.depth = 0.0
@@ -92,6 +104,7 @@ class SscLogger(Worker):
         if run_dir:
             meta = robots_meta(cfg, self.robots)
             meta["task"] = task.task
+            meta["hole_xyz_m"] = self.hole  # believed: workcell.hole
             meta["segments"] = [
                 {"name": p.name, "robot": p.robot, "scheme": p.scheme, "duration_s": p.duration_s}
                 for p in self.plans
@@ -107,7 +120,8 @@ class SscLogger(Worker):
             self.recs = [Record(PLAN) for _ in self.robots]
         self.tcp = [rec.array["tcp_xyz_m"] for rec in self.recs]
         self.wrench_task = [rec.array["wrench_task"] for rec in self.recs]
-        self.goal3 = [p.force[:3].tolist() for p in self.plans]
+        self.wrench_goal = [rec.array["wrench_goal"] for rec in self.recs]
+        self.search_xy = [rec.array["search_xy_m"] for rec in self.recs]
         self.sel3 = [p.selection[:3].tolist() for p in self.plans]
 
     def step(self, cycle: int) -> None:
@@ -144,6 +158,19 @@ class SscLogger(Worker):
                 if d > self.depth and max(abs(x - hx), abs(y - hy)) <= self.hole_half + 1e-4:
                     self.depth = d
                     self.depth_t = float(rec["t_s"])
+                    if self.bottom_t is None and d >= self.hole_depth - BOTTOM_M:
+                        self.bottom_t = self.depth_t
+                if rec["contact"]:
+                    if self.contact_t is None:
+                        self.contact_t = float(rec["t_s"])
+                    fx, fy, fz = self.wrench_task[i][:3].tolist()
+                    self.peak_force = max(self.peak_force, math.sqrt(fx * fx + fy * fy + fz * fz))
+                phase = int(rec["phase"])
+                if phase:
+                    srch = self.search
+                    srch["phase"] = phase
+                    srch["search_m"] = float(rec["search_m"])
+                    srch["offset_xy_m"] = self.search_xy[i].tolist()
             if not moving or k in (0, AFTER) or k > len(self.figures):
                 continue
             fig = self.figures[k - 1]
@@ -154,7 +181,7 @@ class SscLogger(Worker):
                 if fig.contact_t_s is None:
                     fig.contact_t_s = fig.duration_s
                 w = self.wrench_task[i].tolist()
-                g, s = self.goal3[k - 1], self.sel3[k - 1]
+                g, s = self.wrench_goal[i].tolist(), self.sel3[k - 1]
                 e0, e1, e2 = (g[0] - w[0]) * s[0], (g[1] - w[1]) * s[1], (g[2] - w[2]) * s[2]
                 fig.force_n += 1
                 fig.force_sum += (e0, e1, e2)
@@ -181,6 +208,30 @@ class SscLogger(Worker):
                 "orientation_xyz_rad": [round(float(v), 6) for v in e[3:]],
             }
 
+    def _search_figures(self) -> dict[str, Any]:
+        """The peg's way into the hole: the search's last phase and path, the
+        first contact, the bottom (within 2 mm of the hole's depth), the
+        peak contact force."""
+        srch = self.search
+        phase = int(srch["phase"])
+        # a peg that meets nothing before the bottom touches first there
+        touched = [t for t in (self.contact_t, self.bottom_t) if t is not None]
+        contact = min(touched) if touched else None
+        out: dict[str, Any] = {
+            "phase": Phase(phase).name.lower() if phase else "none",
+            "search_m": round(float(srch["search_m"]), 6),
+            "offset_xy_m": [round(float(v), 6) for v in srch["offset_xy_m"]],
+            "contact_t_s": contact,
+            "bottom_t_s": self.bottom_t,
+            "contact_to_bottom_s": (
+                round(self.bottom_t - contact, 4)
+                if self.bottom_t is not None and contact is not None
+                else None
+            ),
+            "peak_force_n": round(self.peak_force, 3),
+        }
+        return out
+
     def cleanup(self) -> None:
         if self.recorder is not None:
             self.recorder.close()
@@ -193,6 +244,7 @@ class SscLogger(Worker):
             "insertion_depth_m": round(self.depth, 6),
             "insertion_depth_t_s": self.depth_t,
             "hole_depth_m": self.hole_depth,
+            "search": self._search_figures(),
         }
         tmp = self.out_path + ".tmp"
         with open(tmp, "w", encoding="utf-8") as f:

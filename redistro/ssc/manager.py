@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 
 from redistro.ddm.exchange import exchange_report
@@ -77,7 +78,17 @@ class SscManager(Manager):
             block.read_into(rec.bytes)
         if all(int(rec["done"]) for rec in self.plans):
             self.done_cycles += 1
-        return self.done_cycles > FINISH_CYCLES
+        if self.done_cycles <= FINISH_CYCLES:
+            return False
+        if any(int(rec["failed"]) for rec in self.plans):
+            # the task could not be done, and ends cleanly: every robot held
+            # its pose and the ESCs were told the session finished (no e-stop)
+            self._drain_messages()
+            r = self.result
+            r.result = "failed"
+            r.reason = self.last_error.get("worker", "the task could not be done")
+            r.fault_monotonic_ns, r.fault_cycle = time.monotonic_ns(), cycle
+        return True
 
     def cleanup(self) -> None:
         ssc = self.result.ssc = SscResult(robots=list(self.spec.robots))
@@ -95,5 +106,6 @@ class SscManager(Manager):
                 ssc.insertion_depth_m = float(doc["insertion_depth_m"])
                 ssc.insertion_depth_t_s = doc.get("insertion_depth_t_s")
                 ssc.hole_depth_m = float(doc["hole_depth_m"])
+                ssc.search = dict(doc.get("search") or {})
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 self._message("manager", logging.WARNING, f"segment figures unreadable: {exc}")

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from redistro.config.loader import resolved
-from redistro.config.model import Config
-from redistro.config.task import MoveSegment, Task
+from redistro.config.model import Config, controller_view
+from redistro.config.task import MoveSegment, Search, Task
 from redistro.process.plan import worker_specs
 from redistro.process.spec import NodeParams, NodeSpec
 
@@ -34,15 +34,18 @@ class SegmentPlan:
     rot_within_rad: float
     force_within_n: float
     hold_s: float
+    search: Search
+    mouth_z_m: float  # the believed height of the hole's mouth [m]
+    hole_depth_m: float  # the hole's depth as drawn [m]
 
 
 def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     """The task's segments with goals resolved (relative poses made absolute)."""
-    hole = np.asarray(cfg.plant.hole.xyz_m, dtype=np.float64)
-    return [_plan(s, hole) for s in task.segments]
+    hole = np.asarray(cfg.workcell.hole.xyz_m, dtype=np.float64)
+    return [_plan(s, hole, cfg.workcell.hole.depth_m) for s in task.segments]
 
 
-def _plan(s: MoveSegment, hole: np.ndarray[Any, Any]) -> SegmentPlan:
+def _plan(s: MoveSegment, hole: np.ndarray[Any, Any], depth_m: float) -> SegmentPlan:
     g = s.goal
     pose = np.zeros(6)
     if g.pos_xyz_rot_xyz:
@@ -64,6 +67,9 @@ def _plan(s: MoveSegment, hole: np.ndarray[Any, Any]) -> SegmentPlan:
         rot_within_rad=s.end.rot_within_rad,
         force_within_n=s.end.force_within_n,
         hold_s=s.end.hold_s,
+        search=s.search,
+        mouth_z_m=float(hole[2]),
+        hole_depth_m=depth_m,
     )
 
 
@@ -96,7 +102,7 @@ def ssc_spec(
         manager_priority=prio.get("manager", 20),
         cpus=list(cfg.ssc.cpus),
         messages_path=messages_path,
-        config=resolved(cfg),
+        config=resolved(controller_view(cfg)),
         task_data=resolved(task),
         node_params=node_params,
     )

@@ -74,7 +74,7 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
     from redistro.robotmodel import Peg
     from redistro.ssc.plan import segment_plans
 
-    peg = cfg.plant.peg
+    peg = cfg.workcell.peg
     limits = joint_limits(cfg)
     models: dict[str, Any] = {}
     out: list[str] = []

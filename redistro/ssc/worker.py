@@ -19,6 +19,7 @@ begins.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ from redistro.control.cartesian import (
 )
 from redistro.control.dynamics import ArmModel
 from redistro.control.pid import PidGains, PidLoop, PidState
+from redistro.control.search import DESCENT_ACCEL_M_S2, Phase, SpiralSearch
 from redistro.control.trajectory import QuinticRef
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
@@ -46,6 +48,9 @@ from redistro.robotmodel import PLATE, Peg
 from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
 
 DOF = 7
+V_MAX, A_MAX = 41, 43  # the force axes' speed and acceleration in CartesianLaw.gains
+RETREAT_S = 2.0  # a failed search lifts the tool off in this long [s]
+RETREAT_HOLD_S = 0.5  # ... and holds it there this long before the task ends [s]
 ON = np.ones(DOF, dtype=bool)
 AFTER = 255  # plan.segment once every segment is over
 
@@ -76,6 +81,10 @@ class RobotState:
     t: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
     views: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)
     to_records: Any = None  # the law's outputs -> plan and command records
+    search: SpiralSearch | None = None  # the running force segment's search
+    gains0: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(0))  # the law's own
+    slow_z: float = -math.inf  # in the hole: down fast to this height, then the law's own speed
+    goal_z_n: float = 0.0  # the segment's goal force along z
 
     def __post_init__(self) -> None:
         fb, cmd, pl = self.fb.array, self.cmd.array, self.plan.array
@@ -94,6 +103,7 @@ class RobotState:
             "wrench_goal": pl["wrench_goal"],
             "selection": pl["selection"],
             "q_goal": pl["q_goal_rad"],
+            "search_xy": pl["search_xy_m"],
         }
         cmd["joint_on"] = ON
         self.to_records = _LawCopier(self.law, self.cmd, self.plan)
@@ -115,6 +125,8 @@ class RobotState:
         """The plan's constant fields while the robot holds its pose."""
         self.plan["scheme"] = SCHEMES["hold"]
         self.plan["contact"] = 0
+        self.plan["phase"] = Phase.NONE
+        self.search = None
         v = self.views
         v["q_goal"][...] = self.hold_q
         v["wrench_task"][...] = 0.0
@@ -193,7 +205,7 @@ class SscWorker(Worker):
         )
         p = cfg.ssc.pid
         self.pid = PidGains(f64(p.kp), f64(p.ki), f64(p.kd), f64(p.i_max_nm))
-        peg = cfg.plant.peg
+        peg = cfg.workcell.peg
         ld = self.ld
         n = len(self.robots)
         self.fb_blocks = [ld.block("feedback", i) for i in range(n)]
@@ -207,11 +219,11 @@ class SscWorker(Worker):
             offset = peg.length_m if tool is not None else PLATE[1]
             base = f64(rc.base_xyz_m)
             law = CartesianLaw(self.gains, self.force, offset, base)
-            self.states.append(
-                RobotState(
-                    r, model, law, offset, base, Record(FEEDBACK), Record(COMMAND), Record(PLAN)
-                )
+            st = RobotState(
+                r, model, law, offset, base, Record(FEEDBACK), Record(COMMAND), Record(PLAN)
             )
+            st.gains0 = law.gains.copy()
+            self.states.append(st)
         for st in self.states:
             st.loops(self.pid)
         self.fbs = [st.fb for st in self.states]
@@ -223,6 +235,8 @@ class SscWorker(Worker):
         self.seg_start_t = 0.0
         self.cond_since: float | None = None
         self.done = False
+        self.failed = ""  # why the task could not be done (a search found no hole)
+        self.retreat_end_t = 0.0  # when the failed task's lift is over
         self.produced = 0
 
     # -- the cycle --
@@ -250,6 +264,7 @@ class SscWorker(Worker):
         status = SessionStatus.FINISHED if self.done else SessionStatus.IN_PROGRESS
         segment = AFTER if self.k >= len(self.plans) else self.k + 1
         done = 1 if self.done else 0
+        failed = 1 if self.failed else 0
         now = time.monotonic_ns()
         self.produced += 1
         for i, st in enumerate(self.states):
@@ -260,6 +275,7 @@ class SscWorker(Worker):
             pl["segment"] = segment
             pl["segment_t_s"] = seg_t
             pl["done"] = done
+            pl["failed"] = failed
             if plan is not None and plan.robot == st.name and not self.done:
                 pl["moving"] = 1
                 self._law(st, plan, seg_t, dt, t)
@@ -321,6 +337,7 @@ class SscWorker(Worker):
                 # integral learned (a fresh one would let the pose sag back to
                 # its uncompensated error at every segment start)
                 carried = st.law.integral.copy() if st.cartesian else None
+                st.law.gains[...] = st.gains0  # a search may have changed them
                 st.law.start(cmd, kin.p, kin.R, plan.move_s, st.start_q, carried)
                 st.cartesian = True
                 st.short_move = bool(
@@ -331,6 +348,14 @@ class SscWorker(Worker):
                 v["goal_rot"][...] = plan.pose[3:]
                 v["wrench_goal"][...] = plan.force if force else 0.0
                 v["selection"][...] = plan.selection if force else 0
+                st.plan["phase"] = Phase.NONE
+                st.search = None
+                if force and plan.search.pattern == "spiral":
+                    st.search = SpiralSearch(plan.search, plan.mouth_z_m)
+                    st.goal_z_n = float(plan.force[2])
+                    st.plan["phase"] = Phase.DESCENT
+                    st.plan["search_m"] = 0.0
+                    v["search_xy"][...] = 0.0
             else:
                 st.cartesian = False
                 st.quintic.start(st.start_q, plan.q_goal, plan.move_s)
@@ -353,7 +378,20 @@ class SscWorker(Worker):
                 self.post(f"task finished at t={t:.2f} s")
             return
         plan = self.plans[self.k]
-        if seg_t >= plan.duration_s or self._ended_early(plan, t):
+        if self.failed:
+            if t >= self.retreat_end_t:
+                self._begin(len(self.plans), t)  # lifted off: hold, then end
+        elif seg_t >= plan.duration_s or self._ended_early(plan, t):
+            st = self.states[self.robots.index(plan.robot)]
+            srch = st.search
+            if srch is not None and srch.phase in (Phase.DESCENT, Phase.SETTLE, Phase.SEARCH):
+                st.law.gains[...] = st.gains0
+                srch.phase = Phase.NOT_FOUND
+                st.plan["phase"] = Phase.NOT_FOUND
+                self._fail(
+                    st, plan, t, f"hole not found within the segment's {plan.duration_s:g} s"
+                )
+                return
             self._begin(self.k + 1, t)
 
     def _ended_early(self, plan: SegmentPlan, t: float) -> bool:
@@ -409,6 +447,8 @@ class SscWorker(Worker):
         law.q[...] = q
         law.qd[...] = v["qd"]
         law.wrench[...] = v["wrench"]
+        if st.search is not None:
+            self._search(st, plan, seg_t, dt, t)
         # the integral learns in free space, once the reference stands still:
         # in position segments, and in force segments until the first
         # contact (the descent to the hole: the arm's posture changes and,
@@ -422,6 +462,90 @@ class SscWorker(Worker):
         st.to_records()
         v["q_cmd"][...] = q
         st.plan["contact"] = 1 if law.contact else 0
+
+    def _search(self, st: RobotState, plan: SegmentPlan, seg_t: float, dt: float, t: float) -> None:
+        """The segment's search, before the law: the goal in the hole's
+        plane, the plane's stiffness and the push along z, by phase."""
+        srch = st.search
+        assert srch is not None
+        law = st.law
+        before = srch.phase
+        phase = srch.step(seg_t, dt, law.contact, float(law.tcp_p[2]), -float(law.applied[2]))
+        ref, gains, cmd = law.ref, law.gains, law.cmd
+        if phase == Phase.SETTLE and before != phase:
+            cmd[8] = -srch.p.force_n
+            st.views["wrench_goal"][2] = -srch.p.force_n
+            self.post(f"{st.name}: contact off the hole at t={t:.2f} s; searching")
+        elif phase == Phase.SEARCH:
+            if before != phase:
+                gains[...] = st.gains0
+                st.slow_z = -math.inf
+                gains[0] = gains[1] = srch.p.stiffness_n_m
+                gains[5] = srch.p.yaw_stiffness_nm_rad
+                if before == Phase.IN_HOLE:  # a slip, not the hole: search on
+                    cmd[8] = -srch.p.force_n
+                    st.views["wrench_goal"][2] = -srch.p.force_n
+                    self.post(f"{st.name}: no hole there (t={t:.2f} s); searching on")
+            x, y = plan.pose[0] + srch.ox, plan.pose[1] + srch.oy
+            ref[0] = ref[3] = x
+            ref[1] = ref[4] = y
+            xy = st.views["search_xy"]
+            xy[0], xy[1] = srch.ox, srch.oy
+            st.plan["search_m"] = srch.path_m
+        elif phase == Phase.IN_HOLE and before != phase:
+            # stop where the tip is, the task's own stiffness and push
+            p = law.tcp_p
+            ref[0] = ref[3] = float(p[0])
+            ref[1] = ref[4] = float(p[1])
+            gains[...] = st.gains0
+            cmd[8] = st.goal_z_n
+            st.views["wrench_goal"][2] = st.goal_z_n
+            if before != Phase.DESCENT:
+                # the peg is falling in: free space again along z (no spring
+                # wound up, no goal force fed forward), down the hole at the
+                # search's descent speed to a little above its bottom as drawn
+                # (below the mouth the search met), then at the law's own speed
+                law.release()
+                gains[V_MAX] = srch.p.descent_m_s
+                gains[A_MAX] = DESCENT_ACCEL_M_S2
+                st.slow_z = srch.z_contact - plan.hole_depth_m + srch.p.slow_above_m
+                self.post(
+                    f"{st.name}: in the hole at t={t:.2f} s, {srch.path_m * 1e3:.1f} mm "
+                    f"of search, {srch.radius_m * 1e3:.2f} mm from the believed centre"
+                )
+        elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.slow_z:
+            # near the bottom: the law's own speed (braking at the descent's
+            # acceleration; the law's own comes back at the bottom's contact)
+            gains[V_MAX] = st.gains0[V_MAX]
+            st.slow_z = -math.inf
+        elif phase == Phase.IN_HOLE and law.contact and gains[A_MAX] != st.gains0[A_MAX]:
+            gains[A_MAX] = st.gains0[A_MAX]
+        elif phase == Phase.NOT_FOUND and before != phase:
+            gains[...] = st.gains0
+            self._fail(st, plan, t, srch.why)
+        st.plan["phase"] = phase
+
+    def _fail(self, st: RobotState, plan: SegmentPlan, t: float, why: str) -> None:
+        """The task cannot be done (the search found no hole): the robot lifts
+        its tool straight up to the segment's start height under position
+        control (off the surface it pressed, so that the next session starts
+        free), every other robot holds, then the task ends ``failed``."""
+        self.failed = f"{plan.name}: {why}"
+        self.post(f"{self.failed}; the tool lifts off and the task stops", logging.ERROR)
+        q = st.views["q"].astype(np.float64)
+        kin = st.model.kinematics(q)
+        lift = np.concatenate(
+            [kin.p[:2], [max(float(kin.p[2]), float(plan.pose[2]))], plan.pose[3:]]
+        )
+        cmd = TaskFrameCommand(lift, np.zeros(6), np.zeros(6), "world")
+        st.law.start(cmd, kin.p, kin.R, RETREAT_S, q, st.law.integral.copy())
+        st.short_move = False
+        st.views["wrench_goal"][...] = 0.0
+        st.views["selection"][...] = 0
+        st.views["goal"][...] = lift[:3]
+        st.plan["scheme"] = SCHEMES["position"]
+        self.seg_start_t = t  # the lift's own clock
+        self.retreat_end_t = t + RETREAT_S + RETREAT_HOLD_S
 
     @staticmethod
     def _pose(st: RobotState, q: np.ndarray[Any, Any], goal: bool) -> None:

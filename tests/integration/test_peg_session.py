@@ -26,7 +26,7 @@ from tests.helpers import (
 pytestmark = pytest.mark.peg
 
 SHORT = "tasks/peg_insertion_short.yaml"
-HOLE_DEPTH = load_config(ROOT / "config/redistro.yaml").plant.hole.depth_m
+HOLE_DEPTH = load_config(ROOT / "config/redistro.yaml").workcell.hole.depth_m
 LIMIT = load_config(ROOT / "config/redistro.yaml").ddm.starving_limit_cycles
 
 

@@ -128,8 +128,8 @@ def test_wrist_sensor_reads_the_contact_force(backplane: str, tmp_path: Path) ->
     from redistro.config.loader import load_config
 
     cfg = load_config(None, [])
-    hx, hy, top = cfg.plant.hole.xyz_m
-    peg = cfg.plant.peg
+    hx, hy, top = cfg.workcell.hole.xyz_m
+    peg = cfg.workcell.peg
     model = Model(cfg)
     # the peg's tip 3 mm above the fixture's top face, beside the hole, pointing down
     above = [hx, hy + 0.025, top + peg.length_m + 0.003]

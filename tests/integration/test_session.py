@@ -138,7 +138,10 @@ def test_bad_input_is_one_line_exit_2_nothing_created(
 
 PLANT_BAD_INPUTS = [
     (["--set", "plant.backplane=usb"], "plant.backplane: expected one of 'shm', 'can'"),
-    (["--set", "plant.hole.clearance_m=0.005"], "plant.hole.clearance_m: expected a number > 0"),
+    (
+        ["--set", "workcell.hole.clearance_m=0.005"],
+        "workcell.hole.clearance_m: expected a number > 0",
+    ),
     (["--set", "robots.r1.io=nowhere/r1.io.yaml"], "nowhere/r1.io.yaml: cannot read config"),
     (
         ["--set", "robots.r2.initial_q_rad=[0, 1]"],

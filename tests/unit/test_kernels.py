@@ -285,7 +285,7 @@ def test_the_cartesian_law_kernel_matches_its_numpy_composition() -> None:
     force = ForceParams(
         fc.k_adm, fc.k_adm_rot, fc.v_max, fc.w_max, fc.a_max, fc.alpha_max, fc.contact_n, fc.ramp_s
     )
-    peg = CFG.plant.peg
+    peg = CFG.workcell.peg
     model = ArmModel(Peg(peg.side_m, peg.length_m, peg.mass_kg), [0.0, -0.45, 0.0])
     base = np.array([0.0, -0.45, 0.0])
     laws = [CartesianLaw(gains, force, peg.length_m, base, use_kernel=k) for k in (True, False)]

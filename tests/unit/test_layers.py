@@ -113,3 +113,75 @@ def test_the_sub_controllers_do_not_import_each_other() -> None:
         if any(m == f"redistro.{b}" or m.startswith(f"redistro.{b}.") for b in banned)
     ]
     assert not offenders, offenders
+
+
+# The controller's packages: what they know of the plant's section is the I/O
+# boards' datasheet (config.model.CONTROLLER_KEYS), never the world's truth.
+CONTROLLER = ("esc", "ssc", "ddm", "control", "drivers")
+
+
+def _plant_reads(path: Path) -> set[str]:
+    """The attributes read off a ``.plant`` in ``path`` (``cfg.plant.hole``: hole)."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Attribute)
+            and node.value.attr == "plant"
+        ):
+            out.add(node.attr)
+    return out
+
+
+def test_controller_packages_read_only_the_boards_datasheet_of_the_plant() -> None:
+    from redistro.config.model import CONTROLLER_KEYS
+
+    offenders = {
+        str(path.relative_to(PACKAGE)): sorted(reads - set(CONTROLLER_KEYS))
+        for layer in CONTROLLER
+        for path in sorted((PACKAGE / layer).rglob("*.py"))
+        if (reads := _plant_reads(path)) - set(CONTROLLER_KEYS)
+    }
+    assert not offenders, offenders
+    # and the check itself sees such a read
+    probe = PACKAGE.parent / "tests" / "unit" / "_probe_plant_read.py"
+    probe.write_text("def f(cfg):\n    return cfg.plant.hole.offset_xyz_m\n")
+    try:
+        assert _plant_reads(probe) == {"hole"}
+    finally:
+        probe.unlink()
+
+
+def test_controller_nodes_get_no_plant_truth() -> None:
+    """The specs of the ESCs and the SSC carry the config's controller view:
+    a hole offset, the encoders' disturbance, the sensor's bias are not in it."""
+    from redistro.config import load_config
+    from redistro.config.hardware import load_hardware
+    from redistro.config.loader import from_resolved
+    from redistro.config.model import Config
+    from redistro.config.task import load_task
+    from redistro.esc.plan import esc_spec
+    from redistro.ssc.plan import ssc_spec
+
+    root = PACKAGE.parent
+    cfg = load_config(
+        root / "config" / "redistro.yaml",
+        [
+            "plant.hole.offset_xyz_m=[0.002, -0.001, 0]",
+            "plant.hole.offset_radius_m=0.003",
+            "plant.hole.yaw_deg=1.5",
+            "plant.ft_bias.r2=[1, 2, 3, 0, 0, 0]",
+        ],
+    )
+    task = load_task(root / "tasks" / "peg_insertion_short.yaml", cfg)
+    ssc = ssc_spec(cfg, task, "s", run_dir="")
+    hw = load_hardware(cfg)
+    specs = [ssc] + [
+        esc_spec(cfg, task, r, hw[r], "s", positions_file="p.json") for r in task.robots
+    ]
+    for spec in specs:
+        seen = from_resolved(Config, spec.config)
+        assert seen.plant.hole == type(cfg.plant.hole)(), spec.node
+        assert seen.plant.encoder_disturbance_rad == {} and seen.plant.ft_bias == {}, spec.node
+        assert seen.plant.physics_hz == cfg.plant.physics_hz  # the boards' rate stays
+        assert seen.workcell == cfg.workcell  # what it believes: the drawn work-cell

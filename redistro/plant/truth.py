@@ -1,0 +1,87 @@
+"""Where the plant's hole really is: the work-cell's drawn pose
+(``workcell.hole``) moved by ``plant.hole``'s fixed offset and its random
+draw. Only the plant and the tools that judge a run (the peg campaign, the
+summary) use this; controller nodes never get ``plant.hole``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from redistro.config.model import Config
+
+
+@dataclass(frozen=True)
+class HolePose:
+    """The hole's real pose: its mouth's centre [m], its rotation (world from
+    fixture: yaw about the axis, then the tilt), and how far both are from
+    the drawn pose."""
+
+    xyz_m: tuple[float, float, float]
+    yaw_deg: float
+    tilt_xy_deg: tuple[float, float]
+    offset_xyz_m: tuple[float, float, float]
+
+    @property
+    def lateral_m(self) -> float:
+        return math.hypot(self.offset_xyz_m[0], self.offset_xyz_m[1])
+
+    def quaternion(self) -> tuple[float, float, float, float]:
+        """x, y, z, w (PyBullet's order) of R = Rz(yaw) Ry(tilt y) Rx(tilt x)."""
+        rx, ry, rz = (math.radians(v) for v in (*self.tilt_xy_deg, self.yaw_deg))
+        cx, sx = math.cos(rx / 2), math.sin(rx / 2)
+        cy, sy = math.cos(ry / 2), math.sin(ry / 2)
+        cz, sz = math.cos(rz / 2), math.sin(rz / 2)
+        return (
+            sx * cy * cz - cx * sy * sz,
+            cx * sy * cz + sx * cy * sz,
+            cx * cy * sz - sx * sy * cz,
+            cx * cy * cz + sx * sy * sz,
+        )
+
+    def rotation(self) -> np.ndarray[Any, Any]:
+        x, y, z, w = self.quaternion()
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "xyz_m": [round(v, 6) for v in self.xyz_m],
+            "offset_xyz_m": [round(v, 6) for v in self.offset_xyz_m],
+            "lateral_offset_m": round(self.lateral_m, 6),
+            "yaw_deg": round(self.yaw_deg, 4),
+            "tilt_xy_deg": [round(v, 4) for v in self.tilt_xy_deg],
+        }
+
+
+def hole_pose(cfg: Config) -> HolePose:
+    """The drawn pose, the fixed offset, and the seeded draw: a lateral
+    offset uniform over the disc of ``offset_radius_m`` (the ring outside
+    ``offset_min_radius_m``) and a yaw uniform
+    within ``yaw_range_deg``. The three numbers are always drawn, so that the
+    yaw of a seed does not change with the radius."""
+    t = cfg.plant.hole
+    rng = np.random.default_rng(t.seed)
+    u_r, u_a, u_y = (float(v) for v in rng.uniform(size=3))
+    dx, dy, dz = (float(v) for v in t.offset_xyz_m)
+    r0 = min(t.offset_min_radius_m, t.offset_radius_m)
+    r = math.sqrt(r0 * r0 + u_r * (t.offset_radius_m**2 - r0 * r0))
+    a = 2.0 * math.pi * u_a
+    dx, dy = dx + r * math.cos(a), dy + r * math.sin(a)
+    yaw = t.yaw_deg + t.yaw_range_deg * (2.0 * u_y - 1.0)
+    x, y, z = (float(v) for v in cfg.workcell.hole.xyz_m)
+    return HolePose(
+        xyz_m=(x + dx, y + dy, z + dz),
+        yaw_deg=yaw,
+        tilt_xy_deg=(float(t.tilt_xy_deg[0]), float(t.tilt_xy_deg[1])),
+        offset_xyz_m=(dx, dy, dz),
+    )
