@@ -139,6 +139,8 @@ def run(
         rows.append(row)
         if on_trial is not None:
             on_trial(row)
+        if str(row["reason"] or "").startswith("interrupted by"):
+            break  # Ctrl-C (or SIGTERM) ends the campaign, not only its trial
     baseline.restore()
     return {
         "task": task_path,
@@ -149,6 +151,7 @@ def run(
         "seed": seed,
         "overrides": overrides,
         "runs_dir": str(out_root),
+        "interrupted": len(rows) < trials,
         "summary": campaign_summary(rows),
         "trials": rows,
     }

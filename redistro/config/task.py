@@ -96,26 +96,39 @@ class EndConditions:
 class Search:
     """How a force segment finds a hole it does not meet where it believes
     it is (``pattern: spiral``; ``none``: no search, push where the goal
-    says). After contact the tool pushes ``force_n`` along the force axis
-    while its goal in the hole's plane runs an Archimedean spiral about the
-    believed centre: ``pitch_m`` between turns, ``speed_m_s`` along the path,
-    the plane's stiffness raised to ``stiffness_n_m`` (against the sliding
-    friction). A fall of ``drop_m`` below the contact height means the peg
-    is in: the search stops where the tip is, and the segment's goal wrench
-    pushes it home. Beyond ``max_radius_m`` or after ``timeout_s`` of search
-    the segment ends as a clean failure: the hole was not found."""
+    says; ``control.search`` has the phases). The descent slows to
+    ``touch_m_s`` 3 mm above the mouth as drawn. After contact off the hole the
+    tool pushes ``force_n`` [N] along the force axis while its goal in the
+    hole's plane runs an Archimedean spiral about the believed centre:
+    ``pitch_m`` between turns, ``speed_m_s`` along the path, the plane's
+    stiffness raised to ``stiffness_n_m`` [N/m] (against the sliding
+    friction), the yaw's softened to ``yaw_stiffness_nm_rad`` [N m/rad] and
+    damped by ``yaw_damping_nm_s_rad`` [N m s/rad] (the walls may turn the
+    peg; no slip may spin it). A fall of ``drop_m`` below the contact height,
+    or the push gone while the tip sinks, means the peg is in: the search
+    stops where the tip is, the peg goes down at the force law's own speed
+    until it is three ``drop_m`` in, then at ``descent_m_s`` to
+    ``slow_above_m`` above the bottom as drawn, then at the law's own speed
+    again, and the segment's goal wrench pushes it home. Beyond
+    ``max_radius_m`` or after ``timeout_s`` of search the segment ends as a
+    clean failure: the hole was not found, the tool lifts off.
+
+    The defaults find a hole up to 3 mm off and turned up to 2 degrees in
+    about 8 s (docs/PERFORMANCE.md, "Peg insertion under uncertainty")."""
 
     pattern: Literal["none", "spiral"] = "none"
+    touch_m_s: float = field(default=0.004, metadata={"gt": 0, "le": 0.1})
     force_n: float = field(default=8.0, metadata={"gt": 0, "le": 50})
-    pitch_m: float = field(default=0.0004, metadata={"gt": 0, "le": 0.01})
-    speed_m_s: float = field(default=0.005, metadata={"gt": 0, "le": 0.05})
+    pitch_m: float = field(default=0.0008, metadata={"gt": 0, "le": 0.01})
+    speed_m_s: float = field(default=0.006, metadata={"gt": 0, "le": 0.05})
     max_radius_m: float = field(default=0.005, metadata={"gt": 0, "le": 0.02})
-    timeout_s: float = field(default=30.0, metadata={"gt": 0, "le": 600})
+    timeout_s: float = field(default=25.0, metadata={"gt": 0, "le": 600})
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
-    stiffness_n_m: float = field(default=1500.0, metadata={"gt": 0, "le": 5000})
-    yaw_stiffness_nm_rad: float = field(default=8.0, metadata={"ge": 0, "le": 100})
-    descent_m_s: float = field(default=0.03, metadata={"gt": 0, "le": 0.1})
-    slow_above_m: float = field(default=0.008, metadata={"ge": 0, "le": 0.1})
+    stiffness_n_m: float = field(default=3000.0, metadata={"gt": 0, "le": 5000})
+    yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
+    yaw_damping_nm_s_rad: float = field(default=0.2, metadata={"ge": 0, "le": 10})
+    descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
+    slow_above_m: float = field(default=0.012, metadata={"ge": 0, "le": 0.1})
     settle_s: float = field(default=0.3, metadata={"ge": 0, "le": 10})
 
 

@@ -49,6 +49,8 @@ from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
 
 DOF = 7
 V_MAX, A_MAX = 41, 43  # the force axes' speed and acceleration in CartesianLaw.gains
+DEEP_IN = 3.0  # this many search.drop_m below the contact: in the hole for sure
+TOUCH_ABOVE_M = 0.003  # a searching descent slows to search.touch_m_s this far above the mouth
 RETREAT_S = 2.0  # a failed search lifts the tool off in this long [s]
 RETREAT_HOLD_S = 0.5  # ... and holds it there this long before the task ends [s]
 ON = np.ones(DOF, dtype=bool)
@@ -83,7 +85,8 @@ class RobotState:
     to_records: Any = None  # the law's outputs -> plan and command records
     search: SpiralSearch | None = None  # the running force segment's search
     gains0: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(0))  # the law's own
-    slow_z: float = -math.inf  # in the hole: down fast to this height, then the law's own speed
+    fast_z: float = -math.inf  # in the hole: down fast below this height ...
+    slow_z: float = -math.inf  # ... to this one, then at the law's own speed
     goal_z_n: float = 0.0  # the segment's goal force along z
 
     def __post_init__(self) -> None:
@@ -472,16 +475,21 @@ class SscWorker(Worker):
         before = srch.phase
         phase = srch.step(seg_t, dt, law.contact, float(law.tcp_p[2]), -float(law.applied[2]))
         ref, gains, cmd = law.ref, law.gains, law.cmd
-        if phase == Phase.SETTLE and before != phase:
+        if phase == Phase.DESCENT:
+            if law.tcp_p[2] < plan.mouth_z_m + TOUCH_ABOVE_M and gains[V_MAX] > srch.p.touch_m_s:
+                gains[V_MAX] = srch.p.touch_m_s  # near the mouth as drawn: touch gently
+        elif phase == Phase.SETTLE and before != phase:
+            gains[V_MAX] = st.gains0[V_MAX]
             cmd[8] = -srch.p.force_n
             st.views["wrench_goal"][2] = -srch.p.force_n
             self.post(f"{st.name}: contact off the hole at t={t:.2f} s; searching")
         elif phase == Phase.SEARCH:
             if before != phase:
                 gains[...] = st.gains0
-                st.slow_z = -math.inf
+                st.fast_z = st.slow_z = -math.inf
                 gains[0] = gains[1] = srch.p.stiffness_n_m
                 gains[5] = srch.p.yaw_stiffness_nm_rad
+                gains[11] = srch.p.yaw_damping_nm_s_rad
                 if before == Phase.IN_HOLE:  # a slip, not the hole: search on
                     cmd[8] = -srch.p.force_n
                     st.views["wrench_goal"][2] = -srch.p.force_n
@@ -506,13 +514,27 @@ class SscWorker(Worker):
                 # search's descent speed to a little above its bottom as drawn
                 # (below the mouth the search met), then at the law's own speed
                 law.release()
-                gains[V_MAX] = srch.p.descent_m_s
-                gains[A_MAX] = DESCENT_ACCEL_M_S2
+                st.fast_z = srch.z_contact - DEEP_IN * srch.p.drop_m
                 st.slow_z = srch.z_contact - plan.hole_depth_m + srch.p.slow_above_m
                 self.post(
                     f"{st.name}: in the hole at t={t:.2f} s, {srch.path_m * 1e3:.1f} mm "
                     f"of search, {srch.radius_m * 1e3:.2f} mm from the believed centre"
                 )
+        elif (
+            phase == Phase.IN_HOLE
+            and law.contact
+            and srch.t_search is not None
+            and seg_t - srch.t_phase < srch.p.settle_s
+        ):
+            # just dropped, the push still dying away: not a contact yet (else
+            # the goal force is fed forward again and throws the peg down)
+            law.release()
+        elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.fast_z:
+            # deep enough not to be a slip: down fast (what meets the tool
+            # higher up meets it at the law's own speed)
+            gains[V_MAX] = srch.p.descent_m_s
+            gains[A_MAX] = DESCENT_ACCEL_M_S2
+            st.fast_z = -math.inf
         elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.slow_z:
             # near the bottom: the law's own speed (braking at the descent's
             # acceleration; the law's own comes back at the bottom's contact)

@@ -38,7 +38,7 @@ def _run(
 
 
 def test_the_spiral_covers_the_plane_at_its_pitch_and_speed() -> None:
-    p = Search(pattern="spiral", pitch_m=0.0004, speed_m_s=0.005, max_radius_m=0.004)
+    p = Search(pattern="spiral", pitch_m=0.0004, speed_m_s=0.005, max_radius_m=0.004, timeout_s=60)
     s = SpiralSearch(p, MOUTH)
     pts = []
 
@@ -81,7 +81,7 @@ def test_the_push_gone_as_the_tip_sinks_is_the_hole() -> None:
     """The peg starts to fall: the push is gone before the tip has fallen
     drop_m, and the search stops there; a push lost without the tip sinking
     (a bounce, a slip) is not the hole."""
-    p = Search(pattern="spiral", drop_m=0.001, force_n=8.0)
+    p = Search(pattern="spiral", drop_m=0.001, force_n=8.0, pitch_m=0.0004, speed_m_s=0.005)
     hole = (0.0012, -0.0008)
 
     def near(srch: SpiralSearch) -> bool:
