@@ -113,15 +113,20 @@ def session_entries(session_id: str) -> list[str]:
 
 
 @contextlib.contextmanager
-def esc_segment(procs: list[tuple[str, str, int]]) -> Iterator[tuple[str, LocalData]]:
+def esc_segment(
+    procs: list[tuple[str, str, int]], memory: bool = False
+) -> Iterator[tuple[str, LocalData]]:
     """A real Local Data segment of an ESC node ``esc.r1`` at 200 Hz, in a
     session of its own, with these (name, role, stage) processes: the
-    session's id and the segment, unlinked at the end."""
+    session's id and the segment, unlinked at the end. memory: the
+    in-process stand-in (no POSIX object, no session folder)."""
+    from redistro.ipc.names import new_session_id
     from redistro.ipc.session import Session
 
-    with Session.create() as session:
+    with contextlib.nullcontext(None) if memory else Session.create() as session:
+        sid = session.id if session is not None else new_session_id()
         seg = LocalData.create(
-            session.id,
+            sid,
             "esc.r1",
             node_kind="esc",
             proc_names=[p[0] for p in procs],
@@ -131,10 +136,11 @@ def esc_segment(procs: list[tuple[str, str, int]]) -> Iterator[tuple[str, LocalD
             rate_hz=200.0,
             period_ns=5_000_000,
             heartbeat_limit_cycles=5,
-            manifest=session.manifest,
+            manifest=session.manifest if session is not None else None,
+            memory=memory,
         )
         try:
-            yield session.id, seg
+            yield sid, seg
         finally:
             seg.close()
             seg.unlink()

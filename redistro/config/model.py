@@ -3,6 +3,9 @@
 Constraints understood by the validator (redistro.config.validate):
 ``gt``, ``ge``, ``lt``, ``le`` for numbers, ``min_len`` and ``len`` for lists, and
 ``keys`` (allowed keys) for dicts. Units are in the field names.
+
+Past the house's ~400 lines: it is declarations only, one dataclass per
+section of the config file, each documented where it is declared.
 """
 
 from __future__ import annotations

@@ -77,6 +77,15 @@ def open_transport(
 
 
 class Ddm(Worker):
+    def __init__(
+        self, spec: NodeSpec, index: int, ld: Any, transport: Transport | None = None
+    ) -> None:
+        """transport: this ddm's end, made elsewhere (unit tests hand in an
+        in-process one, ``ddm.loopback``); None: ``ddm.transport`` from the
+        config, opened in :meth:`initialize`."""
+        super().__init__(spec, index, ld)
+        self._given = transport
+
     def initialize(self) -> None:
         self.cfg = self.spec.cfg()
         self.kind = self.spec.kind
@@ -121,7 +130,7 @@ class Ddm(Worker):
         self.dirty = True  # exchange records not yet published
         self.urgent = True  # ... with a change of state (e-stop, link lost, the first record)
         self.steps = 0
-        self.transport: Transport = open_transport(
+        self.transport: Transport = self._given or open_transport(
             self.cfg,
             self.spec.session_id,
             link_id(self.spec),

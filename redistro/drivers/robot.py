@@ -7,6 +7,9 @@ fitted, else differentiated over the boards' sample times), joint torque
 output), wrist wrench [N, N m] in the sensor frame, home switch levels.
 ``send_torques`` converts joint torques to DAC volts through the motor model;
 ``freeze`` engages every brake and zeroes every DAC channel.
+
+Past the house's ~400 lines: one robot's every unit conversion, in both
+directions and for each board, is the driver's one job.
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import random
 import time
@@ -73,7 +74,7 @@ def _forged_write(bus: Any, types: Mapping[int, str], address: int, seq: int) ->
     return n
 
 
-def run_can_noise(out_dir: Path, config_args: list[str], forged: bool = False) -> dict[str, Any]:
+def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str, Any]:
     """The plant on the CAN backplane, r2's robot-level driver reading it at
     200 Hz (holding its DAC at zero, the brakes on) for 3 s, corrupt frames on
     the bus for the middle second. Whole robot-group sessions over CAN do not
@@ -88,15 +89,13 @@ def run_can_noise(out_dir: Path, config_args: list[str], forged: bool = False) -
     import numpy as np
 
     from redistro.config.hardware import load_hardware
-    from redistro.config.loader import load_config
     from redistro.drivers.io.backplane import open_backplane
     from redistro.drivers.robot import RobotDriver
     from redistro.errors import IOFault
     from redistro.ipc.session import Session
     from redistro.plant.launch import PlantProcess
 
-    sets = [*_sets(config_args), "plant.backplane=can"]
-    cfg = load_config(None, sets)
+    cfg = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, backplane="can"))
     hw = load_hardware(cfg)["r2"]
     row: dict[str, Any] = {}
     reads = worst = 0
@@ -167,7 +166,3 @@ def run_can_noise(out_dir: Path, config_args: list[str], forged: bool = False) -
         and not row["ipc_left"]
     )
     return row
-
-
-def _sets(config_args: list[str]) -> list[str]:
-    return [config_args[i + 1] for i, a in enumerate(config_args[:-1]) if a == "--set"]

@@ -7,6 +7,9 @@ first segment, breaks the target process, waits for the session to end and
 reads its summary. Times are CLOCK_MONOTONIC on one host: the injection, the
 first fault a manager recorded (``fault_monotonic_ns``), the plant's freezes
 (every brake of a robot on).
+
+Past the house's ~400 lines: each kind of scenario (a process broken, an
+input refused, a start refused, stale IPC, hogs) measures the same row.
 """
 
 from __future__ import annotations
@@ -172,7 +175,7 @@ def run_scenario(
     if sc.kind == "can-noise":
         from redistro.faults.can_noise import run_can_noise
 
-        row.update(run_can_noise(out_dir, config_args, forged=sc.action == "forged"))
+        row.update(run_can_noise(out_dir, cfg, forged=sc.action == "forged"))
         return row
     if sc.kind == "hogs":
         row.update(_hogs(sc, runs, out_dir, config_args))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import mmap
+from typing import ClassVar
 
 import posix_ipc
 
@@ -65,3 +66,45 @@ class SharedMemory:
     def unlink(self) -> None:
         with contextlib.suppress(posix_ipc.ExistentialError):
             posix_ipc.unlink_shared_memory(self.name)
+
+
+class MemorySegment:
+    """An in-process stand-in for :class:`SharedMemory`, the same contract
+    (create refuses a name that exists, attach one that does not; close
+    fails while views are exported; the creator unlinks) over anonymous
+    memory that only this process sees: Local Data for unit tests that run
+    a manager's bookkeeping, a worker or a ddm without processes. The
+    contract tests of Local Data run over both."""
+
+    _named: ClassVar[dict[str, mmap.mmap]] = {}
+
+    def __init__(self, name: str, mapping: mmap.mmap, owner: bool) -> None:
+        self.name = name
+        self._mapping = mapping
+        self.buffer = memoryview(mapping)
+        self.size = len(mapping)
+        self.owner = owner
+
+    @classmethod
+    def create(cls, name: str, size: int, manifest: Manifest | None = None) -> MemorySegment:
+        if name in cls._named:
+            raise IPCError(f"shared memory {name} already exists")
+        mapping = mmap.mmap(-1, size)
+        cls._named[name] = mapping
+        return cls(name, mapping, owner=True)
+
+    @classmethod
+    def attach(cls, name: str) -> MemorySegment:
+        mapping = cls._named.get(name)
+        if mapping is None:
+            raise IPCError(f"shared memory {name} does not exist")
+        return cls(name, mapping, owner=False)
+
+    def close(self) -> None:
+        try:
+            self.buffer.release()
+        except BufferError as exc:
+            raise IPCError(f"{self.name}: views still exported at close") from exc
+
+    def unlink(self) -> None:
+        self._named.pop(self.name, None)

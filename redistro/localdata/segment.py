@@ -12,7 +12,7 @@ import numpy as np
 from redistro.errors import IPCError, LayoutError
 from redistro.ipc import names
 from redistro.ipc.session import Manifest
-from redistro.ipc.shm import SharedMemory
+from redistro.ipc.shm import MemorySegment, SharedMemory
 from redistro.localdata.block import Block, MessageBox
 from redistro.localdata.layout import (
     BLOCKS,
@@ -38,7 +38,11 @@ def writer_of(block: str, node_kind: str) -> str:
 
 
 class LocalData:
-    def __init__(self, shm: SharedMemory, n_procs: int, n_robots: int) -> None:
+    """A node's Local Data: POSIX shared memory, or with ``memory=True`` an
+    in-process stand-in (:class:`~redistro.ipc.shm.MemorySegment`) for unit
+    tests that run a manager's bookkeeping, a worker or a ddm in one process."""
+
+    def __init__(self, shm: SharedMemory | MemorySegment, n_procs: int, n_robots: int) -> None:
         self.shm = shm
         self.n_procs = n_procs
         self.n_robots = n_robots
@@ -65,11 +69,13 @@ class LocalData:
         period_ns: int,
         heartbeat_limit_cycles: int,
         manifest: Manifest | None,
+        memory: bool = False,
     ) -> LocalData:
         n_procs, n_robots = len(proc_names), len(robot_names)
         dtype = segment_dtype(n_procs, n_robots)
         name = names.object_name(session_id, node, OBJECT)
-        shm = SharedMemory.create(name, dtype.itemsize, manifest)
+        kind = MemorySegment if memory else SharedMemory
+        shm = kind.create(name, dtype.itemsize, manifest)
         ld = cls(shm, n_procs, n_robots)
         st = ld.view["static"]
         st["rate_hz"] = rate_hz
@@ -93,9 +99,9 @@ class LocalData:
         return ld
 
     @classmethod
-    def attach(cls, session_id: str, node: str) -> LocalData:
+    def attach(cls, session_id: str, node: str, memory: bool = False) -> LocalData:
         name = names.object_name(session_id, node, OBJECT)
-        shm = SharedMemory.attach(name)
+        shm = (MemorySegment if memory else SharedMemory).attach(name)
         if shm.size < HEADER.itemsize:
             shm.close()
             raise LayoutError(f"{name}: too small for a Local Data header")
@@ -128,6 +134,11 @@ class LocalData:
 
     def unlink(self) -> None:
         self.shm.unlink()
+
+    @property
+    def memory(self) -> bool:
+        """In-process (the stand-in for tests), not POSIX shared memory."""
+        return isinstance(self.shm, MemorySegment)
 
     def torn_reads(self) -> int:
         """Snapshot retries needed so far by every read handle of this attachment."""

@@ -5,6 +5,9 @@ RUN is a run folder, a session id under ``session.runs_dir``, or a
 velocities, accelerations and torques; wrist force and torque in the tool
 and the world frame; end-effector position and orientation; and per
 process, histograms of the cycle timing.
+
+Past the house's ~400 lines: each figure is a short function, and they
+share the one reading of the log.
 """
 
 from __future__ import annotations

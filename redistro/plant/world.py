@@ -2,6 +2,9 @@
 
 Only this module talks to PyBullet. PyBullet's tuples are wrapped in
 NamedTuples; joints are found by name, never by a hard-coded index.
+
+Past the house's ~400 lines on purpose: it is the one place that talks to
+PyBullet (the scene, the arms, the motors, the sensors' truth).
 """
 
 from __future__ import annotations

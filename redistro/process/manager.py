@@ -8,6 +8,9 @@ boxes, publishes the cycle and sends the sync signal to every worker. Worker
 exits are seen at once (SIGCHLD, reaped through waitpid and watched through
 pidfds). Cleanup ends the workers, reaps them, writes the result and removes
 every IPC object the node created.
+
+Past the house's ~400 lines: the four states and the fault reaction are
+one sequence, read top to bottom; the bookkeeping is in ``books.py``.
 """
 
 from __future__ import annotations
@@ -26,10 +29,11 @@ from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
 from redistro.ipc.session import LOCK_FD_ENV, Manifest
 from redistro.ipc.timer import IntervalTimer
-from redistro.localdata import Block, LocalData, MessageBox, ProcState
+from redistro.localdata import Block, LocalData, ProcState
 from redistro.localdata.block import Record
-from redistro.localdata.layout import MANAGER, MSG_TEXT, PROC_STATUS
-from redistro.process.result import NodeResult, WorkerResult
+from redistro.localdata.layout import MANAGER, MSG_TEXT
+from redistro.process.books import NodeBooks, node_local_data
+from redistro.process.result import NodeResult
 from redistro.process.spawn import spawn
 from redistro.process.spec import EXIT_FAILED, NodeSpec
 from redistro.process.stats import Samples
@@ -55,10 +59,6 @@ def describe_status(status: int) -> str:
     return f"status {status:#x}"
 
 
-def _triple(values: Any) -> dict[str, float]:
-    return {k: round(float(v), 1) for k, v in zip(("p50", "p99", "max"), values, strict=True)}
-
-
 def iso_time(t: float) -> str:
     """UNIX time as ISO 8601 UTC with milliseconds."""
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
@@ -74,6 +74,10 @@ class _Child:
     @property
     def alive(self) -> bool:
         return self.status is None
+
+    def sync(self) -> None:
+        """The tick's sync signal: run a cycle."""
+        signals.send(self.pidfd, signals.SIG_SYNC)
 
     def reap(self, wait: bool = False) -> bool:
         """Collect the exit status if the process has exited (or wait for it)."""
@@ -96,43 +100,33 @@ class Manager:
         self.children: list[_Child] = []
         self.on_cycle: list[_Child] = []  # the children the sync signal goes to
         self.lateness = Samples()
-        self.makespan = Samples()
         self.tick_work = Samples()
         self.missed_ticks = 0
         self.overruns = 0
-        self.late_heartbeats = 0
-        self.missed_heartbeats = 0
-        self.deadline_misses = 0  # cycles completed, but after their period ended
-        self.incomplete_cycles = 0  # cycles whose last stage had not signed at the next tick
         self.torn_ticks = 0  # ticks whose on_tick could not read a block consistently
-        self.hung: set[int] = set()
-        self.messages: list[dict[str, Any]] = []
-        self.messages_lost = 0
         self.ld: LocalData | None = None
+        self.books = NodeBooks(spec)
         self.sems: list[Semaphore] = []
-        self.rows: list[Block] = []
-        self._hb_limits: list[int] = []
-        self.boxes: list[MessageBox] = []
-        self.last_error: dict[str, str] = {}  # worker name -> its last ERROR message
-        self._failed: dict[int, str] = {}  # worker index -> why it failed (CRITICAL message)
-        self._msg_file: Any = None
         self._routine_start = 0.0
         self._routine_end = 0.0
         self._cpu_start = 0.0
         self._cpu_end = 0.0
         self.granted: sched.Granted | None = None
         self.block: Block | None = None
+        self.mine = Record(MANAGER)  # the manager's own block, published whole each tick
         self._due_ns = 0
         self._tick_ns = 0
         self._estop = False
         self.wake_fd = -1
         self.idle_slices = 0  # slices of Idle work between ticks (message boxes first)
         self.cpu_latency_fd: int | None = None  # the PM QoS request, held while the node runs
-        # the node cannot carry its e-stop to the group itself: it has no DDM
-        # (an ESC-only session), or its DDM is what failed
-        self._no_door = not any(w.role == "ddm" for w in spec.workers)
         self.ring: Any = None  # the session log's ring, when the node logs
         self.capture: Any = None
+
+    @property
+    def last_error(self) -> dict[str, str]:
+        """Worker name -> its last ERROR message."""
+        return self.books.last_error
 
     # -- hooks --
 
@@ -167,7 +161,7 @@ class Manager:
         if self.spec.owner_pid and os.getppid() != self.spec.owner_pid:
             return 3
         if self.spec.messages_path:
-            self._msg_file = open(self.spec.messages_path, "a", buffering=1)  # noqa: SIM115
+            self.books.msg_file = open(self.spec.messages_path, "a", buffering=1)  # noqa: SIM115
         try:
             self._initialization()
             self._routine()
@@ -180,38 +174,22 @@ class Manager:
             self._cleanup(started)
         return 0 if self.result.ok else 1
 
-    def _initialization(self) -> None:
-        spec = self.spec
-        manifest = Manifest.for_session(spec.session_id)
-        stage_of = {j: -1 for j in range(len(spec.workers))}  # -1: off the cycle
-        for k, group in enumerate(spec.stages()):
-            for j in group:
-                stage_of[j] = k
-        self.ld = ld = LocalData.create(
-            spec.session_id,
-            spec.node,
-            node_kind=spec.kind,
-            proc_names=[w.name for w in spec.workers],
-            proc_roles=[w.role for w in spec.workers],
-            proc_stages=[stage_of[j] for j in range(len(spec.workers))],
-            robot_names=spec.robots,
-            rate_hz=spec.rate_hz,
-            period_ns=self.timer.period_ns,
-            heartbeat_limit_cycles=spec.heartbeat_limit_cycles,
-            manifest=manifest,
-        )
+    def open_local_data(self, manifest: Manifest | None, memory: bool = False) -> LocalData:
+        """The node's Local Data (``memory``: the in-process stand-in, for
+        unit tests), the manager's block and the bookkeeping over it."""
+        self.ld = ld = node_local_data(self.spec, self.timer.period_ns, manifest, memory)
         self.block = ld.writer("manager", role="manager")
-        self.rows = [ld.block("proc", j) for j in range(len(spec.workers))]
-        # each worker's heartbeat limit (the recorders' is longer than the node's)
-        node_limit = spec.heartbeat_limit_cycles
-        self._hb_limits = [w.heartbeat_limit_cycles or node_limit for w in spec.workers]
-        self._last_hb = [0] * len(spec.workers)
-        self._row_recs: list[Record] = []
-        self.boxes = [ld.msgbox(j) for j in range(len(spec.workers))]
-        self.last_stage = spec.stages()[-1]
+        self.books.attach(ld)
         with self.block.write() as d:
             d["state"] = ProcState.INITIALIZATION
             d["pid"] = os.getpid()
+        self.block.read_into(self.mine.bytes)
+        return ld
+
+    def _initialization(self) -> None:
+        spec = self.spec
+        manifest = Manifest.for_session(spec.session_id)
+        ld = self.open_local_data(manifest)
         self.ready = Semaphore.create(
             names.object_name(spec.session_id, spec.node, "ready"), manifest
         )
@@ -263,6 +241,7 @@ class Manager:
                 pass_fds=pass_fds,
             )
             self.children.append(_Child(w.name, proc.pid, os.pidfd_open(proc.pid)))
+            self.books.pids[j] = proc.pid
             proc.returncode = 0  # reaped by _Child.reap, not by Popen
         self.on_cycle = [c for c, w in zip(self.children, spec.workers, strict=True) if w.on_cycle]
         self._wait_ready()
@@ -282,11 +261,11 @@ class Manager:
                 raise NodeFault("estop", self._relayed_estop() + " during start-up")
             if info is not None:
                 raise NodeFault("abnormal", self._stop_text(info.si_signo) + " during start-up")
-            self._drain_messages()
+            self.books.drain_messages()
             if time.monotonic() > deadline:
                 late = [
                     c.name
-                    for c, r in zip(self.children, self.rows, strict=True)
+                    for c, r in zip(self.children, self.books.rows, strict=True)
                     if int(r.read()["state"]) != ProcState.ROUTINE
                 ]
                 raise NodeFault(
@@ -295,7 +274,6 @@ class Manager:
                 )
 
     def _routine(self) -> None:
-        spec = self.spec
         block = self.block
         assert block is not None  # created in Initialization
         tick_timeout = max(0.5, 100 * self.timer.period_s)
@@ -303,9 +281,7 @@ class Manager:
             d["state"] = ProcState.ROUTINE
         # Hot path on local records: the manager's own block is kept locally
         # and published whole each tick; worker rows are snapshot into records.
-        mine = Record(MANAGER)
-        block.read_into(mine.bytes)
-        self._row_recs = [Record(PROC_STATUS) for _ in self.rows]
+        block.read_into(self.mine.bytes)
         import gc
 
         gc.collect()
@@ -327,52 +303,64 @@ class Manager:
                     raise NodeFault("estop", self._relayed_estop())
                 if sig == signals.SIG_WAKE:
                     # a worker's e-stop or trip: act now, not at the next tick
-                    self._check_failed()
-                    self._check_estop_requests()
+                    self.books.check_failed()
+                    self.books.check_estop_requests()
                     with contextlib.suppress(TornReadTimeout):  # the tick looks again
                         self.on_wake()
                     continue
                 if sig != signal.SIGALRM:
                     raise NodeFault("abnormal", self._stop_text(sig))
-                now = time.monotonic_ns()
-                due, late, missed = self.timer.due(now)
-                self.lateness.add(late)
-                if missed:
-                    self.overruns += 1
-                    self.missed_ticks += missed
-                if self.cycle:
-                    if self.capture is not None:  # the cycle that ended, for the session log
-                        self.capture(self.cycle, self._due_ns, self._tick_ns, self._estop)
-                    self._check_heartbeats()
-                if spec.cycles and self.cycle >= spec.cycles:
+                if self.tick(time.monotonic_ns()):
                     return
-                try:
-                    if self.on_tick(self.cycle):
-                        return
-                except TornReadTimeout:
-                    # a worker held off inside its write (a host stall): no
-                    # consistent view this tick; the next tick looks again (a
-                    # writer that stays stuck misses its heartbeats)
-                    self.torn_ticks += 1
-                self.cycle += 1
-                mine["cycle"] = self.cycle
-                mine["tick_due_ns"] = due
-                mine["tick_ns"] = now
-                mine["overruns"] = self.overruns
-                mine["missed_ticks"] = self.missed_ticks
-                block.publish(mine.bytes)
-                for child in self.on_cycle:
-                    signals.send(child.pidfd, signals.SIG_SYNC)
-                self._due_ns = due
-                self._tick_ns = now
-                self.tick_work.add(time.monotonic_ns() - now)
                 # Idle: what need not hold the cycle back, after the syncs
-                self._idle(due + self.timer.period_ns - IDLE_GUARD_NS)
+                self._idle(self._due_ns + self.timer.period_ns - IDLE_GUARD_NS)
         finally:
             self.timer.stop()
             self._routine_end = time.monotonic()
             self._cpu_end = time.process_time()
             gc.enable()
+
+    def tick(self, now: int) -> bool:
+        """One timer tick taken at ``now`` (CLOCK_MONOTONIC ns): the cycle
+        that ended is captured for the log and its heartbeats checked, the
+        node's own check runs, the next cycle is published and every worker
+        on the cycle gets its sync. True: the routine is over (the node's
+        work is done, or its cycle count reached). A fault raises
+        :class:`NodeFault`."""
+        due, late, missed = self.timer.due(now)
+        self.lateness.add(late)
+        if missed:
+            self.overruns += 1
+            self.missed_ticks += missed
+        if self.cycle:
+            if self.capture is not None:  # the cycle that ended, for the session log
+                self.capture(self.cycle, self._due_ns, self._tick_ns, self._estop)
+            self.books.check_heartbeats(self.cycle, self._due_ns, self.timer.period_ns)
+        if self.spec.cycles and self.cycle >= self.spec.cycles:
+            return True
+        try:
+            if self.on_tick(self.cycle):
+                return True
+        except TornReadTimeout:
+            # a worker held off inside its write (a host stall): no
+            # consistent view this tick; the next tick looks again (a
+            # writer that stays stuck misses its heartbeats)
+            self.torn_ticks += 1
+        self.cycle += 1
+        mine = self.mine
+        mine["cycle"] = self.cycle
+        mine["tick_due_ns"] = due
+        mine["tick_ns"] = now
+        mine["overruns"] = self.overruns
+        mine["missed_ticks"] = self.missed_ticks
+        assert self.block is not None
+        self.block.publish(mine.bytes)
+        for child in self.on_cycle:
+            child.sync()
+        self._due_ns = due
+        self._tick_ns = now
+        self.tick_work.add(time.monotonic_ns() - now)
+        return False
 
     def idle(self, deadline_ns: int) -> bool:
         """A node's own Idle work (see :meth:`Worker.idle`): one short slice
@@ -384,7 +372,7 @@ class Manager:
         workers' message boxes to the log and messages.log, then the node's
         own idle work in slices, until the deadline or the next tick (pending,
         it is taken by the wait that follows)."""
-        self._drain_messages()
+        self.books.drain_messages()
         self.idle_slices += 1
         clock = time.monotonic_ns
         while clock() < deadline_ns and signal.SIGALRM not in signal.sigpending():
@@ -408,12 +396,6 @@ class Manager:
                 source = ", ".join(found) or source
         return f"e-stop from {source} (relayed by the session owner)"
 
-    def _door_down(self, j: int) -> None:
-        """Worker ``j`` failed: if it is the node's DDM, the node's e-stop
-        cannot reach the group through it."""
-        if self.spec.workers[j].role == "ddm":
-            self._no_door = True
-
     def _stop_text(self, sig: int) -> str:
         if sig == signals.SIG_ORPHAN:
             return "session owner died"
@@ -423,114 +405,26 @@ class Manager:
 
     def _check_children(self) -> None:
         """Reap any worker that exited; a worker exit during the session is a fault."""
+        books = self.books
         for j, child in enumerate(self.children):
             if child.alive and child.reap():
-                self._door_down(j)
+                books.door_down(j)
                 status = child.status or 0
                 if os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_FAILED:
                     # it said why in its box: that is the cause
-                    self._drain_messages()
-                    why = self._failed.get(j, describe_status(status))
-                    raise NodeFault("abnormal", f"worker {child.name} (pid {child.pid}) {why}")
+                    books.drain_messages()
+                    why = books.failed.get(j, describe_status(status))
+                    raise NodeFault("abnormal", f"{books.who(j)} {why}")
                 raise NodeFault(
                     "abnormal",
-                    f"worker {child.name} (pid {child.pid}) died: "
-                    f"{describe_status(status)} at cycle {self.cycle}",
+                    f"{books.who(j)} died: {describe_status(status)} at cycle {self.cycle}",
                 )
-
-    def _check_heartbeats(self) -> None:
-        """Each worker must have signed the cycle that just ended; ``limit`` misses is a hang."""
-        limits = self._hb_limits
-        snaps: list[Record | None] = []
-        for j, (row, rec) in enumerate(zip(self.rows, self._row_recs, strict=True)):
-            try:
-                row.read_into(rec.bytes)
-                self._last_hb[j] = rec["heartbeat_cycle"]
-                snaps.append(rec)
-            except TornReadTimeout:
-                # The worker was stopped inside its write (a VM stall, a hang):
-                # no sign-up seen this cycle; its last known one stands.
-                snaps.append(None)
-        for j, last_hb in enumerate(self._last_hb):
-            age = self.cycle - last_hb
-            if age == 1:
-                self.late_heartbeats += 1  # signed late; may still come
-            elif age > 1:
-                self.missed_heartbeats += 1  # a whole cycle without a sign-up
-            limit = limits[j]
-            if age >= limit:
-                self.hung.add(j)
-                self._door_down(j)
-                child = self.children[j]
-                raise NodeFault(
-                    "abnormal",
-                    f"worker {child.name} (pid {child.pid}) missed "
-                    f"{age} heartbeats (limit {limit}) at cycle {self.cycle}",
-                )
-        self._raise_estop(snaps)
-        last = [snaps[j] for j in self.last_stage]
-        if all(s is not None and s["heartbeat_cycle"] == self.cycle for s in last):
-            span = max(s["done_ns"] for s in last if s is not None) - self._due_ns
-            self.makespan.add(span)
-            if span > self.timer.period_ns:
-                self.deadline_misses += 1
-        else:
-            self.incomplete_cycles += 1
-
-    def _raise_estop(self, snaps: list[Record | None]) -> None:
-        for j, snap in enumerate(snaps):
-            if snap is not None and snap["estop_request"]:
-                raise NodeFault("estop", self._estop_text(self.children[j].name))
-
-    def _check_estop_requests(self) -> None:
-        """Between ticks: a worker asked for an e-stop and said so (SIG_WAKE)."""
-        snaps: list[Record | None] = []
-        for row, rec in zip(self.rows, self._row_recs, strict=True):
-            try:
-                row.read_into(rec.bytes)
-                snaps.append(rec)
-            except TornReadTimeout:
-                snaps.append(None)
-        self._raise_estop(snaps)
-
-    def _estop_text(self, name: str) -> str:
-        """Why a worker asked for an e-stop: the node it came from, when a ddm says."""
-        assert self.ld is not None
-        for r in range(len(self.spec.robots)):
-            with contextlib.suppress(Exception):
-                ex = self.ld.block("exchange", r).read()
-                if ex["estop_in"]:
-                    src = bytes(ex["estop_source"]).decode(errors="replace")
-                    return f"e-stop from {src} (through {name})"
-        return f"e-stop requested by {name}"
 
     def _drain_messages(self) -> None:
-        for j, (w, box) in enumerate(zip(self.spec.workers, self.boxes, strict=True)):
-            for stamp_ns, level, text in box.drain():
-                self._message(w.name, level, text, stamp_ns)
-                if level >= logging.ERROR:
-                    self.last_error[w.name] = text
-                if level >= logging.CRITICAL:  # the worker failed: this is why
-                    self._failed.setdefault(j, text)
-
-    def _check_failed(self) -> None:
-        """A worker said it failed (a CRITICAL message): end the node now."""
-        self._drain_messages()
-        for j, text in self._failed.items():
-            child = self.children[j]
-            self._door_down(j)
-            raise NodeFault("abnormal", f"worker {child.name} (pid {child.pid}) {text}")
+        self.books.drain_messages()
 
     def _message(self, process: str, level: int, text: str, stamp_ns: int | None = None) -> None:
-        line = f"[{self.spec.node}/{process}] {text}"
-        log.log(level, "%s", line)
-        if self._msg_file is not None:
-            stamp = (stamp_ns or time.monotonic_ns()) / 1e9
-            self._msg_file.write(f"{stamp:.6f} {logging.getLevelName(level)} {line}\n")
-        if len(self.messages) < 200:
-            self.messages.append(
-                {"process": process, "level": logging.getLevelName(level), "text": text}
-            )
+        self.books.message(process, level, text, stamp_ns)
 
     def _fault(self, reason: str, message: str) -> None:
         r = self.result
@@ -561,7 +455,7 @@ class Manager:
             with contextlib.suppress(OSError):
                 if self.spec.result_path:
                     relay = Path(self.spec.result_path).parent / f"{RELAY_FILE}.{self.spec.node}"
-                    relay.write_text("no door\n" if self._no_door else "door\n")
+                    relay.write_text("no door\n" if self.books.no_door else "door\n")
                 os.kill(self.spec.owner_pid, signal.SIGCHLD)
         # the reaction is out; what is left (the workers' end, the results)
         # must not hold the simulated plant off the CPUs while it applies
@@ -611,14 +505,16 @@ class Manager:
                 self.ld.close()
                 self.ld.unlink()
             self._write_result()
-            if self._msg_file is not None:
-                self._msg_file.close()
+            if self.books.msg_file is not None:
+                self.books.msg_file.close()
 
     def _end_workers(self) -> None:
         for j, child in enumerate(self.children):
             if child.alive:
                 # A hung worker gets no chance to clean up: it would not take it.
-                signals.send(child.pidfd, signal.SIGKILL if j in self.hung else signals.SIG_END)
+                signals.send(
+                    child.pidfd, signal.SIGKILL if j in self.books.hung else signals.SIG_END
+                )
         for sem in self.sems[1:]:  # wake workers waiting at a collecting point
             sem.release()
         deadline = time.monotonic() + self.spec.shutdown_timeout_s
@@ -638,45 +534,16 @@ class Manager:
                 child.reap(wait=True)
 
     def _collect(self, started: float) -> None:
-        self._drain_messages()
-        self.messages_lost = sum(b.lost for b in self.boxes)
+        books = self.books
+        books.drain_messages()
         routine_s = max(0.0, self._routine_end - self._routine_start)
-        workers: list[WorkerResult] = []
-        cpu_s = manager_cpu_s = max(0.0, self._cpu_end - self._cpu_start)
-        policies = {v: k for k, v in sched.POLICY_CODES.items()}
-        for j, child in enumerate(self.children):
-            row = self.rows[j].read()
-            w = self.spec.workers[j]
-            cpu_s += float(row["cpu_s"])
-            workers.append(
-                WorkerResult(
-                    name=w.name,
-                    role=w.role,
-                    pid=child.pid,
-                    stage=w.stage,
-                    cycles=int(row["cycles"]),
-                    overruns=int(row["overruns"]),
-                    skipped=int(row["skipped"]),
-                    stage_timeouts=int(row["stage_timeouts"]),
-                    torn_reads=int(row["torn_reads"]),
-                    idle_slices=int(row["idle_slices"]),
-                    idle_late=int(row["idle_late"]),
-                    lateness_us=_triple(row["lateness_us"]),
-                    compute_us=_triple(row["compute_us"]),
-                    step_cpu_us=_triple(row["step_cpu_us"]),
-                    cpu_s=round(float(row["cpu_s"]), 3),
-                    cpu_percent=round(100 * float(row["cpu_s"]) / routine_s, 2)
-                    if routine_s
-                    else 0.0,
-                    scheduling={
-                        "policy": policies[int(row["sched_policy"])],
-                        "priority": int(row["sched_priority"]),
-                        "nice": int(row["nice"]),
-                        "cpus": sched.cpus_of_mask(int(row["cpu_mask"])),
-                    },
-                    exit=describe_status(child.status) if child.status is not None else "unknown",
-                )
-            )
+        manager_cpu_s = max(0.0, self._cpu_end - self._cpu_start)
+        exits = [
+            describe_status(c.status) if c.status is not None else "unknown" for c in self.children
+        ]
+        exits += ["unknown"] * (len(self.spec.workers) - len(exits))
+        workers = books.worker_results(routine_s, exits) if books.rows else []
+        cpu_s = manager_cpu_s + sum(w.cpu_s for w in workers)
         r = self.result
         r.started, r.ended = iso_time(started), iso_time(time.time())
         r.rate_hz = self.spec.rate_hz
@@ -687,17 +554,17 @@ class Manager:
         r.missed_ticks = self.missed_ticks
         r.worker_overruns = sum(w.overruns for w in workers)
         r.worker_skipped = sum(w.skipped for w in workers)
-        r.late_heartbeats = self.late_heartbeats
-        r.missed_heartbeats = self.missed_heartbeats
-        r.deadline_misses = self.deadline_misses
-        r.incomplete_cycles = self.incomplete_cycles
+        r.late_heartbeats = books.late_heartbeats
+        r.missed_heartbeats = books.missed_heartbeats
+        r.deadline_misses = books.deadline_misses
+        r.incomplete_cycles = books.incomplete_cycles
         r.torn_ticks = self.torn_ticks
         r.idle_slices = self.idle_slices
         # timer periods without a completed cycle: finished late, unfinished
         # at the next tick, or a tick never taken
-        r.overruns = self.deadline_misses + self.incomplete_cycles + self.missed_ticks
+        r.overruns = books.deadline_misses + books.incomplete_cycles + self.missed_ticks
         r.lateness_us = self.lateness.summary_us()
-        r.makespan_us = self.makespan.summary_us()
+        r.makespan_us = books.makespan.summary_us()
         r.manager_work_us = self.tick_work.summary_us()
         r.cpu_s = round(cpu_s, 3)
         r.cpu_percent = round(100 * cpu_s / routine_s, 1) if routine_s else 0.0
@@ -709,8 +576,8 @@ class Manager:
             "tick_work_us": self.tick_work.summary_us(),
         }
         r.workers = workers
-        r.messages = self.messages
-        r.messages_lost = self.messages_lost
+        r.messages = books.messages
+        r.messages_lost = books.messages_lost
 
     def _write_result(self) -> None:
         if not self.spec.result_path:

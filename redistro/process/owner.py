@@ -4,6 +4,9 @@ The owner holds the session lock, becomes a child subreaper (orphaned workers
 re-parent to it), forwards Ctrl-C/SIGTERM to the manager as an orderly end,
 and after the manager exits reaps every descendant and removes any IPC object
 the session still has.
+
+Past the house's ~400 lines: starting, watching, relaying an e-stop and
+ending a node are one life cycle of the same child, kept together.
 """
 
 from __future__ import annotations

@@ -3,6 +3,9 @@
 Subclasses override :meth:`Worker.initialize`, :meth:`Worker.step` and
 :meth:`Worker.cleanup`; the loop, stage ordering, heartbeat, overrun counting
 and manager watch live here.
+
+Past the house's ~400 lines: the four states of a worker, on the cycle and
+off it (event-driven), are one runner.
 """
 
 from __future__ import annotations

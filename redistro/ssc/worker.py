@@ -15,6 +15,9 @@ are views made once; a Cartesian segment is one call of
 rigid-body terms Pinocchio gives once per quantity; what is constant over a
 segment (its goal, wrench and selection in the plan) is written when it
 begins.
+
+Past the house's ~400 lines: planning, the laws and the search's phases
+act on the same robot states in the same cycle.
 """
 
 from __future__ import annotations

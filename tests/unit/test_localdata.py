@@ -1,4 +1,5 @@
-"""Local Data in one process: layout, blocks, message boxes, writer rules."""
+"""Local Data in one process: layout, blocks, message boxes, writer rules;
+the contract of both backings (POSIX shared memory, the in-process stand-in)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from redistro.localdata.layout import ALIGN, MSGBOX_SLOTS, layout_hash
 from tests.helpers import esc_segment
 
 
-@pytest.fixture
-def ld() -> Iterator[LocalData]:
+@pytest.fixture(params=["shm", "memory"])
+def ld(request: pytest.FixtureRequest) -> Iterator[LocalData]:
     procs = [("acquisition", "acquisition", 0), ("pid", "pid", 1), ("sender", "sender", 2)]
-    with esc_segment(procs) as (_, seg):
+    with esc_segment(procs, memory=request.param == "memory") as (_, seg):
         yield seg
 
 
@@ -32,7 +33,7 @@ def test_blocks_sit_on_their_own_cache_lines() -> None:
 
 def test_attach_checks_header_and_sees_static_data(ld: LocalData) -> None:
     sid = bytes(ld.header["session_id"]).decode()
-    other = LocalData.attach(sid, "esc.r1")
+    other = LocalData.attach(sid, "esc.r1", memory=ld.memory)
     try:
         assert other.proc_names() == ["acquisition", "pid", "sender"]
         assert other.node_kind == "esc"
@@ -41,14 +42,14 @@ def test_attach_checks_header_and_sees_static_data(ld: LocalData) -> None:
     finally:
         other.close()
     with pytest.raises(IPCError, match="does not exist"):
-        LocalData.attach(sid, "esc.r9")
+        LocalData.attach(sid, "esc.r9", memory=ld.memory)
 
 
 def test_attach_refuses_a_different_layout(ld: LocalData) -> None:
     sid = bytes(ld.header["session_id"]).decode()
     ld.view["header"]["layout_hash"] = 12345
     with pytest.raises(LayoutError, match="layout hash"):
-        LocalData.attach(sid, "esc.r1")
+        LocalData.attach(sid, "esc.r1", memory=ld.memory)
 
 
 def test_only_the_declared_writer_gets_a_write_handle(ld: LocalData) -> None:
@@ -136,3 +137,35 @@ def test_message_box_ring(ld: LocalData) -> None:
     assert got[-1][2] == f"m{MSGBOX_SLOTS + 4}"
     assert box_r.lost == 5
     assert box_r.drain() == []
+
+
+def test_a_name_is_created_once_and_attached_only_while_it_exists(ld: LocalData) -> None:
+    sid = bytes(ld.header["session_id"]).decode()
+    with pytest.raises(IPCError, match="already exists"):
+        LocalData.create(
+            sid,
+            "esc.r1",
+            node_kind="esc",
+            proc_names=["a"],
+            proc_roles=["acquisition"],
+            proc_stages=[0],
+            robot_names=["r1"],
+            rate_hz=200.0,
+            period_ns=5_000_000,
+            heartbeat_limit_cycles=5,
+            manifest=None,
+            memory=ld.memory,
+        )
+    other = LocalData.attach(sid, "esc.r1", memory=ld.memory)
+    seen = other.block("feedback", 0)
+    ld.writer("feedback", 0, role="acquisition").publish(np.ones((), seen.data.dtype))
+    assert float(seen.read()["q_rad"][0]) == 1.0  # one memory, two attachments
+    other.close()
+
+
+def test_after_the_unlink_no_one_attaches() -> None:
+    for memory in (False, True):
+        with esc_segment([("a", "acquisition", 0)], memory=memory) as (sid, seg):
+            seg.unlink()
+            with pytest.raises(IPCError, match="does not exist"):
+                LocalData.attach(sid, "esc.r1", memory=memory)

@@ -1,4 +1,5 @@
-"""Contract tests over every DDM transport (real sockets, real SysV memory cards)."""
+"""Contract tests over every DDM transport (real sockets, real SysV memory
+cards) and the in-process fake beside them (``ddm.loopback``)."""
 
 from __future__ import annotations
 
@@ -35,11 +36,22 @@ def _reflective_pair() -> Pair:
     return cls(sid, "ssc"), cls(sid, "esc.r1")
 
 
-@pytest.fixture(params=["socket", "reflective"])
+def _loopback_pair() -> Pair:
+    from redistro.ddm.loopback import Loopback
+
+    return Loopback.pair()
+
+
+PAIRS: dict[str, Callable[[], Pair]] = {
+    "socket": _socket_pair,
+    "reflective": _reflective_pair,
+    "loopback": _loopback_pair,
+}
+
+
+@pytest.fixture(params=list(PAIRS))
 def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
-    make: Callable[[], Pair] = {"socket": _socket_pair, "reflective": _reflective_pair}[
-        request.param
-    ]
+    make = PAIRS[request.param]
     a, b = make()
     try:
         yield a, b
@@ -107,6 +119,51 @@ def test_reflective_cards_hold_the_latest_record() -> None:
         esc.close()
 
 
+@pytest.mark.parametrize("kind", ["socket", "loopback"])
+def test_a_closed_end_is_a_lost_link_once_its_records_are_in(kind: str) -> None:
+    """Over the transports with links: what the peer sent before it closed
+    arrives, then the loss (a reflective network has no links to lose)."""
+    ssc, esc = PAIRS[kind]()
+    try:
+        esc.send(_feedback(1), 0)
+        esc.send(_feedback(2), 0)
+        esc.close()
+        got: list[bytes] = []
+        with pytest.raises(TransportError, match="closed by the peer"):
+            deadline = time.monotonic() + 2
+            while time.monotonic() < deadline:
+                got += ssc.receive()
+                time.sleep(0.001)  # polling a non-blocking receive, to a deadline
+        assert [decode(r).seq for r in got] == [1, 2]
+    finally:
+        ssc.close()
+        esc.close()
+
+
+def test_the_loopback_fds_wake_a_waiting_ddm() -> None:
+    import select
+
+    from redistro.ddm.loopback import Loopback
+
+    ssc, escs = Loopback.group([0, 1])
+    try:
+        (fd,) = escs[1].fds()
+        assert select.select([fd], [], [], 0)[0] == []
+        ssc.send(_command(1), 1)
+        assert select.select([fd], [], [], 0)[0] == [fd]
+        assert [decode(r).seq for r in escs[1].receive()] == [1]
+        assert escs[0].receive() == [] and escs[1].replies and not ssc.replies
+        escs[0].close()  # one robot's link lost: the other's goes on
+        ssc.send(_command(2), 0)  # dropped
+        assert ssc.lost_links() == {0: "closed by the peer"} and ssc.receive() == []
+        ssc.send(_command(3), 1)
+        assert [decode(r).seq for r in escs[1].receive()] == [3]
+    finally:
+        ssc.close()
+        for e in escs.values():
+            e.close()
+
+
 def test_socket_link_loss_is_reported() -> None:
     ssc, esc = _socket_pair()
     try:
@@ -120,23 +177,6 @@ def test_socket_link_loss_is_reported() -> None:
                 time.sleep(0.001)
     finally:
         esc.close()
-
-
-def test_records_sent_just_before_a_close_are_delivered_then_the_loss() -> None:
-    ssc, esc = _socket_pair()
-    try:
-        esc.send(_feedback(1), 0)
-        esc.send(_feedback(2), 0)
-        esc.close()  # the last records and the end arrive together
-        got: list[bytes] = []
-        deadline = time.monotonic() + 2
-        with pytest.raises(TransportError, match="closed by the peer"):
-            while time.monotonic() < deadline:
-                got += ssc.receive()
-                time.sleep(0.001)  # polling a non-blocking receive, to a deadline
-        assert [decode(r).seq for r in got] == [1, 2]
-    finally:
-        ssc.close()
 
 
 def test_one_lost_esc_link_leaves_the_other_robot_exchanging() -> None:

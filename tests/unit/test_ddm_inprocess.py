@@ -1,0 +1,179 @@
+"""Real ddms in one process: the SSC's and both ESCs' (``ddm.worker.Ddm``,
+their compiled common case included) over the in-process transport
+(``ddm.loopback``), each on its node's Local Data in memory. A command the
+SSC's worker publishes reaches each ESC's Local Data and pays back its
+starving index; the feedback each ESC's acquisition publishes comes back
+as the reply; a forged record is dropped and counted."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from redistro.config import load_config
+from redistro.config.hardware import load_hardware
+from redistro.config.task import load_task
+from redistro.ddm import record as wire
+from redistro.ddm.loopback import Loopback
+from redistro.ddm.worker import Ddm
+from redistro.esc.plan import esc_spec
+from redistro.ipc.names import new_session_id
+from redistro.localdata import LocalData
+from redistro.localdata.block import Record
+from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
+from redistro.process.books import node_local_data
+from redistro.process.spec import NodeSpec
+from redistro.ssc.plan import ssc_spec
+from tests.helpers import ROOT
+
+ROBOTS = ["r1", "r2"]
+
+
+@dataclass
+class Node:
+    spec: NodeSpec
+    ld: LocalData
+    ddm: Ddm
+
+
+def _node(spec: NodeSpec, end: Loopback) -> Node:
+    ld = node_local_data(spec, 5_000_000, None, memory=True)
+    j = next(j for j, w in enumerate(spec.workers) if w.role == "ddm")
+    ddm = Ddm(spec, j, ld, transport=end)
+    ddm.initialize()
+    return Node(spec, ld, ddm)
+
+
+@pytest.fixture
+def group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
+    key = tmp_path / "link.key"
+    wire.new_key(key)
+    cfg = load_config(ROOT / "config/redistro.yaml", [f"ddm.key_file={key}"])
+    task = load_task(ROOT / "tasks/peg_insertion_short.yaml", cfg)
+    hw = load_hardware(cfg)
+    sid = new_session_id()
+    gids = [list(cfg.robots).index(r) for r in ROBOTS]
+    ssc_end, esc_ends = Loopback.group(gids)
+    ssc = _node(ssc_spec(cfg, task, sid, run_dir=""), ssc_end)
+    escs = {
+        r: _node(esc_spec(cfg, task, r, hw[r], sid, positions_file="p.json"), esc_ends[g])
+        for r, g in zip(ROBOTS, gids, strict=True)
+    }
+    yield ssc, escs
+    for n in [ssc, *escs.values()]:
+        n.ddm.cleanup()
+        n.ld.close()
+        n.ld.unlink()
+
+
+def test_commands_go_down_and_feedback_comes_back_as_the_reply(
+    group: tuple[Node, dict[str, Node]],
+) -> None:
+    ssc, escs = group
+    # the ESCs' acquisitions have a sample; their senders sent 3 commands
+    for k, esc in enumerate(escs.values()):
+        fb = Record(FEEDBACK)
+        fb["seq_src"] = 1
+        fb.array["q_rad"] = np.arange(7) + 10 * k
+        esc.ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
+        sent = Record(COUNTER)
+        sent["count"] = 3
+        esc.ld.writer("starving_sent", role="sender").publish(sent.bytes)
+        esc.ddm.step(1)  # the start-up datum: its feedback goes out on its own
+    ssc.ddm.step(1)
+    for i, r in enumerate(ROBOTS):
+        got = ssc.ld.block("feedback", i).read()
+        assert list(got["q_rad"]) == list(np.arange(7) + 10 * i), r
+    # the SSC's worker publishes a command per robot, the ddm sends them
+    for i in range(len(ROBOTS)):
+        cmd = Record(COMMAND)
+        cmd["seq_src"] = 1
+        cmd.array["tau_nm"] = i + 0.5
+        ssc.ld.writer("command", i, role="worker").publish(cmd.bytes)
+    ssc.ddm.step(2)
+    for i, (r, esc) in enumerate(escs.items()):
+        esc.ddm.step(2)
+        got = esc.ld.block("command", 0).read()
+        assert float(got["tau_nm"][0]) == i + 0.5, r
+        assert int(esc.ld.block("starving_delivered").read()["count"]) == 3, r
+        ex = esc.ddm.ex[0]
+        assert ex["updates"] == 1 and ex["fresh"] == 1 and ex["dropped"] == 0, r
+    # a new sample on each ESC goes out as the reply to the next command
+    sent_before = [n.ddm.ex[0]["sent"] for n in escs.values()]
+    for k, esc in enumerate(escs.values()):
+        fb = Record(FEEDBACK)
+        fb["seq_src"] = 2
+        fb.array["q_rad"] = -(np.arange(7) + 10 * k)
+        esc.ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
+        esc.ddm.step(3)  # no command came: a replying ddm says nothing
+    assert [n.ddm.ex[0]["sent"] for n in escs.values()] == sent_before
+    for i in range(len(ROBOTS)):
+        cmd = Record(COMMAND)
+        cmd["seq_src"] = 2
+        ssc.ld.writer("command", i, role="worker").publish(cmd.bytes)
+    ssc.ddm.step(4)
+    for esc in escs.values():
+        esc.ddm.step(4)
+    ssc.ddm.step(5)
+    for i in range(len(ROBOTS)):
+        assert list(ssc.ld.block("feedback", i).read()["q_rad"]) == list(-(np.arange(7) + 10 * i))
+    assert ssc.ddm.ex[0]["updates"] == ssc.ddm.ex[1]["updates"] == 2
+    from redistro.kernels import KERNELS
+
+    assert (ssc.ddm.fast is not None) == (KERNELS is not None)  # the compiled path ran
+
+
+def test_a_forged_command_is_dropped_and_counted(group: tuple[Node, dict[str, Node]]) -> None:
+    ssc, escs = group
+    esc = escs["r2"]
+    cmd = np.zeros((), COMMAND)
+    cmd["seq_src"] = 1
+    cmd["tau_nm"] = 300.0
+    gid = esc.ddm.gid["r2"]
+    forged = wire.encode(wire.KIND_COMMAND, gid, "ssc", 1, 1, cmd, key=bytes(32))
+    ssc.ddm.transport.send(forged, gid)
+    esc.ddm.step(1)
+    assert esc.ddm.ex[0]["forged"] == 1 and esc.ddm.ex[0]["dropped"] == 1
+    assert float(esc.ld.block("command", 0).read()["tau_nm"][0]) == 0.0
+
+
+def test_the_ssc_worker_plans_and_commands_in_one_process(
+    group: tuple[Node, dict[str, Node]],
+) -> None:
+    """A Worker on its own (the SSC's planner): once every robot's feedback
+    has come through the ddm it starts the task and publishes a plan and a
+    command per robot every cycle; the ddm then carries them down."""
+    from redistro.ssc.worker import SscWorker
+
+    ssc, escs = group
+    j = next(j for j, w in enumerate(ssc.spec.workers) if w.role == "worker")
+    worker = SscWorker(ssc.spec, j, ssc.ld)
+    worker.initialize()
+    try:
+        worker.step(1)  # no feedback yet: the datum is missing, nothing is produced
+        assert int(ssc.ld.block("command", 0).read()["seq_src"]) == 0
+        for esc in escs.values():
+            fb = Record(FEEDBACK)
+            fb["seq_src"] = 1
+            fb["step"] = 1000
+            fb.array["q_rad"] = [0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0]
+            esc.ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
+            esc.ddm.step(1)
+        ssc.ddm.step(1)
+        for cycle in range(2, 12):
+            worker.step(cycle)
+        plan = ssc.ld.block("plan", 1).read()  # r2 moves in the first segment
+        assert int(plan["segment"]) == 1 and int(plan["moving"]) == 1
+        cmds = [ssc.ld.block("command", i).read() for i in range(2)]
+        assert [int(c["seq_src"]) for c in cmds] == [10, 10]
+        assert all(np.isfinite(c["tau_nm"]).all() for c in cmds)
+        assert abs(cmds[1]["tau_nm"]).max() > 0  # gravity, at least
+        ssc.ddm.step(12)
+        escs["r2"].ddm.step(12)
+        assert int(escs["r2"].ld.block("command", 0).read()["seq_src"]) == 10
+    finally:
+        worker.cleanup()
