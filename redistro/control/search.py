@@ -10,7 +10,7 @@ A force segment with ``search.pattern: spiral`` goes through these phases
    (r = pitch theta / 2 pi) about the believed centre at ``speed_m_s`` along
    the path, the plane's stiffness raised against the sliding friction;
 4. in the hole: a fall of ``drop_m`` below the contact height, or the push
-   gone (under half of ``force_n``) with the tip already a fifth of that
+   gone (under half of ``force_n``) with the tip already half of that
    lower (or a contact already below the believed mouth): the goal in the
    plane stops where the tip is, the law goes back to free space along the
    axis (no spring wound up, no goal force fed forward: the peg goes down
@@ -34,6 +34,9 @@ from typing import Protocol
 DESCENT_ACCEL_M_S2 = 0.1
 # contact this far below the believed mouth: the peg is already in the hole
 IN_HOLE_BELOW_MOUTH_M = 0.005
+# the push gone with the tip this many drop_m below the contact: in the hole
+# (a peg caught by one edge in the slot the walls make dips 0.2-0.3 mm)
+PUSH_GONE_BELOW = 0.5
 # in the hole, a contact less than this many drop_m below where the search
 # began is the surface again (the drop was a slip): the search goes on
 RESUME_BELOW_CONTACT = 2.0
@@ -64,7 +67,7 @@ class SearchParams(Protocol):
     @property
     def yaw_stiffness_nm_rad(self) -> float: ...
     @property
-    def yaw_damping_nm_s_rad(self) -> float: ...
+    def rot_damping_nm_s_rad(self) -> float: ...
     @property
     def descent_m_s(self) -> float: ...
     @property
@@ -131,7 +134,7 @@ class SpiralSearch:
         elif ph == Phase.SEARCH:
             below = self.z_contact - z
             if below > self.p.drop_m or (
-                push_n < 0.5 * self.p.force_n and below > 0.2 * self.p.drop_m
+                push_n < 0.5 * self.p.force_n and below > PUSH_GONE_BELOW * self.p.drop_m
             ):
                 self._to(Phase.IN_HOLE, t)
             elif t - (self.t_search or t) > self.p.timeout_s:

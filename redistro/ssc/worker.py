@@ -483,6 +483,8 @@ class SscWorker(Worker):
                 gains[V_MAX] = srch.p.touch_m_s  # near the mouth as drawn: touch gently
         elif phase == Phase.SETTLE and before != phase:
             gains[V_MAX] = st.gains0[V_MAX]
+            gains[5] = srch.p.yaw_stiffness_nm_rad  # in touch: the search's rotation
+            gains[9:12] = srch.p.rot_damping_nm_s_rad
             cmd[8] = -srch.p.force_n
             st.views["wrench_goal"][2] = -srch.p.force_n
             self.post(f"{st.name}: contact off the hole at t={t:.2f} s; searching")
@@ -492,7 +494,7 @@ class SscWorker(Worker):
                 st.fast_z = st.slow_z = -math.inf
                 gains[0] = gains[1] = srch.p.stiffness_n_m
                 gains[5] = srch.p.yaw_stiffness_nm_rad
-                gains[11] = srch.p.yaw_damping_nm_s_rad
+                gains[9:12] = srch.p.rot_damping_nm_s_rad
                 if before == Phase.IN_HOLE:  # a slip, not the hole: search on
                     cmd[8] = -srch.p.force_n
                     st.views["wrench_goal"][2] = -srch.p.force_n
@@ -509,6 +511,10 @@ class SscWorker(Worker):
             ref[0] = ref[3] = float(p[0])
             ref[1] = ref[4] = float(p[1])
             gains[...] = st.gains0
+            # the rotation stays as the search had it: a stiffer yaw now
+            # would snap back whatever the walls turned, a jolt at the wrist
+            gains[5] = srch.p.yaw_stiffness_nm_rad
+            gains[9:12] = srch.p.rot_damping_nm_s_rad
             cmd[8] = st.goal_z_n
             st.views["wrench_goal"][2] = st.goal_z_n
             if before != Phase.DESCENT:

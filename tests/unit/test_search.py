@@ -92,13 +92,23 @@ def test_the_push_gone_as_the_tip_sinks_is_the_hole() -> None:
     s = SpiralSearch(p, MOUTH)
     _run(
         s,
-        lambda srch: MOUTH - 0.0003 if near(srch) else MOUTH,
+        lambda srch: MOUTH - 0.0006 if near(srch) else MOUTH,
         push_of=lambda srch: 0.0 if near(srch) else 8.0,
     )
     assert s.phase == Phase.IN_HOLE
     flick = SpiralSearch(p, MOUTH)
     _run(flick, lambda srch: MOUTH, push_of=lambda srch: 1.0 if near(srch) else 8.0, seconds=20.0)
     assert flick.phase == Phase.SEARCH  # still searching at the end of the run
+    # a peg caught by one edge in the slot the walls make dips 0.3 mm and
+    # loses its push for a moment: not the hole either
+    edge = SpiralSearch(p, MOUTH)
+    _run(
+        edge,
+        lambda srch: MOUTH - 0.0003 if near(srch) else MOUTH,
+        push_of=lambda srch: 1.0 if near(srch) else 8.0,
+        seconds=20.0,
+    )
+    assert edge.phase == Phase.SEARCH
 
 
 def test_contact_below_the_mouth_is_already_in_the_hole() -> None:
@@ -165,18 +175,18 @@ def test_a_slip_is_not_the_hole_and_the_search_goes_on() -> None:
         t += DT
     assert s.phase == Phase.SEARCH
     theta = s.theta
-    assert s.step(t, DT, True, MOUTH - 0.0003, 0.5) == Phase.IN_HOLE  # the slip
+    assert s.step(t, DT, True, MOUTH - 0.0006, 0.5) == Phase.IN_HOLE  # the slip
     t += DT
     # still touching right after: not yet taken for the surface (settling)
-    assert s.step(t, DT, True, MOUTH - 0.0003, 8.0) == Phase.IN_HOLE
+    assert s.step(t, DT, True, MOUTH - 0.0006, 8.0) == Phase.IN_HOLE
     while s.phase == Phase.IN_HOLE and t < 3.0:
         t += DT
-        s.step(t, DT, True, MOUTH - 0.0003, 8.0)
+        s.step(t, DT, True, MOUTH - 0.0006, 8.0)
     assert s.phase == Phase.SEARCH and s.false_drops == 1
     assert t - 2.0 == pytest.approx(p.settle_s, abs=2 * DT)
     for _ in range(10):
         t += DT
-        s.step(t, DT, True, MOUTH - 0.0003, 8.0)
+        s.step(t, DT, True, MOUTH - 0.0006, 8.0)
     assert s.phase == Phase.SEARCH and s.theta > theta
     # a true drop: no contact in the hole, far below; it stays in the hole
     s.step(t, DT, True, MOUTH - 0.003, 0.0)
