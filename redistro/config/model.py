@@ -265,12 +265,47 @@ class SscConfig:
 
 
 @dataclass(frozen=True)
+class ZenohConfig:
+    """The DDM over Eclipse Zenoh (``ddm.transport: zenoh``).
+
+    group: the robot group's name in the key expressions
+        (``redistro/<group>/<robot>/command``, ``.../feedback``); empty: the
+        link id (a session's id; ``redistro node --link``).
+    mode: ``peer`` or ``client`` (a client needs a router in ``connect``).
+    listen, connect: zenoh endpoints (``tcp/host:port``). Both empty (the
+        default): the SSC's ddm listens on ``tcp/<ddm.listen_host>:<port>``
+        and each ESC's ddm connects to ``tcp/127.0.0.1:<port>`` (on other
+        hosts: the SSC's host in ``connect``).
+    port: that port (0: derived from the group).
+    scouting: multicast scouting (off: only the endpoints above).
+    users_file: user/password lines (``name:password``, a file of this user,
+        mode 0600) that authenticate every node's session; each node's user
+        is ``<node>@<group>`` (``esc.r1@lab1``). Empty: a session makes one
+        in its runtime folder; nodes started alone need this file, the same
+        on every host.
+    access_control: every node's session refuses what its peers may not
+        send: the SSC takes only each ESC's own robot's feedback, an ESC
+        only its robot's commands from its group's SSC.
+    """
+
+    group: str = ""
+    mode: Literal["peer", "client"] = "peer"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    port: int = field(default=0, metadata={"ge": 0, "le": 65535})
+    scouting: bool = False
+    users_file: str = ""
+    access_control: bool = True
+
+
+@dataclass(frozen=True)
 class DdmConfig:
     """The Distributed Data Managers: how nodes exchange Robot Group Shared Data.
 
     transport: ``socket`` (TCP send/receive/reply: the SSC's ddm connects to
-        each ESC's ddm) or ``reflective`` (simulated reflective memory: a
-        SysV memory card per node, writes broadcast by UDP multicast).
+        each ESC's ddm), ``reflective`` (simulated reflective memory: a
+        SysV memory card per node, writes broadcast by UDP multicast) or
+        ``zenoh`` (Eclipse Zenoh pub/sub, :class:`ZenohConfig`).
     rate_hz: 0 (the default): each ddm moves data when there is data (woken
         by its transport, its node's producer, its manager's e-stop; at
         least once a node period); > 0: it polls on a timer of its own at
@@ -290,9 +325,10 @@ class DdmConfig:
         authenticates every record (HMAC-SHA256). Empty: a session makes a
         fresh key in its runtime directory; nodes started alone
         (``redistro node``) need this file, the same on every node.
+    zenoh: the zenoh transport's settings.
     """
 
-    transport: Literal["socket", "reflective"] = "socket"
+    transport: Literal["socket", "reflective", "zenoh"] = "socket"
     rate_hz: float = field(default=0.0, metadata={"ge": 0, "le": 10000})
     starving_limit_cycles: int = field(default=40, metadata={"ge": 2, "le": 100000})
     connect_timeout_s: float = field(default=30.0, metadata={"gt": 0, "le": 3600})
@@ -303,6 +339,7 @@ class DdmConfig:
     port: int = field(default=0, metadata={"ge": 0, "le": 65535})
     peers: list[str] = field(default_factory=list)
     key_file: str = ""
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
 
 
 @dataclass(frozen=True)

@@ -127,7 +127,7 @@ class Search:
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
     stiffness_n_m: float = field(default=3000.0, metadata={"gt": 0, "le": 5000})
     yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
-    rot_damping_nm_s_rad: float = field(default=0.2, metadata={"ge": 0, "le": 10})
+    rot_damping_nm_s_rad: float = field(default=0.6, metadata={"ge": 0, "le": 10})
     descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
     slow_above_m: float = field(default=0.012, metadata={"ge": 0, "le": 0.1})
     settle_s: float = field(default=0.3, metadata={"ge": 0, "le": 10})

@@ -91,6 +91,7 @@ class Transport(ABC):
 TRANSPORTS: dict[str, str] = {
     "socket": "redistro.ddm.sockets:SocketTransport",
     "reflective": "redistro.ddm.reflective:ReflectiveTransport",
+    "zenoh": "redistro.ddm.zenoh_transport:ZenohTransport",
 }
 
 

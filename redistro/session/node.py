@@ -32,7 +32,13 @@ from redistro.errors import ConfigError, IPCError, LayoutError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
 from redistro.process.owner import run_nodes, write_json
-from redistro.session.preflight import check_key, check_motion, positions_file, unknown_positions
+from redistro.session.preflight import (
+    check_key,
+    check_motion,
+    check_zenoh_users,
+    positions_file,
+    unknown_positions,
+)
 from redistro.session.progress import Progress, ddm_pace
 from redistro.session.summary import build_summary, wall_budget_s
 from redistro.ssc.plan import ssc_spec
@@ -72,6 +78,7 @@ def run_node(
         if why:
             raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
     check_key(cfg, needed=True)
+    check_zenoh_users(cfg, ["ssc" if kind == "ssc" else f"esc.{robot}"], link)
     check_motion(cfg, task)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)

@@ -84,6 +84,36 @@ def check_key(cfg: Config, needed: bool = False) -> None:
         raise ConfigError(f"{cfg.origin('ddm.key_file')}: ddm.key_file: {exc}") from None
 
 
+def check_zenoh_users(cfg: Config, nodes: list[str], link: str | None) -> None:
+    """Over zenoh: ``ddm.zenoh.users_file`` readable and private. Nodes
+    started alone (``link`` given) share no session folder: they need the
+    file, with a password for each of ``nodes`` (``<node>@<group>``)."""
+    if cfg.ddm.transport != "zenoh":
+        return
+    from redistro.ddm import zenoh_transport as zt
+
+    where = f"{cfg.origin('ddm.zenoh.users_file')}: ddm.zenoh.users_file"
+    if not cfg.ddm.zenoh.users_file:
+        if link is not None:
+            example = zt.user_of(nodes[0], zt.group_of(cfg, link))
+            raise ConfigError(
+                f"{where}: nodes started alone over zenoh need a users file "
+                "(name:password lines, mode 0600, the same on every host; "
+                f"the users are <node>@<group>, e.g. {example})"
+            )
+        return
+    try:
+        users = zt.read_users(cfg.ddm.zenoh.users_file)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    if link is None:
+        return  # a session's group is its id: its users are checked as it starts
+    group = zt.group_of(cfg, link)
+    missing = [zt.user_of(n, group) for n in nodes if zt.user_of(n, group) not in users]
+    if missing:
+        raise ConfigError(f"{where}: no password for {', '.join(missing)}")
+
+
 def preflight(cfg: Config, task_path: str) -> Task:
     """Every check a session makes before it reaps, creates or starts anything:
     the task against the config, the hardware files and their ratings, the
@@ -92,6 +122,7 @@ def preflight(cfg: Config, task_path: str) -> Task:
     task = load_task(task_path, cfg)
     load_hardware(cfg)
     check_key(cfg)
+    check_zenoh_users(cfg, ["ssc", *(f"esc.{r}" for r in task.robots)], None)
     check_positions(cfg, task)
     check_motion(cfg, task)
     from redistro.ssc.reach import unreachable_goals

@@ -122,6 +122,12 @@ def _run_task(
             from redistro.ddm import record as wire
 
             wire.new_key(s.directory / wire.SESSION_KEY)
+        if cfg.ddm.transport == "zenoh" and not cfg.ddm.zenoh.users_file:
+            from redistro.ddm import zenoh_transport as zt
+
+            # every node's zenoh user and password: the session's own, beside the key
+            nodes = ["ssc", *(f"esc.{r}" for r in task.robots)]
+            zt.new_users_file(s.directory / zt.SESSION_USERS, zt.group_of(cfg, s.id), nodes)
         run_dir = Path(out_dir) if out_dir else runs / s.id
         run_dir.mkdir(parents=True, exist_ok=True)
         messages = str(run_dir / "messages.log")

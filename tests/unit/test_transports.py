@@ -42,10 +42,52 @@ def _loopback_pair() -> Pair:
     return Loopback.pair()
 
 
+def _free_port() -> int:
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = int(probe.getsockname()[1])
+    probe.close()
+    return port
+
+
+def _zenoh_pair(robots: tuple[str, ...] = ("r1",)) -> Pair:
+    """The SSC's session and r1's ESC's, authenticated, under access rules."""
+    import shutil
+    import tempfile
+
+    from redistro.config import load_config
+    from redistro.ddm import zenoh_transport as zt
+
+    folder = tempfile.mkdtemp()
+    users = f"{folder}/users"
+    group = new_session_id()
+    zt.new_users_file(users, group, ["ssc", *(f"esc.{r}" for r in robots)])
+    cfg = load_config(None, [f"ddm.zenoh.port={_free_port()}"])
+    gids = {r: i for i, r in enumerate(robots)}
+
+    def side(node: str, kind: str, mine: list[str]) -> zt.ZenohTransport:
+        settings = zt.session_config(cfg, group, node, kind, mine, users)
+        return zt.ZenohTransport(
+            settings, group=group, node=node, kind=kind, robots=mine, gids=gids
+        )
+
+    try:
+        ssc = side("ssc", "ssc", list(robots))
+        esc = side(f"esc.{robots[0]}", "esc", [robots[0]])
+    finally:
+        shutil.rmtree(folder)  # read as each session opened
+    deadline = time.monotonic() + 10
+    while not (ssc.connected() and esc.connected()):
+        assert time.monotonic() < deadline, "the zenoh sessions did not meet within 10 s"
+        time.sleep(0.01)  # polling the liveliness callbacks, to a deadline
+    return ssc, esc
+
+
 PAIRS: dict[str, Callable[[], Pair]] = {
     "socket": _socket_pair,
     "reflective": _reflective_pair,
     "loopback": _loopback_pair,
+    "zenoh": _zenoh_pair,
 }
 
 
@@ -119,7 +161,7 @@ def test_reflective_cards_hold_the_latest_record() -> None:
         esc.close()
 
 
-@pytest.mark.parametrize("kind", ["socket", "loopback"])
+@pytest.mark.parametrize("kind", ["socket", "loopback", "zenoh"])
 def test_a_closed_end_is_a_lost_link_once_its_records_are_in(kind: str) -> None:
     """Over the transports with links: what the peer sent before it closed
     arrives, then the loss (a reflective network has no links to lose)."""

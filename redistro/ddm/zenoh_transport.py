@@ -1,0 +1,394 @@
+"""The DDM over Eclipse Zenoh: a robot group's records as pub/sub samples.
+
+Each ddm opens one zenoh session. The SSC's ddm publishes each robot's
+command at ``redistro/<group>/<robot>/command`` and subscribes to every
+robot's ``.../feedback``; an ESC's ddm the other way round, for its own
+robot. The samples are the same signed records as on the other transports
+(checked and admitted by the ddm, never pickled); a ddm sleeps on an eventfd
+the subscriber's callback writes. Each ddm declares a liveliness token
+(``redistro/<group>/<node>/alive``): a peer whose token goes is a lost link,
+as a closed socket is. The start-up meeting point, the starving index and
+the group's e-stop work as over sockets: they are in the records.
+
+Every session authenticates with a user and password (``<node>@<group>``,
+from ``ddm.zenoh.users_file`` or the session's own file): a session with
+the wrong password is refused at the door, so its peers report it missing.
+With ``ddm.zenoh.access_control`` the session that accepts connections
+(the SSC's, by default: zenoh's authentication names the side that
+connects, and the rules name users) refuses what each peer may not send:
+it takes each robot's feedback only from that robot's ESC and sends that
+ESC only its robot's commands (:func:`access_rules`); zenoh drops a refused
+sample before it reaches any ddm. An ESC that only connects has no other
+peer.
+
+Zenoh starts threads of its own: like numpy's, they exist only in a process
+whose signals are already blocked (every entry point blocks them first).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import stat
+import time
+import zlib
+from collections import deque
+from collections.abc import Collection, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from redistro.ddm.transport import Transport
+from redistro.errors import TransportError
+
+if TYPE_CHECKING:
+    from redistro.config import Config
+
+SESSION_USERS = "zenoh.users"  # a session's users file, in its runtime directory
+PREFIX = "redistro"
+# what every session exchanges with its peers besides the records: the
+# subscriptions and the liveliness tokens (link-loss detection, redistro top)
+DECLARATIONS = [
+    "declare_subscriber",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+    "reply",
+]
+
+
+def group_of(cfg: Config, link: str) -> str:
+    return cfg.ddm.zenoh.group or link
+
+
+def user_of(node: str, group: str) -> str:
+    return f"{node}@{group}"
+
+
+def command_key(group: str, robot: str) -> str:
+    return f"{PREFIX}/{group}/{robot}/command"
+
+
+def feedback_key(group: str, robot: str) -> str:
+    return f"{PREFIX}/{group}/{robot}/feedback"
+
+
+def alive_key(group: str, node: str) -> str:
+    return f"{PREFIX}/{group}/{node}/alive"
+
+
+def ssc_port(cfg: Config, group: str) -> int:
+    """Where the SSC's session listens: ``ddm.zenoh.port``, else derived."""
+    return cfg.ddm.zenoh.port or 36000 + zlib.crc32(f"zenoh/{group}".encode()) % 4000
+
+
+# -- users --
+
+
+def new_users_file(path: Path | str, group: str, nodes: Iterable[str]) -> None:
+    """A users file for one group's nodes (random passwords, mode 0600,
+    created, never overwritten)."""
+    lines = "".join(f"{user_of(n, group)}:{secrets.token_hex(16)}\n" for n in nodes)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    try:
+        os.write(fd, lines.encode())
+    finally:
+        os.close(fd)
+
+
+def read_users(path: Path | str) -> dict[str, str]:
+    """user -> password from a users file: a regular file of this user, mode
+    0600, ``name:password`` lines. ValueError naming what is wrong."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the users file ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path}: the users file is not a regular file")
+        if st.st_uid != os.getuid():
+            raise ValueError(f"{path}: the users file is owned by uid {st.st_uid}")
+        if st.st_mode & 0o077:
+            raise ValueError(
+                f"{path}: the users file has mode {stat.S_IMODE(st.st_mode):04o}, expected 0600"
+            )
+        text = os.read(fd, 1 << 16).decode("utf-8", errors="replace")
+    finally:
+        os.close(fd)
+    users: dict[str, str] = {}
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        user, sep, password = line.strip().partition(":")
+        if not sep or not user or not password:
+            raise ValueError(f"{path}: line {n}: expected name:password")
+        users[user] = password
+    return users
+
+
+# -- the session's configuration --
+
+
+def access_rules(group: str, node: str, kind: str, robots: list[str]) -> dict[str, Any]:
+    """The ``access_control`` block of one node's session: deny by default;
+    the declarations every peer of the group makes; the SSC takes each
+    robot's feedback from that robot's ESC and sends it its commands; an
+    ESC takes its robot's commands from the SSC and sends it its feedback."""
+    everything = f"{PREFIX}/{group}/**"
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "declarations",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": DECLARATIONS,
+            "key_exprs": [everything],
+        }
+    ]
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    if kind == "ssc":
+        peers = {r: user_of(f"esc.{r}", group) for r in robots}
+    else:
+        peers = {robots[0]: user_of("ssc", group)}
+    for r, user in peers.items():
+        ingress = feedback_key(group, r) if kind == "ssc" else command_key(group, r)
+        egress = command_key(group, r) if kind == "ssc" else feedback_key(group, r)
+        rules += [
+            {
+                "id": f"in.{r}",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put"],
+                "key_exprs": [ingress],
+            },
+            {
+                "id": f"out.{r}",
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": ["put"],
+                "key_exprs": [egress],
+            },
+        ]
+        subjects.append({"id": f"peer.{r}", "usernames": [user]})
+        policies.append(
+            {"rules": ["declarations", f"in.{r}", f"out.{r}"], "subjects": [f"peer.{r}"]}
+        )
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def session_config(
+    cfg: Config, group: str, node: str, kind: str, robots: list[str], users_file: str
+) -> dict[str, Any]:
+    """The zenoh configuration of one node's session, as a dict (JSON5
+    values at their keys): mode, endpoints, scouting, authentication and
+    the access rules."""
+    z = cfg.ddm.zenoh
+    listen, connect = list(z.listen), list(z.connect)
+    if not listen and not connect:
+        endpoint = f"tcp/{cfg.ddm.listen_host}:{ssc_port(cfg, group)}"
+        if kind == "ssc":
+            listen = [endpoint]
+        else:
+            connect = [f"tcp/127.0.0.1:{ssc_port(cfg, group)}"]
+    users = read_users(users_file)
+    me = user_of(node, group)
+    if me not in users:
+        raise ValueError(f"{users_file}: no password for {me}")
+    out: dict[str, Any] = {
+        "mode": z.mode,
+        "listen/endpoints": listen,
+        "connect/endpoints": connect,
+        "scouting/multicast/enabled": z.scouting,
+        "scouting/gossip/enabled": z.scouting,
+        "transport/auth/usrpwd": {
+            "user": me,
+            "password": users[me],
+            "dictionary_file": str(users_file),
+        },
+    }
+    if z.access_control and listen:
+        # the rules name users, and zenoh's user/password authentication
+        # names the side that connects: they sit where sessions are
+        # accepted (the SSC's, by default; an ESC that listens gets them too)
+        out["access_control"] = access_rules(group, node, kind, robots)
+    return out
+
+
+def open_session(settings: dict[str, Any]) -> Any:
+    import zenoh
+
+    conf = zenoh.Config()
+    for key, value in settings.items():
+        conf.insert_json5(key, json.dumps(value))
+    return zenoh.open(conf)
+
+
+class ZenohTransport(Transport):
+    """One node's side: ``kind`` ``ssc`` (every robot of ``robots``) or
+    ``esc`` (its one robot); ``gids`` maps each robot's name to the group-wide
+    index the ddm sends with."""
+
+    def __init__(
+        self,
+        settings: dict[str, Any],
+        *,
+        group: str,
+        node: str,
+        kind: str,
+        robots: list[str],
+        gids: dict[str, int],
+        connect_timeout_s: float = 30.0,
+    ) -> None:
+        import zenoh
+
+        self.kind = kind
+        self.group = group
+        self.replies = kind == "esc"  # as the socket transport's ESC side
+        self.robots = list(robots)
+        self.names = {gids[r]: r for r in robots}
+        self.inbox: deque[bytes] = deque()
+        self.efd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        self.deadline = time.monotonic() + connect_timeout_s
+        self.connect_timeout_s = connect_timeout_s
+        self.closed = False
+        # the peers' liveliness: robot -> seen / lost why (the SSC: one per
+        # ESC robot; an ESC: its SSC, under its own robot)
+        self.seen: set[str] = set()
+        self.lost: dict[str, str] = {}
+        self.session = open_session(settings)
+        s = self.session
+        express = {"congestion_control": zenoh.CongestionControl.DROP, "express": True}
+        if kind == "ssc":
+            self.pubs = {
+                gids[r]: s.declare_publisher(command_key(group, r), **express) for r in robots
+            }
+            self.subs = [s.declare_subscriber(feedback_key(group, r), self._take) for r in robots]
+            self.peer_of = {alive_key(group, f"esc.{r}"): r for r in robots}
+        else:
+            r = robots[0]
+            self.pubs = {gids[r]: s.declare_publisher(feedback_key(group, r), **express)}
+            self.subs = [s.declare_subscriber(command_key(group, r), self._take)]
+            self.peer_of = {alive_key(group, "ssc"): r}
+        self.token = s.liveliness().declare_token(alive_key(group, node))
+        self.alive = [
+            s.liveliness().declare_subscriber(key, self._liveliness, history=True)
+            for key in self.peer_of
+        ]
+
+    @classmethod
+    def for_node(
+        cls,
+        cfg: Config,
+        session_id: str,
+        link: str,
+        node: str,
+        kind: str,
+        robots: list[str],
+        key: bytes,
+    ) -> ZenohTransport:
+        """The node's session from ``ddm.zenoh`` (users file: the config's,
+        else the session's own in its runtime folder)."""
+        from redistro.ipc.session import Manifest
+
+        group = group_of(cfg, link)
+        users = cfg.ddm.zenoh.users_file or str(
+            Manifest.for_session(session_id).directory / SESSION_USERS
+        )
+        try:
+            settings = session_config(cfg, group, node, kind, robots, users)
+        except ValueError as exc:
+            raise TransportError(f"zenoh: {exc}") from None
+        index = list(cfg.robots)
+        return cls(
+            settings,
+            group=group,
+            node=node,
+            kind=kind,
+            robots=robots,
+            gids={r: index.index(r) for r in robots},
+            connect_timeout_s=cfg.ddm.connect_timeout_s,
+        )
+
+    # -- zenoh's threads --
+
+    def _take(self, sample: Any) -> None:
+        self.inbox.append(sample.payload.to_bytes())
+        self._wake()
+
+    def _wake(self) -> None:
+        if not self.closed:  # (the eventfd closes after the session)
+            with contextlib.suppress(OSError):
+                os.eventfd_write(self.efd, 1)
+
+    def _liveliness(self, sample: Any) -> None:
+        import zenoh
+
+        robot = self.peer_of.get(str(sample.key_expr))
+        if robot is None:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.seen.add(robot)
+        elif robot in self.seen:
+            self.lost[robot] = "closed by the peer, or out of reach (its liveliness token went)"
+        self._wake()
+
+    # -- the ddm's side --
+
+    def send(self, record: bytes, robot: int) -> None:
+        if self.closed:
+            raise TransportError("zenoh: the session is closed")
+        pub = self.pubs.get(robot)
+        name = self.names.get(robot)
+        if pub is None or name in self.lost:
+            return  # not this node's robot, or its link is lost
+        pub.put(record)
+
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
+        if self.closed:
+            raise TransportError("zenoh: the session is closed")
+        with contextlib.suppress(BlockingIOError):
+            os.eventfd_read(self.efd)
+        out: list[bytes] = []
+        inbox = self.inbox
+        while inbox:
+            out.append(inbox.popleft())
+        if not out:
+            peers = set(self.peer_of.values())
+            if peers and set(self.lost) >= peers:
+                why = "; ".join(f"{r}: {w}" for r, w in sorted(self.lost.items()))
+                raise TransportError(f"zenoh link lost: {why}")
+            if not self.seen and time.monotonic() > self.deadline:
+                raise TransportError(
+                    f"zenoh: no peer of group {self.group} within {self.connect_timeout_s:g} s "
+                    "(not running, out of reach, or refused: a wrong user or password)"
+                )
+        return out
+
+    def fds(self) -> list[int]:
+        return [] if self.closed else [self.efd]
+
+    def lost_links(self) -> dict[int, str]:
+        if self.kind != "ssc" or set(self.lost) >= set(self.peer_of.values()):
+            return {}
+        gid = {r: g for g, r in self.names.items()}
+        return {gid[r]: w for r, w in self.lost.items()}
+
+    def connected(self) -> bool:
+        """Every peer's liveliness token seen (tests and tools)."""
+        return set(self.peer_of.values()) <= self.seen
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        with contextlib.suppress(Exception):
+            self.session.close()
+        os.close(self.efd)
