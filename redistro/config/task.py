@@ -103,9 +103,11 @@ class Search:
     ``pitch_m`` between turns, ``speed_m_s`` along the path, the plane's
     stiffness raised to ``stiffness_n_m`` [N/m] (against the sliding
     friction), the yaw softened to ``yaw_stiffness_nm_rad`` [N m/rad] (the
-    walls may turn the peg) and the rotation damped by ``rot_damping_nm_s_rad``
-    [N m s/rad] (no slip or catch may swing the wrist), both until the
-    segment ends. A fall of ``drop_m`` below the contact height,
+    walls may turn the peg) until the segment ends. (Not its damping: the
+    flange's inertia about its axis is about 1e-3 kg m^2, and a damping d
+    acts through a sampled loop, stable only while d T / I stays well
+    under 1: 0.2 N m s/rad at 200 Hz spun the flange past the guard's
+    1 rad/s.) A fall of ``drop_m`` below the contact height,
     or the push gone while the tip sinks, means the peg is in: the search
     stops where the tip is, the peg goes down at the force law's own speed
     until it is three ``drop_m`` in, then at ``descent_m_s`` to
@@ -127,7 +129,6 @@ class Search:
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
     stiffness_n_m: float = field(default=3000.0, metadata={"gt": 0, "le": 5000})
     yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
-    rot_damping_nm_s_rad: float = field(default=0.6, metadata={"ge": 0, "le": 10})
     descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
     slow_above_m: float = field(default=0.012, metadata={"ge": 0, "le": 0.1})
     settle_s: float = field(default=0.3, metadata={"ge": 0, "le": 10})

@@ -93,6 +93,10 @@ class SscLogger(Worker):
         self.peak_force = 0.0
         pegs = [r for r in self.robots if cfg.robots[r].peg]
         self.peg_index = self.robots.index(pegs[0]) if pegs else -1
+        # the depth counts from the first force segment on (1-based): a peg
+        # left in the hole by an earlier session is pulled out by the approach
+        forces = [k for k, p in enumerate(self.plans, 1) if p.scheme == "force"]
+        self.depth_from = forces[0] if forces else AFTER
         self.depth = 0.0
         self.depth_t: float | None = None
         run_dir = self.spec.node_params.run_dir
@@ -151,7 +155,7 @@ class SscLogger(Worker):
                         t_s=round(float(rec["t_s"]), 4),
                         done=bool(rec["done"]),
                     )
-            if i == self.peg_index and k != 0:
+            if i == self.peg_index and self.depth_from <= k != 0:
                 x, y, z = self.tcp[i].tolist()
                 hx, hy, hz = self.hole
                 d = hz - z

@@ -479,12 +479,14 @@ class SscWorker(Worker):
         phase = srch.step(seg_t, dt, law.contact, float(law.tcp_p[2]), -float(law.applied[2]))
         ref, gains, cmd = law.ref, law.gains, law.cmd
         if phase == Phase.DESCENT:
-            if law.tcp_p[2] < plan.mouth_z_m + TOUCH_ABOVE_M and gains[V_MAX] > srch.p.touch_m_s:
-                gains[V_MAX] = srch.p.touch_m_s  # near the mouth as drawn: touch gently
+            z = float(law.tcp_p[2])
+            near = abs(z - plan.mouth_z_m) < TOUCH_ABOVE_M
+            # near the mouth as drawn: touch gently; past it, untouched, the
+            # peg is going into the hole: the law's own speed again
+            gains[V_MAX] = srch.p.touch_m_s if near else st.gains0[V_MAX]
         elif phase == Phase.SETTLE and before != phase:
             gains[V_MAX] = st.gains0[V_MAX]
-            gains[5] = srch.p.yaw_stiffness_nm_rad  # in touch: the search's rotation
-            gains[9:12] = srch.p.rot_damping_nm_s_rad
+            gains[5] = srch.p.yaw_stiffness_nm_rad  # in touch: the search's soft yaw
             cmd[8] = -srch.p.force_n
             st.views["wrench_goal"][2] = -srch.p.force_n
             self.post(f"{st.name}: contact off the hole at t={t:.2f} s; searching")
@@ -494,7 +496,6 @@ class SscWorker(Worker):
                 st.fast_z = st.slow_z = -math.inf
                 gains[0] = gains[1] = srch.p.stiffness_n_m
                 gains[5] = srch.p.yaw_stiffness_nm_rad
-                gains[9:12] = srch.p.rot_damping_nm_s_rad
                 if before == Phase.IN_HOLE:  # a slip, not the hole: search on
                     cmd[8] = -srch.p.force_n
                     st.views["wrench_goal"][2] = -srch.p.force_n
@@ -511,13 +512,14 @@ class SscWorker(Worker):
             ref[0] = ref[3] = float(p[0])
             ref[1] = ref[4] = float(p[1])
             gains[...] = st.gains0
-            # the rotation stays as the search had it: a stiffer yaw now
-            # would snap back whatever the walls turned, a jolt at the wrist
-            gains[5] = srch.p.yaw_stiffness_nm_rad
-            gains[9:12] = srch.p.rot_damping_nm_s_rad
             cmd[8] = st.goal_z_n
             st.views["wrench_goal"][2] = st.goal_z_n
             if before != Phase.DESCENT:
+                # the yaw stays as soft as the search had it: a stiffer yaw
+                # now would snap back whatever the walls turned (a jolt at
+                # the wrist); a peg that met nothing before the bottom keeps
+                # the task's own law throughout
+                gains[5] = srch.p.yaw_stiffness_nm_rad
                 # the peg is falling in: free space again along z (no spring
                 # wound up, no goal force fed forward), down the hole at the
                 # search's descent speed to a little above its bottom as drawn
