@@ -127,6 +127,17 @@ def _parser() -> argparse.ArgumentParser:
     pg.add_argument("--json", dest="json_path", default=None, help="write the figures here")
     pg.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
 
+    dd = bsub.add_parser(
+        "ddm",
+        help="the DDM transports alone: N ESC ddms and their SSC ddm, no plant",
+        parents=[common],
+    )
+    dd.add_argument("--transport", required=True, choices=["socket", "reflective", "zenoh"])
+    dd.add_argument("--robots", type=_positive_int, default=2, help="ESC ddms (1-16)")
+    dd.add_argument("--rate", type=float, default=200.0, help="commands per robot per second")
+    dd.add_argument("--seconds", type=float, default=10.0, help="how long to measure")
+    dd.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+
     kb = bsub.add_parser(
         "kernels",
         help="each compiled kernel against its numpy reference, CPU per call",

@@ -30,6 +30,8 @@ def run_bench(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
         return _bench_peg(args, cfg, overrides)
     if args.bench == "kernels":
         return _bench_kernels(args, cfg)
+    if args.bench == "ddm":
+        return _bench_ddm(args, cfg)
     raise ConfigError(f"bench {args.bench}: no such benchmark")
 
 
@@ -244,3 +246,24 @@ def _bench_plant(args: argparse.Namespace, cfg: Any) -> int:
         write_json(Path(args.json_path), out)
         print(f"wrote {args.json_path}")
     return 0
+
+
+def _bench_ddm(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from redistro.bench import ddm
+    from redistro.process.owner import write_json
+
+    if not 1 <= args.robots <= 16:
+        raise ConfigError(f"--robots {args.robots}: expected 1 to 16")
+    if not 1 <= args.rate <= 5000:
+        raise ConfigError(f"--rate {args.rate:g}: expected 1 to 5000 Hz")
+    if not 1 <= args.seconds <= 3600:
+        raise ConfigError(f"--seconds {args.seconds:g}: expected 1 to 3600")
+    _writable("--json", args.json_path)
+    out = ddm.run(cfg, args.transport, args.robots, args.rate, args.seconds)
+    ddm.print_figures(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0 if out["connected"] and not out["error"] else 1

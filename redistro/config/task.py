@@ -102,7 +102,9 @@ class Search:
     hole's plane runs an Archimedean spiral about the believed centre:
     ``pitch_m`` between turns, ``speed_m_s`` along the path, the plane's
     stiffness raised to ``stiffness_n_m`` [N/m] (against the sliding
-    friction), the yaw softened to ``yaw_stiffness_nm_rad`` [N m/rad] (the
+    friction) and the goal never more than ``max_lateral_n`` [N] of that
+    spring ahead of the tip (a peg caught on an edge is not loaded up until
+    it snaps free and swings the wrist), the yaw softened to ``yaw_stiffness_nm_rad`` [N m/rad] (the
     walls may turn the peg) until the segment ends. (Not its damping: the
     flange's inertia about its axis is about 1e-3 kg m^2, and a damping d
     acts through a sampled loop, stable only while d T / I stays well
@@ -128,6 +130,7 @@ class Search:
     timeout_s: float = field(default=25.0, metadata={"gt": 0, "le": 600})
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
     stiffness_n_m: float = field(default=3000.0, metadata={"gt": 0, "le": 5000})
+    max_lateral_n: float = field(default=6.0, metadata={"gt": 0, "le": 50})
     yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
     descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
     slow_above_m: float = field(default=0.012, metadata={"ge": 0, "le": 0.1})

@@ -501,6 +501,14 @@ class SscWorker(Worker):
                     st.views["wrench_goal"][2] = -srch.p.force_n
                     self.post(f"{st.name}: no hole there (t={t:.2f} s); searching on")
             x, y = plan.pose[0] + srch.ox, plan.pose[1] + srch.oy
+            # the goal leads the tip by at most max_lateral_n / stiffness: a
+            # peg caught on an edge is not loaded up until it snaps free
+            tx, ty = float(law.tcp_p[0]), float(law.tcp_p[1])
+            dx, dy = x - tx, y - ty
+            lead = math.sqrt(dx * dx + dy * dy)
+            cap = srch.p.max_lateral_n / srch.p.stiffness_n_m
+            if lead > cap:
+                x, y = tx + dx * cap / lead, ty + dy * cap / lead
             ref[0] = ref[3] = x
             ref[1] = ref[4] = y
             xy = st.views["search_xy"]

@@ -1,5 +1,5 @@
 """Nodes started alone (`redistro node`): the ESCs beside the plant on one
-host, the SSC on another, over the socket transport.
+host, the SSC on another, over the socket and the zenoh transports.
 
 As root the two hosts are two network namespaces joined by a veth pair (the
 SSC reaches the ESCs only through the pair); otherwise both sit on loopback.
@@ -33,6 +33,7 @@ class Hosts:
     b: list[str]
     a_addr: str
     namespaces: bool
+    b_addr: str = "127.0.0.1"
 
 
 def _ip(*args: str) -> None:
@@ -59,7 +60,13 @@ def two_hosts() -> Iterator[Hosts]:
             _ip("-n", ns, "addr", "add", f"{net}.{host}/24", "dev", veth)
             _ip("-n", ns, "link", "set", veth, "up")
             _ip("-n", ns, "link", "set", "lo", "up")
-        yield Hosts(["ip", "netns", "exec", ns_a], ["ip", "netns", "exec", ns_b], f"{net}.1", True)
+        yield Hosts(
+            ["ip", "netns", "exec", ns_a],
+            ["ip", "netns", "exec", ns_b],
+            f"{net}.1",
+            True,
+            f"{net}.2",
+        )
     finally:
         for ns in made:  # deleting a namespace deletes its end of the pair, and so both
             subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
@@ -84,17 +91,36 @@ def _end(proc: subprocess.Popen[str], timeout: float) -> tuple[int, str]:
     return proc.returncode, out[-3000:] + err[-3000:]
 
 
-def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(calibrated: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("transport", ["socket", "zenoh"])
+def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(
+    calibrated: Path, tmp_path: Path, transport: str
+) -> None:
+    """Over sockets the SSC connects to each ESC; over zenoh each ESC's
+    session connects to the SSC's, authenticated (user and password from
+    the shared users file) and under the SSC's access rules."""
     runs = tmp_path / "runs"
     shutil.copytree(calibrated, runs)
     from redistro.ddm.record import new_key
 
     key = tmp_path / "link.key"  # the link's key, shared by the nodes (one filesystem here)
     new_key(key)
-    common = ["--set", f"session.runs_dir={runs}", "--set", "ddm.transport=socket"]
+    common = ["--set", f"session.runs_dir={runs}", "--set", f"ddm.transport={transport}"]
     common += ["--set", f"ddm.key_file={key}"]
     link = f"test-nodes-{os.getpid()}"
+    esc_sets: list[str] = []
+    ssc_sets: list[str] = []
+    if transport == "zenoh":
+        from redistro.ddm import zenoh_transport as zt
+
+        users = tmp_path / "zenoh.users"  # shared like the key
+        zt.new_users_file(users, link, ["ssc", "esc.r1", "esc.r2"])
+        port = 36000 + os.getpid() % 4000
+        common += ["--set", f"ddm.zenoh.users_file={users}"]
     with two_hosts() as hosts:
+        if transport == "zenoh":
+            esc_sets = ["--set", f'ddm.zenoh.connect=["tcp/{hosts.b_addr}:{port}"]']
+            listen = "0.0.0.0" if hosts.namespaces else "127.0.0.1"
+            ssc_sets = ["--set", f'ddm.zenoh.listen=["tcp/{listen}:{port}"]']
         plant = _start([], *common, "plant")
         procs: list[subprocess.Popen[str]] = [plant]
         try:
@@ -107,6 +133,7 @@ def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(calibrated: Path, tmp_pa
                     *common,
                     "--set",
                     f"ddm.listen_host={'0.0.0.0' if hosts.namespaces else '127.0.0.1'}",
+                    *esc_sets,
                     "node",
                     "esc",
                     r,
@@ -128,6 +155,7 @@ def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(calibrated: Path, tmp_pa
                 f"ddm.esc_hosts.r1={hosts.a_addr}",
                 "--set",
                 f"ddm.esc_hosts.r2={hosts.a_addr}",
+                *ssc_sets,
                 "node",
                 "ssc",
                 TASK,
@@ -159,7 +187,7 @@ def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(calibrated: Path, tmp_pa
         d = esc["ddm"][f"esc.{r}"]
         assert d["updates"] > 100 and d["command_latency_us"]["p50"] > 0, d
         assert d["starving_index_max"] <= LIMIT, d
-    print(f"namespaces: {hosts.namespaces}")
+    print(f"{transport}, namespaces: {hosts.namespaces}")
 
 
 def test_a_node_alone_refuses_bad_input(tmp_path: Path) -> None:

@@ -1,0 +1,406 @@
+"""``redistro bench ddm``: the DDM transports alone, without the plant.
+
+N ESC ddms and their SSC ddm, each a process of its own running the real
+:class:`~redistro.ddm.worker.Ddm` over the real transport
+(``--transport socket|reflective|zenoh``) on its node's Local Data (in the
+process's memory: nothing else of the node runs). The SSC's process
+publishes a command per robot at ``--rate`` (stamped, as the SSC's worker
+does) and wakes its ddm; each ESC's process, woken by its transport, puts a
+fresh feedback sample beside the command that came (as an acquisition
+would) and steps its ddm, which admits the command and answers with the
+sample. Per robot: command latency (the command's stamp to its admission
+in the ESC's Local Data, the ddm's own figure) and feedback latency (the
+sample's stamp to its admission in the SSC's); the records delivered each
+way per second; every ddm's CPU (% of one vCPU); records dropped or never
+delivered.
+
+The process entry (``python -m redistro.bench.ddm``) blocks the runtime
+signals before anything that may start a thread is imported (zenoh's
+threads among them).
+"""
+
+import os
+import sys
+
+if __name__ == "__main__":
+    from redistro.ipc.signals import block_runtime_signals
+
+    block_runtime_signals()
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import dataclasses
+import json
+import select
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+CONNECT_S = 20.0  # how long the SSC waits for every ESC's first feedback
+TRANSPORTS = ("socket", "reflective", "zenoh")
+
+
+def bench_config(cfg: Any, transport: str, robots: int, key: str, users: str) -> Any:
+    """The config with ``robots`` robots (r1..rN) and the transport chosen."""
+    from redistro.config.model import RobotConfig
+
+    zenoh = dataclasses.replace(cfg.ddm.zenoh, users_file=users)
+    ddm = dataclasses.replace(cfg.ddm, transport=transport, key_file=key, zenoh=zenoh)
+    fleet = {f"r{i + 1}": RobotConfig() for i in range(robots)}
+    return dataclasses.replace(cfg, robots=fleet, ddm=ddm)
+
+
+def _spec(cfg: Any, sid: str, node: str, kind: str, robots: list[str], rate_hz: float) -> Any:
+    from redistro.config.loader import resolved
+    from redistro.process.spec import NodeParams, NodeSpec, WorkerSpec
+
+    return NodeSpec(
+        session_id=sid,
+        node=node,
+        kind=kind,
+        rate_hz=rate_hz,
+        heartbeat_limit_cycles=25,
+        workers=[WorkerSpec(name="ddm", role="ddm", stage=-1)],
+        robots=robots,
+        config=resolved(cfg),
+        node_params=NodeParams(link=sid),
+    )
+
+
+def run(cfg: Any, transport: str, robots: int, rate_hz: float, seconds: float) -> dict[str, Any]:
+    """Spawn the ddms, wait for them, gather their figures."""
+    from redistro.ddm import record as wire
+    from redistro.ipc import session as ipc_session
+
+    procs: list[subprocess.Popen[bytes]] = []
+    with ipc_session.Session.create() as session:  # its 0700 folder, its IPC objects reaped
+        sid = session.id
+        folder = session.directory
+        try:
+            key = folder / "link.key"
+            wire.new_key(key)
+            users = folder / "zenoh.users"
+            names = [f"r{i + 1}" for i in range(robots)]
+            if transport == "zenoh":
+                from redistro.ddm import zenoh_transport as zt
+
+                zt.new_users_file(users, sid, ["ssc", *(f"esc.{r}" for r in names)])
+            bench = bench_config(cfg, transport, robots, str(key), str(users))
+            end_by = time.monotonic() + CONNECT_S + seconds + 5.0
+            sides = [("esc", f"esc.{r}", [r]) for r in names] + [("ssc", "ssc", names)]
+            for kind, node, mine in sides:
+                spec = _spec(bench, sid, node, kind, mine, rate_hz)
+                path = folder / f"{node}.spec.json"
+                spec.save(path)
+                procs.append(
+                    subprocess.Popen(
+                        [
+                            sys.executable,
+                            "-m",
+                            "redistro.bench.ddm",
+                            kind,
+                            str(path),
+                            str(folder / f"{node}.json"),
+                            repr(seconds),
+                            repr(end_by),
+                        ],
+                        stdin=subprocess.DEVNULL,
+                    )
+                )
+            for p in procs:
+                p.wait(timeout=max(1.0, end_by - time.monotonic() + 10.0))
+            found = {
+                node: json.loads((folder / f"{node}.json").read_text())
+                for _, node, _ in sides
+                if (folder / f"{node}.json").exists()
+            }
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+    return _figures(transport, robots, rate_hz, seconds, found, names)
+
+
+def _figures(
+    transport: str,
+    robots: int,
+    rate_hz: float,
+    seconds: float,
+    found: dict[str, Any],
+    names: list[str],
+) -> dict[str, Any]:
+    ssc = found.get("ssc", {})
+    per_robot: dict[str, Any] = {}
+    for r in names:
+        esc = found.get(f"esc.{r}", {})
+        per_robot[r] = {
+            "command_latency_us": esc.get("command_latency_us"),
+            "feedback_latency_us": (ssc.get("feedback_latency_us") or {}).get(r),
+            "commands_sent": (ssc.get("sent") or {}).get(r, 0),
+            "commands_taken": esc.get("taken", 0),
+            "feedback_taken": (ssc.get("taken") or {}).get(r, 0),
+            "dropped": esc.get("dropped", 0) + (ssc.get("dropped") or {}).get(r, 0),
+            "cpu_percent": esc.get("cpu_percent"),
+        }
+    measured = ssc.get("measured_s") or 0.0
+    sent = sum(v["commands_sent"] for v in per_robot.values())
+    taken = sum(v["commands_taken"] for v in per_robot.values())
+    lat = [v["command_latency_us"] for v in per_robot.values() if v["command_latency_us"]]
+    fb = [v["feedback_latency_us"] for v in per_robot.values() if v["feedback_latency_us"]]
+    esc_cpu = [v["cpu_percent"] for v in per_robot.values() if v["cpu_percent"] is not None]
+    return {
+        "transport": transport,
+        "robots": robots,
+        "rate_hz": rate_hz,
+        "seconds": seconds,
+        "connected": bool(ssc.get("connected")),
+        "measured_s": measured,
+        "error": ssc.get("error")
+        or next((e["error"] for e in found.values() if e.get("error")), ""),
+        "command_latency_us": {
+            "p50": max((x["p50"] for x in lat), default=0.0),
+            "p99": max((x["p99"] for x in lat), default=0.0),
+            "max": max((x["max"] for x in lat), default=0.0),
+        },
+        "feedback_latency_us": {
+            "p50": max((x["p50"] for x in fb), default=0.0),
+            "p99": max((x["p99"] for x in fb), default=0.0),
+            "max": max((x["max"] for x in fb), default=0.0),
+        },
+        "commands_per_s": round(taken / measured, 1) if measured else 0.0,
+        "feedback_per_s": round(sum(v["feedback_taken"] for v in per_robot.values()) / measured, 1)
+        if measured
+        else 0.0,
+        "lost_commands": max(0, sent - taken),
+        "dropped": sum(v["dropped"] for v in per_robot.values()),
+        "ssc_cpu_percent": ssc.get("cpu_percent"),
+        "esc_cpu_percent_max": max(esc_cpu, default=None),
+        "per_robot": per_robot,
+    }
+
+
+# -- the processes --
+
+
+class _Waits:
+    """The ddm's fds in an epoll, asked again after every step (a transport's
+    fds change: a connection accepted, a peer gone), as the worker runner does."""
+
+    def __init__(self, ddm: Any) -> None:
+        self.ddm = ddm
+        self.poll = select.epoll()
+        self.fds: set[int] = set()
+        self.refresh()
+
+    def refresh(self) -> None:
+        now = set(self.ddm.fds())
+        for fd in self.fds - now:
+            self.poll.unregister(fd)
+        for fd in now - self.fds:
+            self.poll.register(fd, select.EPOLLIN)
+        self.fds = now
+
+    def wait(self, timeout_s: float) -> list[tuple[int, int]]:
+        events: list[tuple[int, int]] = self.poll.poll(timeout_s)
+        return events
+
+
+def _cpu_s() -> float:
+    t = os.times()
+    return t.user + t.system
+
+
+def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: float) -> None:
+    import numpy as np
+
+    from redistro.ddm.worker import Ddm
+    from redistro.localdata.block import Record
+    from redistro.localdata.layout import COMMAND, FEEDBACK
+    from redistro.process.books import node_local_data
+    from redistro.process.spec import NodeSpec
+    from redistro.process.stats import Samples
+
+    spec = NodeSpec.load(spec_path)
+    period_ns = int(1e9 / spec.rate_hz)
+    ld = node_local_data(spec, period_ns, None, memory=True)
+    out: dict[str, Any] = {"node": spec.node}
+    ddm = Ddm(spec, 0, ld)
+    try:
+        ddm.initialize()
+        poll = _Waits(ddm)
+        robots = spec.robots
+        if kind == "esc":
+            out.update(_esc_loop(ddm, ld, poll, end_by, Record(FEEDBACK), np))
+        else:
+            out.update(
+                _ssc_loop(
+                    ddm, ld, poll, robots, period_ns, seconds, end_by, Record(COMMAND), Samples
+                )
+            )
+    except Exception as exc:  # the figures say what went wrong, the parent goes on
+        out["error"] = f"{type(exc).__name__}: {exc}"
+    finally:
+        ddm.cleanup()
+        ld.close()
+        ld.unlink()
+    ex = ddm.ex
+    out["dropped"] = (
+        int(sum(e["dropped"] for e in ex))
+        if kind == "esc"
+        else {r: int(e["dropped"]) for r, e in zip(spec.robots, ex, strict=True)}
+    )
+    if kind == "esc":
+        out["command_latency_us"] = ddm.latency.summary_us()
+        out["taken"] = int(ex[0]["updates"])
+    Path(out_path).write_text(json.dumps(out))
+
+
+def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, np: Any) -> dict[str, Any]:
+    """Woken by the transport: a fresh sample beside each command that came,
+    then the ddm. A replying ddm (sockets, zenoh) answers the command with
+    it in the same step, so the sample goes first; otherwise (reflective
+    memory, where every write wakes every node) the ddm takes the command,
+    and only a new one brings a sample and a second step to send it."""
+    writer = ld.writer("feedback", 0, role="acquisition")
+    commands = ld.block("command", 0)
+    cycle = 0
+    seq = 0
+    last_cmd = commands.seq
+    cpu0, t0 = _cpu_s(), time.monotonic()
+
+    def sample() -> None:
+        nonlocal seq
+        seq += 1
+        fb["seq_src"] = seq
+        fb["stamp_ns"] = time.monotonic_ns()
+        fb["step"] = seq
+        writer.publish(fb.bytes)
+
+    while time.monotonic() < end_by and not ddm.lost:
+        events = poll.wait(0.05)
+        ddm.ready_fds = [fd for fd, _ in events] or None
+        if ddm.replying or not events:
+            sample()  # (and the start-up datum, on its own, until a command comes)
+        cycle += 1
+        ddm.step(cycle)
+        if not ddm.replying and commands.seq != last_cmd:
+            last_cmd = commands.seq
+            sample()
+            cycle += 1
+            ddm.step(cycle)
+        poll.refresh()
+    wall = max(1e-9, time.monotonic() - t0)
+    return {"cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2)}
+
+
+def _ssc_loop(
+    ddm: Any,
+    ld: Any,
+    poll: Any,
+    robots: list[str],
+    period_ns: int,
+    seconds: float,
+    end_by: float,
+    cmd: Any,
+    samples: Any,
+) -> dict[str, Any]:
+    """A command per robot every period (stamped), the ddm woken for it and
+    for what comes; each robot's fresh feedback timed from its stamp."""
+    from redistro.localdata.block import Record
+    from redistro.localdata.layout import FEEDBACK
+
+    writers = [ld.writer("command", i, role="worker") for i in range(len(robots))]
+    readers = [ld.block("feedback", i) for i in range(len(robots))]
+    fbs = [Record(FEEDBACK) for _ in robots]
+    last = [0] * len(robots)
+    lat = [samples() for _ in robots]
+    taken = [0] * len(robots)
+    sent = [0] * len(robots)
+    cycle = 0
+
+    def take(measure: bool) -> None:
+        now = time.monotonic_ns()
+        for i, (rd, rec) in enumerate(zip(readers, fbs, strict=True)):
+            rd.read_into(rec.bytes)
+            s = int(rec["seq_src"])
+            if s != last[i]:
+                last[i] = s
+                if measure:
+                    taken[i] += 1
+                    lat[i].add(now - int(rec["stamp_ns"]))
+
+    # the meeting point: every ESC's start-up datum (its feedback on its own)
+    connect_by = min(end_by, time.monotonic() + CONNECT_S)
+    while not all(last) and time.monotonic() < connect_by and not ddm.lost:
+        events = poll.wait(0.05)
+        ddm.ready_fds = [fd for fd, _ in events] or None
+        cycle += 1
+        ddm.step(cycle)
+        poll.refresh()
+        take(False)
+    if not all(last):
+        return {"connected": False, "error": "not every ESC's ddm was heard from"}
+    cpu0, t0 = _cpu_s(), time.monotonic()
+    stop = min(end_by - 2.0, t0 + seconds)
+    due = time.monotonic_ns()
+    seq = 0
+    while time.monotonic() < stop and not ddm.lost:
+        now = time.monotonic_ns()
+        if now >= due:
+            seq += 1
+            for i, w in enumerate(writers):
+                cmd["seq_src"] = seq
+                cmd["stamp_ns"] = time.monotonic_ns()
+                w.publish(cmd.bytes)
+                sent[i] += 1
+            due += period_ns
+            ddm.ready_fds = None
+        else:
+            events = poll.wait(max(0.0, (due - now) / 1e9))
+            ddm.ready_fds = [fd for fd, _ in events]
+            if not events:
+                continue
+        cycle += 1
+        ddm.step(cycle)
+        poll.refresh()
+        take(True)
+    wall = max(1e-9, time.monotonic() - t0)
+    # the last replies
+    tail = time.monotonic() + 0.2
+    while time.monotonic() < tail and not ddm.lost:
+        events = poll.wait(0.02)
+        ddm.ready_fds = [fd for fd, _ in events] or None
+        cycle += 1
+        ddm.step(cycle)
+        poll.refresh()
+        take(True)
+    return {
+        "connected": True,
+        "measured_s": round(wall, 3),
+        "cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2),
+        "sent": dict(zip(robots, sent, strict=True)),
+        "taken": dict(zip(robots, taken, strict=True)),
+        "feedback_latency_us": {r: s.summary_us() for r, s in zip(robots, lat, strict=True)},
+    }
+
+
+def print_figures(out: dict[str, Any]) -> None:
+    c, f = out["command_latency_us"], out["feedback_latency_us"]
+    print(
+        f"bench ddm {out['transport']}: {out['robots']} robots at {out['rate_hz']:g} Hz, "
+        f"{out['measured_s']:.1f} s measured" + (f" ({out['error']})" if out["error"] else "")
+    )
+    print(
+        f"  command latency us p50 {c['p50']} p99 {c['p99']} max {c['max']}; "
+        f"feedback p50 {f['p50']} p99 {f['p99']} max {f['max']} (the worst robot's)"
+    )
+    print(
+        f"  {out['commands_per_s']} commands/s, {out['feedback_per_s']} feedback/s; "
+        f"lost {out['lost_commands']}, dropped {out['dropped']}; CPU: SSC ddm "
+        f"{out['ssc_cpu_percent']} %, ESC ddm up to {out['esc_cpu_percent_max']} % of a vCPU"
+    )
+
+
+if __name__ == "__main__":
+    _side(sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]), float(sys.argv[5]))
