@@ -218,6 +218,14 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--once", action="store_true", help="one sample, then exit")
     tp.add_argument("--json", action="store_true", help="with --once: print JSON")
     tp.add_argument("--interval", type=float, default=1.0, help="refresh period [s]")
+    tp.add_argument(
+        "--zenoh",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="also the groups seen through this zenoh session (tcp/host:port of an SSC's "
+        "ddm; ddm.zenoh.users_file names the viewer's password); repeatable",
+    )
     return p
 
 
@@ -329,6 +337,10 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
     if args.command == "top":
         from redistro.top import run_top
 
+        if args.zenoh:
+            from redistro.top import run_zenoh_top
+
+            return run_zenoh_top(args.zenoh, cfg, args.json, args.interval)
         return run_top(args.session, args.once, args.json, args.interval)
     raise ConfigError(f"unknown command {args.command}")
 

@@ -291,3 +291,52 @@ def run_top(session: str | None, once: bool, as_json: bool, interval_s: float) -
         except KeyboardInterrupt:
             pass
     return 0
+
+
+def run_zenoh_top(endpoints: list[str], cfg: Any, as_json: bool, interval_s: float) -> int:
+    """Every robot group seen through these zenoh sessions: each node alive
+    (its liveliness token) and its last status (host, manager pid, records
+    taken, e-stop, link lost). One look; the nodes may be on any host."""
+    from redistro.ddm import zenoh_transport as zt
+
+    if interval_s <= 0:
+        raise ConfigError(f"--interval: expected > 0, got {interval_s}")
+    users = cfg.ddm.zenoh.users_file
+    if not users:
+        raise ConfigError("top --zenoh: ddm.zenoh.users_file: the viewer's password is needed")
+    for e in endpoints:
+        proto, _, addr = e.partition("/")
+        if proto not in ("tcp", "udp", "tls", "quic") or ":" not in addr:
+            raise ConfigError(f"--zenoh {e}: expected an endpoint like tcp/host:port")
+    looks = []
+    for e in endpoints:
+        try:
+            looks.append(zt.look(e, users, min(max(interval_s, 0.5), 5.0)))
+        except ValueError as exc:
+            raise ConfigError(f"top --zenoh: {exc}") from None
+    if as_json:
+        print(json.dumps({"zenoh": looks}, indent=1))
+        return 0
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    for look in looks:
+        if not look["groups"]:
+            console.print(f"{look['endpoint']}: no group seen")
+        for group, nodes in look["groups"].items():
+            t = Table(title=f"group {group} (through {look['endpoint']})", title_justify="left")
+            for c in ("node", "alive", "host", "pid", "updates", "e-stop", "link"):
+                t.add_column(c)
+            for n in nodes:
+                t.add_row(
+                    n["node"],
+                    "yes" if n["alive"] else "[red]no[/red]",
+                    str(n.get("host", "-")),
+                    str(n.get("pid", "-")),
+                    ",".join(str(u) for u in n.get("updates", [])) or "-",
+                    "[red]E-STOP[/red]" if n.get("estop") else "-",
+                    "[red]lost[/red]" if n.get("lost") else "ok",
+                )
+            console.print(t)
+    return 0

@@ -40,12 +40,12 @@ def valid_host(text: str) -> bool:
 
 
 def check_config(cfg: Config) -> None:
-    from redistro.localdata.layout import MAX_ROBOTS
+    from redistro.drivers.io.bank import MAX_ROBOTS
 
     if len(cfg.robots) > MAX_ROBOTS:
         raise ConfigError(
             f"{cfg.origin('robots')}: robots: at most {MAX_ROBOTS} robots in a group (the "
-            f"Local Data layout's and the plant bank's capacity), got {len(cfg.robots)}"
+            f"simulated plant's register bank), got {len(cfg.robots)}"
         )
     for name in cfg.robots:
         if not ROBOT_NAME.match(name):

@@ -271,7 +271,9 @@ class ZenohConfig:
     group: the robot group's name in the key expressions
         (``redistro/<group>/<robot>/command``, ``.../feedback``); empty: the
         link id (a session's id; ``redistro node --link``).
-    mode: ``peer`` or ``client`` (a client needs a router in ``connect``).
+    mode: the ESCs' sessions: ``client`` (through the SSC's session, which
+        is a peer and routes for the group's clients and its viewers) or
+        ``peer``.
     listen, connect: zenoh endpoints (``tcp/host:port``). Both empty (the
         default): the SSC's ddm listens on ``tcp/<ddm.listen_host>:<port>``
         and each ESC's ddm connects to ``tcp/127.0.0.1:<port>`` (on other
@@ -289,7 +291,7 @@ class ZenohConfig:
     """
 
     group: str = ""
-    mode: Literal["peer", "client"] = "peer"
+    mode: Literal["peer", "client"] = "client"
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
     port: int = field(default=0, metadata={"ge": 0, "le": 65535})

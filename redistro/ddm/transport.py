@@ -63,6 +63,15 @@ class Transport(ABC):
         """Connections refused so far (the link already had its peer)."""
         return 0
 
+    # -- the node's status, for viewers on other hosts (zenoh; the others
+    # have no such channel and ignore it) --
+
+    status_every = 0  # ddm steps between two status reports (0: never asked)
+
+    def status(self, doc: dict[str, object]) -> None:  # noqa: B027 - optional
+        """Publish the node's status (a small JSON document) where viewers
+        (``redistro top --zenoh``) see it."""
+
     @classmethod
     def for_node(
         cls,

@@ -221,6 +221,29 @@ class Ddm(Worker):
         # every 64 steps, a change of state at once
         if self.dirty and (self.kind != "esc" or self.urgent or not self.steps & 63):
             self._publish()
+        every = self.transport.status_every
+        if every and not self.steps % every:
+            self._status(estop)
+
+    def _status(self, estop: bool) -> None:
+        """The node's status for viewers on other hosts (off the hot path:
+        once in ``status_every`` steps)."""
+        import os
+        import socket
+
+        self.transport.status(
+            {
+                "node": self.spec.node,
+                "kind": self.kind,
+                "robots": self.robots,
+                "host": socket.gethostname(),
+                "pid": os.getppid(),  # the node's manager
+                "steps": self.steps,
+                "updates": [int(ex["updates"]) for ex in self.ex],
+                "estop": bool(estop),
+                "lost": self.lost,
+            }
+        )
 
     def _check_links(self) -> None:
         """Robots whose link alone was lost (the SSC's side): their data go

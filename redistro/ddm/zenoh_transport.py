@@ -78,6 +78,15 @@ def alive_key(group: str, node: str) -> str:
     return f"{PREFIX}/{group}/{node}/alive"
 
 
+def status_key(group: str, node: str) -> str:
+    return f"{PREFIX}/{group}/{node}/status"
+
+
+VIEWER = "top"  # the user ``redistro top --zenoh`` connects as
+STATUS_EVERY = 256  # ddm steps between two status reports (~1 s at 200 Hz, both ways)
+RETRY_S = 0.2  # a client whose door is not up yet tries again this often
+
+
 def ssc_port(cfg: Config, group: str) -> int:
     """Where the SSC's session listens: ``ddm.zenoh.port``, else derived."""
     return cfg.ddm.zenoh.port or 36000 + zlib.crc32(f"zenoh/{group}".encode()) % 4000
@@ -87,9 +96,10 @@ def ssc_port(cfg: Config, group: str) -> int:
 
 
 def new_users_file(path: Path | str, group: str, nodes: Iterable[str]) -> None:
-    """A users file for one group's nodes (random passwords, mode 0600,
-    created, never overwritten)."""
-    lines = "".join(f"{user_of(n, group)}:{secrets.token_hex(16)}\n" for n in nodes)
+    """A users file for one group's nodes and a viewer (random passwords,
+    mode 0600, created, never overwritten)."""
+    users = [*(user_of(n, group) for n in nodes), VIEWER]
+    lines = "".join(f"{u}:{secrets.token_hex(16)}\n" for u in users)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     try:
         os.write(fd, lines.encode())
@@ -136,14 +146,17 @@ def access_rules(group: str, node: str, kind: str, robots: list[str]) -> dict[st
     the declarations every peer of the group makes; the SSC takes each
     robot's feedback from that robot's ESC and sends it its commands; an
     ESC takes its robot's commands from the SSC and sends it its feedback."""
-    everything = f"{PREFIX}/{group}/**"
+    # declarations (subscriptions, liveliness) on any redistro key: a
+    # viewer's subscription across groups (redistro/*/*/status) must reach
+    # the ESCs, or their clients never send it what it asks for; data are
+    # allowed key by key below
     rules: list[dict[str, Any]] = [
         {
             "id": "declarations",
             "permission": "allow",
             "flows": ["ingress", "egress"],
             "messages": DECLARATIONS,
-            "key_exprs": [everything],
+            "key_exprs": [f"{PREFIX}/**"],
         }
     ]
     subjects: list[dict[str, Any]] = []
@@ -175,6 +188,29 @@ def access_rules(group: str, node: str, kind: str, robots: list[str]) -> dict[st
         policies.append(
             {"rules": ["declarations", f"in.{r}", f"out.{r}"], "subjects": [f"peer.{r}"]}
         )
+    # the nodes' status: each peer's own comes in, every one goes out to a
+    # viewer (``redistro top --zenoh``), who sends nothing
+    rules += [
+        {
+            "id": "status.in",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["put"],
+            "key_exprs": [status_key(group, n) for n in _peer_nodes(kind, robots)],
+        },
+        {
+            "id": "status.out",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put"],
+            "key_exprs": [status_key(group, "*")],
+        },
+    ]
+    for policy in policies:
+        policy["rules"].append("status.in")
+    # a viewer declares and asks, and gets only this group's status
+    subjects.append({"id": "viewer", "usernames": [VIEWER]})
+    policies.append({"rules": ["declarations", "status.out"], "subjects": ["viewer"]})
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -182,6 +218,10 @@ def access_rules(group: str, node: str, kind: str, robots: list[str]) -> dict[st
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def _peer_nodes(kind: str, robots: list[str]) -> list[str]:
+    return [f"esc.{r}" for r in robots] if kind == "ssc" else ["ssc"]
 
 
 def session_config(
@@ -203,7 +243,9 @@ def session_config(
     if me not in users:
         raise ValueError(f"{users_file}: no password for {me}")
     out: dict[str, Any] = {
-        "mode": z.mode,
+        # the SSC's session accepts the group's and routes for them (a peer);
+        # the ESCs' are ``ddm.zenoh.mode`` (clients by default: through it)
+        "mode": "peer" if kind == "ssc" else z.mode,
         "listen/endpoints": listen,
         "connect/endpoints": connect,
         "scouting/multicast/enabled": z.scouting,
@@ -247,7 +289,6 @@ class ZenohTransport(Transport):
         gids: dict[str, int],
         connect_timeout_s: float = 30.0,
     ) -> None:
-        import zenoh
 
         self.kind = kind
         self.group = group
@@ -263,25 +304,55 @@ class ZenohTransport(Transport):
         # ESC robot; an ESC: its SSC, under its own robot)
         self.seen: set[str] = set()
         self.lost: dict[str, str] = {}
-        self.session = open_session(settings)
-        s = self.session
+        self.settings = settings
+        self.node = node
+        self.gids = gids
+        self.peer_of = (
+            {alive_key(group, f"esc.{r}"): r for r in robots}
+            if kind == "ssc"
+            else {alive_key(group, "ssc"): robots[0]}
+        )
+        self.pubs: dict[int, Any] = {}
+        self.session: Any = None
+        self.why_not = ""
+        self.next_try = 0.0
+        self._open()
+
+    def _open(self) -> bool:
+        """The node's session and its declarations. A client needs its peer
+        at the door: until the SSC's session is up, every receive tries
+        again (every RETRY_S), as a connecting socket does."""
+        import zenoh
+
+        now = time.monotonic()
+        if now < self.next_try:
+            return False
+        self.next_try = now + RETRY_S
+        try:
+            s = open_session(self.settings)
+        except zenoh.ZError as exc:
+            self.why_not = str(exc).split(" at ")[0]
+            return False
+        group, robots, gids = self.group, self.robots, self.gids
         express = {"congestion_control": zenoh.CongestionControl.DROP, "express": True}
-        if kind == "ssc":
+        if self.kind == "ssc":
             self.pubs = {
                 gids[r]: s.declare_publisher(command_key(group, r), **express) for r in robots
             }
             self.subs = [s.declare_subscriber(feedback_key(group, r), self._take) for r in robots]
-            self.peer_of = {alive_key(group, f"esc.{r}"): r for r in robots}
         else:
             r = robots[0]
             self.pubs = {gids[r]: s.declare_publisher(feedback_key(group, r), **express)}
             self.subs = [s.declare_subscriber(command_key(group, r), self._take)]
-            self.peer_of = {alive_key(group, "ssc"): r}
-        self.token = s.liveliness().declare_token(alive_key(group, node))
+        self.status_pub = s.declare_publisher(status_key(group, self.node))
+        self.status_every = STATUS_EVERY
+        self.token = s.liveliness().declare_token(alive_key(group, self.node))
         self.alive = [
             s.liveliness().declare_subscriber(key, self._liveliness, history=True)
             for key in self.peer_of
         ]
+        self.session = s
+        return True
 
     @classmethod
     def for_node(
@@ -348,12 +419,19 @@ class ZenohTransport(Transport):
         pub = self.pubs.get(robot)
         name = self.names.get(robot)
         if pub is None or name in self.lost:
-            return  # not this node's robot, or its link is lost
+            return  # not connected yet, not this node's robot, or its link is lost
         pub.put(record)
 
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         if self.closed:
             raise TransportError("zenoh: the session is closed")
+        if self.session is None and not self._open():
+            if time.monotonic() > self.deadline:
+                raise TransportError(
+                    f"zenoh: cannot reach the group's door within {self.connect_timeout_s:g} s: "
+                    f"{self.why_not}"
+                )
+            return []
         with contextlib.suppress(BlockingIOError):
             os.eventfd_read(self.efd)
         out: list[bytes] = []
@@ -375,6 +453,10 @@ class ZenohTransport(Transport):
     def fds(self) -> list[int]:
         return [] if self.closed else [self.efd]
 
+    def status(self, doc: dict[str, object]) -> None:
+        if not self.closed and self.session is not None:
+            self.status_pub.put(json.dumps(doc, separators=(",", ":")))
+
     def lost_links(self) -> dict[int, str]:
         if self.kind != "ssc" or set(self.lost) >= set(self.peer_of.values()):
             return {}
@@ -389,6 +471,55 @@ class ZenohTransport(Transport):
         if self.closed:
             return
         self.closed = True
-        with contextlib.suppress(Exception):
-            self.session.close()
+        if self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
         os.close(self.efd)
+
+
+# -- viewers --
+
+
+def look(endpoint: str, users_file: str, seconds: float = 1.5) -> dict[str, Any]:
+    """What a viewer sees through one session's door (``endpoint``): every
+    group's nodes alive (their liveliness tokens) and the last status each
+    published within ``seconds``. Connects as the viewer user."""
+    users = read_users(users_file)
+    if VIEWER not in users:
+        raise ValueError(f"{users_file}: no password for the viewer ({VIEWER})")
+    settings = {
+        "mode": "client",  # through the session at the door, which routes for it
+        "connect/endpoints": [endpoint],
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": False,
+        "transport/auth/usrpwd": {
+            "user": VIEWER,
+            "password": users[VIEWER],
+            "dictionary_file": str(users_file),
+        },
+    }
+    status: dict[tuple[str, str], Any] = {}
+
+    def take(sample: Any) -> None:
+        parts = str(sample.key_expr).split("/")
+        with contextlib.suppress(ValueError):
+            status[(parts[1], parts[2])] = json.loads(sample.payload.to_bytes())
+
+    session = open_session(settings)
+    try:
+        sub = session.declare_subscriber(f"{PREFIX}/*/*/status", take)
+        time.sleep(seconds)  # a viewer's look: the statuses published meanwhile
+        alive: set[tuple[str, str]] = set()
+        for reply in session.liveliness().get(f"{PREFIX}/*/*/alive", timeout=seconds):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                alive.add((parts[1], parts[2]))
+        sub.undeclare()
+    finally:
+        session.close()
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for group, node in sorted(alive | set(status)):
+        doc = dict(status.get((group, node), {}))
+        doc.update({"node": node, "alive": (group, node) in alive})
+        groups.setdefault(group, []).append(doc)
+    return {"endpoint": endpoint, "groups": groups}
