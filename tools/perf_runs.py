@@ -2,7 +2,9 @@
 peg figure) from fresh runs on this machine.
 
     python tools/perf_runs.py [--runs 3] [--prefix after] [--out docs/perf/group]
-                              [--only main-socket,main-reflective,1khz] [--figure]
+                              [--only main-socket,main-reflective,main-zenoh,1khz] [--figure]
+    python tools/perf_runs.py --ddm-sweep [--runs 3]      # docs/perf/ddm: bench ddm, N = 1..16
+    python tools/perf_runs.py --peg-campaigns            # docs/perf/peg: 20 trials per transport
 
 Each benchmark is ``redistro bench group`` with the command docs/PERFORMANCE.md
 gives, run ``--runs`` times in turn, each in a fresh runs folder (a
@@ -27,9 +29,65 @@ from typing import Any
 BENCHES: dict[str, tuple[str, list[str]]] = {
     "main-socket": ("tasks/peg_insertion.yaml", ["ddm.transport=socket"]),
     "main-reflective": ("tasks/peg_insertion.yaml", ["ddm.transport=reflective"]),
+    "main-zenoh": ("tasks/peg_insertion.yaml", ["ddm.transport=zenoh"]),
     "1khz": ("tasks/peg_insertion_short.yaml", ["esc.rate_hz=1000", "ssc.rate_hz=1000"]),
 }
 FIGURE = Path("docs/figures/peg-r2-wrench-world.png")
+CAMPAIGN_FIGURE = Path("docs/figures/peg-campaign.png")
+SWEEP = (1, 2, 4, 8, 16)
+TRANSPORTS = ("socket", "reflective", "zenoh")
+
+
+def ddm_sweep(runs: int, out: Path) -> int:
+    """``redistro bench ddm`` for every transport and N in SWEEP, 200 Hz, 10 s."""
+    out.mkdir(parents=True, exist_ok=True)
+    print("| transport | N | run | command p50/p99/max µs | feedback p50/p99/max µs "
+          "| commands/s | lost | SSC ddm CPU % | ESC ddm CPU % (max) |")  # fmt: skip
+    print("| --- | ---: | ---: | --- | --- | ---: | ---: | ---: | ---: |")
+    for k in range(1, runs + 1):
+        for t in TRANSPORTS:
+            for n in SWEEP:
+                path = out / f"{t}-n{n}-run{k}.json"
+                subprocess.run(
+                    _cli("bench", "ddm", "--transport", t, "--robots", str(n), "--rate", "200",
+                         "--seconds", "10", "--json", str(path)),
+                    check=False, capture_output=True,
+                )  # fmt: skip
+                if not path.exists():
+                    print(f"| {t} | {n} | {k} | (no figures) | | | | | |")
+                    continue
+                f = json.loads(path.read_text())
+                c, b = f["command_latency_us"], f["feedback_latency_us"]
+                print(
+                    f"| {t} | {n} | {k} | {c['p50']}/{c['p99']}/{c['max']} | "
+                    f"{b['p50']}/{b['p99']}/{b['max']} | {f['commands_per_s']} | "
+                    f"{f['lost_commands']} | {f['ssc_cpu_percent']} | {f['esc_cpu_percent_max']} |",
+                    flush=True,
+                )
+    return 0
+
+
+def peg_campaigns(out: Path) -> int:
+    """20 short insertions per transport, the hole within 3 mm and 2 degrees
+    (seeds 0-19), and the README's campaign figure from the socket one."""
+    out.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix="redistro-peg-"))
+    try:
+        for t in TRANSPORTS:
+            path = out / f"campaign-{t}.json"
+            plot = out / f"campaign-{t}.png"
+            subprocess.run(
+                _cli("--set", f"session.runs_dir={scratch / t}", "--set", f"ddm.transport={t}",
+                     "bench", "peg", "--trials", "20", "--offset-radius-mm", "3", "--yaw-deg", "2",
+                     "--seed", "0", "--json", str(path), "--plot", str(plot)),
+                check=False,
+            )  # fmt: skip
+            if t == "socket" and plot.exists():
+                shutil.copy(plot, CAMPAIGN_FIGURE)
+                print(f"wrote {CAMPAIGN_FIGURE}")
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return 0
 
 
 def _cli(*args: str) -> list[str]:
@@ -59,7 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("docs/perf/group"))
     ap.add_argument("--only", default=",".join(BENCHES))
     ap.add_argument("--figure", action="store_true")
+    ap.add_argument("--ddm-sweep", action="store_true", help="bench ddm, every transport and N")
+    ap.add_argument("--peg-campaigns", action="store_true", help="bench peg, every transport")
     a = ap.parse_args(argv)
+    if a.ddm_sweep:
+        return ddm_sweep(a.runs, Path("docs/perf/ddm"))
+    if a.peg_campaigns:
+        return peg_campaigns(Path("docs/perf/peg"))
     names = [n for n in a.only.split(",") if n]
     unknown = [n for n in names if n not in BENCHES]
     if unknown or a.runs < 1:

@@ -13,7 +13,8 @@ from tests.helpers import ROOT, load_json, run_cli
 
 pytestmark = pytest.mark.peg
 
-SHORT = "tasks/peg_insertion_short.yaml"
+SEARCH = str(ROOT / "tests/data/peg_search.yaml")  # the short task's search, shorter
+NARROW = str(ROOT / "tests/data/peg_search_narrow.yaml")  # ... searching 2 mm only
 CFG = load_config(ROOT / "config/redistro.yaml")
 MOUTH_Z = CFG.workcell.hole.xyz_m[2]
 PEAK_N = 60.0  # the campaign's bound on the peak contact force
@@ -35,6 +36,8 @@ def test_a_campaign_finds_holes_2_to_3_mm_off(calibrated: Path, tmp_path: Path) 
         f"session.runs_dir={runs}",
         "bench",
         "peg",
+        "--task",
+        SEARCH,
         "--trials",
         "3",
         "--offset-radius-mm",
@@ -74,9 +77,10 @@ def test_a_campaign_finds_holes_2_to_3_mm_off(calibrated: Path, tmp_path: Path) 
 def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
     calibrated: Path, tmp_path: Path
 ) -> None:
-    """8 mm off, beyond the task's 5 mm search: the session ends ``failed``
-    with the reason, exit 1, no guard trip and no e-stop, the tool lifted
-    off the fixture."""
+    """4 mm off, beyond the task's 2 mm search (the shipped tasks search
+    5 mm: docs/PERFORMANCE.md has the 8 mm case): the session ends
+    ``failed`` with the reason, exit 1, no guard trip and no e-stop, the
+    tool lifted off the fixture."""
     from redistro.log.mcapfile import read_log
 
     runs = _runs(calibrated, tmp_path)
@@ -85,9 +89,9 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
         "--set",
         f"session.runs_dir={runs}",
         "--set",
-        "plant.hole.offset_xyz_m=[0.008, 0, 0]",
+        "plant.hole.offset_xyz_m=[0.004, 0, 0]",
         "session",
-        SHORT,
+        NARROW,
         "--out",
         str(out),
         timeout=600,
@@ -95,8 +99,8 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
     assert done.returncode == 1, done.stdout[-4000:] + done.stderr[-3000:]
     summary = load_json(out / "summary.json")
     assert summary["result"] == "failed", summary["reason"]
-    assert "hole not found within 5 mm" in summary["reason"], summary["reason"]
-    assert "hole not found within 5 mm" in done.stdout
+    assert "hole not found within 2 mm" in summary["reason"], summary["reason"]
+    assert "hole not found within 2 mm" in done.stdout
     assert "violations" not in summary, summary["violations"]
     assert {n: r["result"] for n, r in summary["nodes"].items()} == {
         "esc.r1": "ok",
@@ -104,7 +108,7 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
         "ssc": "failed",
     }
     assert summary["inserted"] is False and summary["search"]["phase"] == "not_found"
-    assert summary["plant"]["hole"]["lateral_offset_m"] == pytest.approx(0.008)
+    assert summary["plant"]["hole"]["lateral_offset_m"] == pytest.approx(0.004)
     # the tool lifted off the fixture before the task ended
     plan = read_log(out / "session.mcap").arrays["/r2/plan"]
     assert plan["tcp_xyz_m"][-1, 2] > MOUTH_Z + 0.005, plan["tcp_xyz_m"][-1]
