@@ -123,14 +123,14 @@ class Search:
 
     pattern: Literal["none", "spiral"] = "none"
     touch_m_s: float = field(default=0.004, metadata={"gt": 0, "le": 0.1})
-    force_n: float = field(default=8.0, metadata={"gt": 0, "le": 50})
+    force_n: float = field(default=6.0, metadata={"gt": 0, "le": 50})
     pitch_m: float = field(default=0.0008, metadata={"gt": 0, "le": 0.01})
     speed_m_s: float = field(default=0.006, metadata={"gt": 0, "le": 0.05})
     max_radius_m: float = field(default=0.005, metadata={"gt": 0, "le": 0.02})
     timeout_s: float = field(default=25.0, metadata={"gt": 0, "le": 600})
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
     stiffness_n_m: float = field(default=3000.0, metadata={"gt": 0, "le": 5000})
-    max_lateral_n: float = field(default=4.0, metadata={"gt": 0, "le": 50})
+    max_lateral_n: float = field(default=6.0, metadata={"gt": 0, "le": 50})
     yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
     descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
     slow_above_m: float = field(default=0.012, metadata={"ge": 0, "le": 0.1})
