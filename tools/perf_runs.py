@@ -2,7 +2,8 @@
 peg figure) from fresh runs on this machine.
 
     python tools/perf_runs.py [--runs 3] [--prefix after] [--out docs/perf/group]
-                              [--only main-socket,main-reflective,main-zenoh,1khz] [--figure]
+                              [--only main-socket,main-reflective,main-zenoh,1khz,selfcal-1khz]
+                              [--figure]
     python tools/perf_runs.py --ddm-sweep [--runs 3]      # docs/perf/ddm: bench ddm, N = 1..16
     python tools/perf_runs.py --peg-campaigns            # docs/perf/peg: 20 trials per transport
 
@@ -31,6 +32,7 @@ BENCHES: dict[str, tuple[str, list[str]]] = {
     "main-reflective": ("tasks/peg_insertion.yaml", ["ddm.transport=reflective"]),
     "main-zenoh": ("tasks/peg_insertion.yaml", ["ddm.transport=zenoh"]),
     "1khz": ("tasks/peg_insertion_short.yaml", ["esc.rate_hz=1000", "ssc.rate_hz=1000"]),
+    "selfcal-1khz": ("tasks/self_calibration_short.yaml", ["esc.rate_hz=1000"]),
 }
 FIGURE = Path("docs/figures/peg-r2-wrench-world.png")
 CAMPAIGN_FIGURE = Path("docs/figures/peg-campaign.png")

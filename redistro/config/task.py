@@ -129,7 +129,7 @@ class Search:
     max_radius_m: float = field(default=0.005, metadata={"gt": 0, "le": 0.02})
     timeout_s: float = field(default=25.0, metadata={"gt": 0, "le": 600})
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
-    stiffness_n_m: float = field(default=3000.0, metadata={"gt": 0, "le": 5000})
+    stiffness_n_m: float = field(default=1500.0, metadata={"gt": 0, "le": 5000})
     max_lateral_n: float = field(default=6.0, metadata={"gt": 0, "le": 50})
     yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
     descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
