@@ -103,6 +103,15 @@ def pid_gone(pid: int) -> bool:
     return stat[stat.rfind(b")") + 2 :].split()[0] == b"Z"
 
 
+def copy_runs(calibrated: Path, tmp_path: Path) -> Path:
+    """A private copy of the calibrated runs folder (positions and the arms' pose)."""
+    import shutil
+
+    runs = tmp_path / "runs"
+    shutil.copytree(calibrated, runs)
+    return runs
+
+
 def load_json(path: Path) -> dict[str, Any]:
     data: dict[str, Any] = json.loads(path.read_text())
     return data

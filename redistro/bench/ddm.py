@@ -330,15 +330,19 @@ def _ssc_loop(
                     taken[i] += 1
                     lat[i].add(now - int(rec["stamp_ns"]))
 
-    # the meeting point: every ESC's start-up datum (its feedback on its own)
-    connect_by = min(end_by, time.monotonic() + CONNECT_S)
-    while not all(last) and time.monotonic() < connect_by and not ddm.lost:
-        events = poll.wait(0.05)
+    def turn(timeout_s: float, measure: bool) -> None:
+        nonlocal cycle
+        events = poll.wait(timeout_s)
         ddm.ready_fds = [fd for fd, _ in events] or None
         cycle += 1
         ddm.step(cycle)
         poll.refresh()
-        take(False)
+        take(measure)
+
+    # the meeting point: every ESC's start-up datum (its feedback on its own)
+    connect_by = min(end_by, time.monotonic() + CONNECT_S)
+    while not all(last) and time.monotonic() < connect_by and not ddm.lost:
+        turn(0.05, False)
     if not all(last):
         return {"connected": False, "error": "not every ESC's ddm was heard from"}
     cpu0, t0 = _cpu_s(), time.monotonic()
@@ -369,12 +373,7 @@ def _ssc_loop(
     # the last replies
     tail = time.monotonic() + 0.2
     while time.monotonic() < tail and not ddm.lost:
-        events = poll.wait(0.02)
-        ddm.ready_fds = [fd for fd, _ in events] or None
-        cycle += 1
-        ddm.step(cycle)
-        poll.refresh()
-        take(True)
+        turn(0.02, True)
     return {
         "connected": True,
         "measured_s": round(wall, 3),

@@ -161,27 +161,35 @@ def new_key(path: Path | str) -> bytes:
     return key
 
 
-def load_key(path: Path | str) -> bytes:
-    """A link key from its file: a regular file of this user, mode 0600 (no
-    access for group or others), holding at least 16 bytes as hex. ValueError
-    naming what is wrong otherwise."""
+def read_private(path: Path | str, what: str, limit: int = 4096) -> str:
+    """A secret's text from its file: a regular file of this user, mode 0600
+    (no access for group or others), no symlink. ValueError naming what is
+    wrong otherwise (``what``: "key", "users")."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     except OSError as exc:
-        raise ValueError(f"{path}: cannot read the key file ({exc.strerror})") from None
+        raise ValueError(f"{path}: cannot read the {what} file ({exc.strerror})") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise ValueError(f"{path}: the key file is not a regular file")
+            raise ValueError(f"{path}: the {what} file is not a regular file")
         if st.st_uid != os.getuid():
-            raise ValueError(f"{path}: the key file is owned by uid {st.st_uid}, not {os.getuid()}")
+            raise ValueError(
+                f"{path}: the {what} file is owned by uid {st.st_uid}, not {os.getuid()}"
+            )
         if st.st_mode & 0o077:
             raise ValueError(
-                f"{path}: the key file has mode {stat.S_IMODE(st.st_mode):04o}, expected 0600"
+                f"{path}: the {what} file has mode {stat.S_IMODE(st.st_mode):04o}, expected 0600"
             )
-        text = os.read(fd, 4096).decode("ascii", errors="replace").strip()
+        return os.read(fd, limit).decode("utf-8", errors="replace")
     finally:
         os.close(fd)
+
+
+def load_key(path: Path | str) -> bytes:
+    """A link key from its file (:func:`read_private`), holding at least 16
+    bytes as hex. ValueError naming what is wrong otherwise."""
+    text = read_private(path, "key").strip()
     try:
         key = bytes.fromhex(text)
     except ValueError:

@@ -31,7 +31,6 @@ import contextlib
 import json
 import os
 import secrets
-import stat
 import time
 import zlib
 from collections import deque
@@ -108,27 +107,13 @@ def new_users_file(path: Path | str, group: str, nodes: Iterable[str]) -> None:
 
 
 def read_users(path: Path | str) -> dict[str, str]:
-    """user -> password from a users file: a regular file of this user, mode
-    0600, ``name:password`` lines. ValueError naming what is wrong."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read the users file ({exc.strerror})") from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise ValueError(f"{path}: the users file is not a regular file")
-        if st.st_uid != os.getuid():
-            raise ValueError(f"{path}: the users file is owned by uid {st.st_uid}")
-        if st.st_mode & 0o077:
-            raise ValueError(
-                f"{path}: the users file has mode {stat.S_IMODE(st.st_mode):04o}, expected 0600"
-            )
-        text = os.read(fd, 1 << 16).decode("utf-8", errors="replace")
-    finally:
-        os.close(fd)
+    """user -> password from a users file (``name:password`` lines; a
+    private file: :func:`redistro.ddm.record.read_private`). ValueError
+    naming what is wrong."""
+    from redistro.ddm.record import read_private
+
     users: dict[str, str] = {}
-    for n, line in enumerate(text.splitlines(), 1):
+    for n, line in enumerate(read_private(path, "users", 1 << 16).splitlines(), 1):
         if not line.strip():
             continue
         user, sep, password = line.strip().partition(":")

@@ -3,13 +3,12 @@ controller believes it (``workcell.hole``) and the insertion has to find it."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pytest
 
 from redistro.config import load_config
-from tests.helpers import ROOT, load_json, run_cli
+from tests.helpers import ROOT, copy_runs, load_json, run_cli
 
 pytestmark = pytest.mark.peg
 
@@ -20,16 +19,10 @@ MOUTH_Z = CFG.workcell.hole.xyz_m[2]
 PEAK_N = 60.0  # the campaign's bound on the peak contact force
 
 
-def _runs(calibrated: Path, tmp_path: Path) -> Path:
-    runs = tmp_path / "runs"
-    shutil.copytree(calibrated, runs)
-    return runs
-
-
 def test_a_campaign_finds_holes_2_to_3_mm_off(calibrated: Path, tmp_path: Path) -> None:
     """``redistro bench peg``: three whole insertions with the hole 2-3 mm
     off and turned up to 2 degrees; every peg reaches the bottom."""
-    runs = _runs(calibrated, tmp_path)
+    runs = copy_runs(calibrated, tmp_path)
     figures, plot = tmp_path / "peg.json", tmp_path / "peg.png"
     done = run_cli(
         "--set",
@@ -83,7 +76,7 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
     tool lifted off the fixture."""
     from redistro.log.mcapfile import read_log
 
-    runs = _runs(calibrated, tmp_path)
+    runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     done = run_cli(
         "--set",

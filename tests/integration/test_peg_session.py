@@ -15,6 +15,7 @@ from redistro.config import load_config
 from tests.helpers import (
     ROOT,
     attach_running,
+    copy_runs,
     load_json,
     read_session_id,
     run_cli,
@@ -28,13 +29,6 @@ pytestmark = pytest.mark.peg
 SHORT = "tasks/peg_insertion_short.yaml"
 HOLE_DEPTH = load_config(ROOT / "config/redistro.yaml").workcell.hole.depth_m
 LIMIT = load_config(ROOT / "config/redistro.yaml").ddm.starving_limit_cycles
-
-
-def _runs(calibrated: Path, tmp_path: Path) -> Path:
-    """A private copy of the calibrated runs folder (positions and the arms' pose)."""
-    runs = tmp_path / "runs"
-    shutil.copytree(calibrated, runs)
-    return runs
 
 
 def _check_peg(summary: dict[str, Any]) -> None:
@@ -86,7 +80,7 @@ def test_peg_insertion_over_each_transport(
     calibrated: Path, tmp_path: Path, transport: str
 ) -> None:
     """Over sockets through ``redistro bench group`` (the session, measured)."""
-    runs = _runs(calibrated, tmp_path)
+    runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     figures = tmp_path / "group.json"
     common = ("--set", f"session.runs_dir={runs}", "--set", f"ddm.transport={transport}")
@@ -140,7 +134,7 @@ def _pid_of(ld: Any, name: str) -> int:
 
 
 def test_a_stopped_ssc_ddm_starves_the_escs(calibrated: Path, tmp_path: Path) -> None:
-    runs = _runs(calibrated, tmp_path)
+    runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     proc = start_cli("--set", f"session.runs_dir={runs}", "session", SHORT, "--out", str(out))
     try:
@@ -180,7 +174,7 @@ def test_a_stopped_ssc_ddm_starves_the_escs(calibrated: Path, tmp_path: Path) ->
 def test_an_unsafe_r1_stops_r2_and_every_node_sees_the_estop(
     calibrated: Path, tmp_path: Path
 ) -> None:
-    runs = _runs(calibrated, tmp_path)
+    runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     done = run_cli(
         "--set",
