@@ -8,6 +8,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import os
+import threading
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -88,6 +89,33 @@ def leave_real_time() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass  # not permitted: it stays where it is
+
+
+def share_with_threads() -> int:
+    """Give every other thread of this process the calling thread's
+    real-time policy and priority: threads a library starts (zenoh's I/O
+    threads) are clones, and SCHED_RESET_ON_FORK sends every clone back to
+    the normal policy, where the real-time processes hold it off. Returns how
+    many threads were raised (0: not real time, or not permitted)."""
+    try:
+        policy = os.sched_getscheduler(0)
+        if policy & ~os.SCHED_RESET_ON_FORK not in (os.SCHED_RR, os.SCHED_FIFO):
+            return 0
+        param = os.sched_getparam(0)
+        me = threading.get_native_id()
+        raised = 0
+        for entry in os.listdir("/proc/self/task"):
+            tid = int(entry)
+            if tid == me:
+                continue
+            try:
+                os.sched_setscheduler(tid, policy, param)
+                raised += 1
+            except OSError:
+                pass  # gone, or not permitted
+        return raised
+    except OSError:
+        return 0
 
 
 def is_real_time() -> bool:

@@ -12,6 +12,7 @@ wrench in task axes), the SSC's timing, and segment changes as events.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -87,10 +88,11 @@ class SscLogger(Worker):
             (p.search.max_radius_m for p in self.plans if p.search.pattern != "none"), default=0.0
         )
         self.hole_half = (cfg.workcell.peg.side_m + hole.clearance_m) / 2 + reach
-        self.search: dict[str, Any] = {"phase": 0, "search_m": 0.0, "offset_xy_m": [0.0, 0.0]}
+        self.phase = 0  # the search's last phase and path
+        self.search_m = 0.0
         self.contact_t: float | None = None
         self.bottom_t: float | None = None
-        self.peak_force = 0.0
+        self.peak_f2 = 0.0  # the peak contact force, squared [N^2]
         pegs = [r for r in self.robots if cfg.robots[r].peg]
         self.peg_index = self.robots.index(pegs[0]) if pegs else -1
         # the depth counts from the first force segment on (1-based): a peg
@@ -125,7 +127,6 @@ class SscLogger(Worker):
         self.tcp = [rec.array["tcp_xyz_m"] for rec in self.recs]
         self.wrench_task = [rec.array["wrench_task"] for rec in self.recs]
         self.wrench_goal = [rec.array["wrench_goal"] for rec in self.recs]
-        self.search_xy = [rec.array["search_xy_m"] for rec in self.recs]
         self.sel3 = [p.selection[:3].tolist() for p in self.plans]
 
     def step(self, cycle: int) -> None:
@@ -167,14 +168,14 @@ class SscLogger(Worker):
                 if rec["contact"]:
                     if self.contact_t is None:
                         self.contact_t = float(rec["t_s"])
-                    fx, fy, fz = self.wrench_task[i][:3].tolist()
-                    self.peak_force = max(self.peak_force, math.sqrt(fx * fx + fy * fy + fz * fz))
-                phase = int(rec["phase"])
-                if phase:
-                    srch = self.search
-                    srch["phase"] = phase
-                    srch["search_m"] = float(rec["search_m"])
-                    srch["offset_xy_m"] = self.search_xy[i].tolist()
+                    w = self.wrench_task[i]
+                    f2 = float(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+                    if f2 > self.peak_f2:
+                        self.peak_f2 = f2
+                phase = rec["phase"]
+                if phase:  # (the goal's offset is read once, at the end)
+                    self.phase = phase
+                    self.search_m = rec["search_m"]
             if not moving or k in (0, AFTER) or k > len(self.figures):
                 continue
             fig = self.figures[k - 1]
@@ -213,18 +214,22 @@ class SscLogger(Worker):
             }
 
     def _search_figures(self) -> dict[str, Any]:
-        """The peg's way into the hole: the search's last phase and path, the
-        first contact, the bottom (within 2 mm of the hole's depth), the
-        peak contact force."""
-        srch = self.search
-        phase = int(srch["phase"])
+        """The peg's way into the hole: the search's last phase, path and
+        goal offset, the first contact, the bottom (within 2 mm of the
+        hole's depth), the peak contact force."""
+        phase = int(self.phase)
+        offset = [0.0, 0.0]
+        if phase and self.peg_index >= 0:
+            with contextlib.suppress(Exception):  # the worker's last plan
+                last = self.ld.block("plan", self.peg_index).read()
+                offset = [round(float(v), 6) for v in last["search_xy_m"]]
         # a peg that meets nothing before the bottom touches first there
         touched = [t for t in (self.contact_t, self.bottom_t) if t is not None]
         contact = min(touched) if touched else None
-        out: dict[str, Any] = {
+        return {
             "phase": Phase(phase).name.lower() if phase else "none",
-            "search_m": round(float(srch["search_m"]), 6),
-            "offset_xy_m": [round(float(v), 6) for v in srch["offset_xy_m"]],
+            "search_m": round(float(self.search_m), 6),
+            "offset_xy_m": offset,
             "contact_t_s": contact,
             "bottom_t_s": self.bottom_t,
             "contact_to_bottom_s": (
@@ -232,9 +237,8 @@ class SscLogger(Worker):
                 if self.bottom_t is not None and contact is not None
                 else None
             ),
-            "peak_force_n": round(self.peak_force, 3),
+            "peak_force_n": round(math.sqrt(self.peak_f2), 3),
         }
-        return out
 
     def cleanup(self) -> None:
         if self.recorder is not None:

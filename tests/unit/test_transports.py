@@ -3,9 +3,11 @@ cards) and the in-process fake beside them (``ddm.loopback``)."""
 
 from __future__ import annotations
 
+import os
 import socket
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -404,3 +406,55 @@ def test_a_flooding_peer_does_not_hold_a_receive() -> None:
     finally:
         ssc.close()
         esc.close()
+
+
+def test_a_zenoh_node_with_a_wrong_password_is_refused_and_says_so() -> None:
+    """An ESC's session whose password is not the group's never gets in: its
+    ddm's transport reports it cannot reach the group's door, and the SSC's
+    side never sees its liveliness token."""
+    import shutil
+    import tempfile
+
+    from redistro.config import load_config
+    from redistro.ddm import zenoh_transport as zt
+
+    folder = tempfile.mkdtemp()
+    try:
+        users = f"{folder}/users"
+        group = new_session_id()
+        zt.new_users_file(users, group, ["ssc", "esc.r1"])
+        wrong = f"{folder}/wrong"
+        text = Path(users).read_text().replace(f"esc.r1@{group}:", f"esc.r1@{group}:x")
+        fd = os.open(wrong, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        os.write(fd, text.encode())
+        os.close(fd)
+        cfg = load_config(None, [f"ddm.zenoh.port={_free_port()}"])
+        ssc_settings = zt.session_config(cfg, group, "ssc", "ssc", ["r1"], users)
+        esc_settings = zt.session_config(cfg, group, "esc.r1", "esc", ["r1"], wrong)
+        gids = {"r1": 0}
+        ssc = zt.ZenohTransport(
+            ssc_settings, group=group, node="ssc", kind="ssc", robots=["r1"], gids=gids
+        )
+        esc = zt.ZenohTransport(
+            esc_settings,
+            group=group,
+            node="esc.r1",
+            kind="esc",
+            robots=["r1"],
+            gids=gids,
+            connect_timeout_s=1.5,
+        )
+        try:
+            with pytest.raises(
+                TransportError, match=r"cannot reach the group's door within 1\.5 s"
+            ):
+                deadline = time.monotonic() + 5
+                while time.monotonic() < deadline:
+                    esc.receive()
+                    time.sleep(0.01)  # polling a non-blocking receive, to a deadline
+            assert not ssc.connected() and ssc.receive() == []
+        finally:
+            ssc.close()
+            esc.close()
+    finally:
+        shutil.rmtree(folder)
