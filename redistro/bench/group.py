@@ -129,6 +129,9 @@ def figures(summary: dict[str, Any]) -> dict[str, Any]:
         "result": summary.get("result"),
         "reason": summary.get("reason"),
         "inserted": summary.get("inserted"),
+        # the task's own figures (per segment: final pose error, force error)
+        "segments": summary.get("segments", []),
+        "search": summary.get("search"),
         "run_dir": summary.get("run_dir"),
         "nodes": nodes,
         "plant": plant,
