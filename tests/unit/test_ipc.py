@@ -190,3 +190,37 @@ def test_the_cpu_latency_request_holds_while_its_descriptor_is_open(tmp_path: Pa
         assert _cpu_latency_now() <= 7
     finally:
         os.close(fd)
+
+
+def test_a_library_thread_gets_the_real_time_priority_shared() -> None:
+    """A thread started after the process took SCHED_RR (with reset on
+    fork, as sched.apply asks) runs at the normal policy; sharing gives it
+    the caller's policy and priority (zenoh's I/O threads)."""
+    import subprocess
+    import sys
+
+    script = """
+import os, threading, time
+from redistro.ipc import sched
+try:
+    os.sched_setscheduler(0, os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(3))
+except PermissionError:
+    print("not permitted"); raise SystemExit(0)
+ready = threading.Event(); stop = threading.Event(); tid = []
+def idle():
+    tid.append(threading.get_native_id()); ready.set(); stop.wait(5)
+t = threading.Thread(target=idle); t.start(); ready.wait(5)
+before = os.sched_getscheduler(tid[0]) & ~os.SCHED_RESET_ON_FORK
+raised = sched.share_with_threads()
+after = os.sched_getscheduler(tid[0]) & ~os.SCHED_RESET_ON_FORK
+prio = os.sched_getparam(tid[0]).sched_priority
+stop.set(); t.join()
+print(before == os.SCHED_OTHER, raised >= 1, after == os.SCHED_RR, prio)
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=30, check=False
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    if done.stdout.strip() == "not permitted":
+        pytest.skip("SCHED_RR is not permitted here")
+    assert done.stdout.split() == ["True", "True", "True", "3"], done.stdout
