@@ -73,15 +73,21 @@ def _zenoh_pair(robots: tuple[str, ...] = ("r1",)) -> Pair:
             settings, group=group, node=node, kind=kind, robots=mine, gids=gids
         )
 
+    ssc = side("ssc", "ssc", list(robots))
+    esc = side(f"esc.{robots[0]}", "esc", [robots[0]])
     try:
-        ssc = side("ssc", "ssc", list(robots))
-        esc = side(f"esc.{robots[0]}", "esc", [robots[0]])
+        # the sessions open at their first look (as a ddm's at its first
+        # receive) and read the users file then: it stays until they met
+        deadline = time.monotonic() + 10
+        while not all([ssc.connected(), esc.connected()]):  # both look, every turn
+            if time.monotonic() > deadline:
+                why = ssc.why_not or esc.why_not
+                ssc.close()
+                esc.close()
+                raise AssertionError(f"the zenoh sessions did not meet within 10 s: {why}")
+            time.sleep(0.01)  # polling the liveliness callbacks, to a deadline
     finally:
-        shutil.rmtree(folder)  # read as each session opened
-    deadline = time.monotonic() + 10
-    while not (ssc.connected() and esc.connected()):
-        assert time.monotonic() < deadline, "the zenoh sessions did not meet within 10 s"
-        time.sleep(0.01)  # polling the liveliness callbacks, to a deadline
+        shutil.rmtree(folder)
     return ssc, esc
 
 
