@@ -239,6 +239,7 @@ class SscWorker(Worker):
         self.last_t = 0.0
         self.k = -1  # running segment (0-based); len(plans): settling; then done
         self.seg_start_t = 0.0
+        self.law_start_t = 0.0  # the moving law's clock (a failed search's lift restarts it)
         self.cond_since: float | None = None
         self.done = False
         self.failed = ""  # why the task could not be done (a search found no hole)
@@ -266,6 +267,7 @@ class SscWorker(Worker):
         self.last_t = t
         self._advance(t)
         seg_t = t - self.seg_start_t
+        law_t = t - self.law_start_t
         plan = self.plans[self.k] if self.k < len(self.plans) else None
         status = SessionStatus.FINISHED if self.done else SessionStatus.IN_PROGRESS
         segment = AFTER if self.k >= len(self.plans) else self.k + 1
@@ -284,7 +286,7 @@ class SscWorker(Worker):
             pl["failed"] = failed
             if plan is not None and plan.robot == st.name and not self.done:
                 pl["moving"] = 1
-                self._law(st, plan, seg_t, dt, t)
+                self._law(st, plan, law_t, dt, t)
             else:
                 pl["moving"] = 0
                 self._hold(st, dt)
@@ -304,7 +306,7 @@ class SscWorker(Worker):
     def _begin(self, k: int, t: float) -> None:
         """Start segment k at task time t (k == len(plans): settle, then done)."""
         self.k = k
-        self.seg_start_t = t
+        self.seg_start_t = self.law_start_t = t
         self.cond_since = None
         if k >= len(self.plans):
             for st in self.states:
@@ -585,7 +587,7 @@ class SscWorker(Worker):
         st.views["selection"][...] = 0
         st.views["goal"][...] = lift[:3]
         st.plan["scheme"] = SCHEMES["position"]
-        self.seg_start_t = t  # the lift's own clock
+        self.law_start_t = t  # the lift's own clock (the segment's goes on, for its figures)
         self.retreat_end_t = t + RETREAT_S + RETREAT_HOLD_S
 
     @staticmethod

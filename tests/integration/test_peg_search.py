@@ -102,6 +102,9 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
     }
     assert summary["inserted"] is False and summary["search"]["phase"] == "not_found"
     assert summary["plant"]["hole"]["lateral_offset_m"] == pytest.approx(0.004)
+    # the insertion's figures cover the whole segment: the search, then the 2 s lift
+    insertion = next(s for s in summary["segments"] if s.get("name") == "insertion")
+    assert insertion["duration_s"] > insertion["first_contact_s"] + 2.0, insertion
     # the tool lifted off the fixture before the task ended
     plan = read_log(out / "session.mcap").arrays["/r2/plan"]
     assert plan["tcp_xyz_m"][-1, 2] > MOUTH_Z + 0.005, plan["tcp_xyz_m"][-1]
