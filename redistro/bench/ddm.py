@@ -3,7 +3,8 @@
 N ESC ddms and their SSC ddm, each a process of its own running the real
 :class:`~redistro.ddm.worker.Ddm` over the real transport
 (``--transport socket|reflective|zenoh``) on its node's Local Data (in the
-process's memory: nothing else of the node runs). The SSC's process
+process's memory: nothing else of the node runs), at the ddm's priority and
+policy of a node (``scheduling.*``: real time when granted). The SSC's process
 publishes a command per robot at ``--rate`` (stamped, as the SSC's worker
 does) and wakes its ddm; each ESC's process, woken by its transport, puts a
 fresh feedback sample beside the command that came (as an acquisition
@@ -60,7 +61,16 @@ def _spec(cfg: Any, sid: str, node: str, kind: str, robots: list[str], rate_hz: 
         kind=kind,
         rate_hz=rate_hz,
         heartbeat_limit_cycles=25,
-        workers=[WorkerSpec(name="ddm", role="ddm", stage=-1)],
+        # the ddm's priority and policy as in a node (scheduling.*)
+        workers=[
+            WorkerSpec(
+                name="ddm",
+                role="ddm",
+                stage=-1,
+                priority=cfg.scheduling.priorities.get("ddm", WorkerSpec.priority),
+            )
+        ],
+        sched_policy=cfg.scheduling.policy,
         robots=robots,
         config=resolved(cfg),
         node_params=NodeParams(link=sid),
@@ -155,6 +165,7 @@ def _figures(
         "rate_hz": rate_hz,
         "seconds": seconds,
         "connected": bool(ssc.get("connected")),
+        "scheduling": ssc.get("scheduling"),  # the ddms' policy (SCHED_RR as in a node, if granted)
         "measured_s": measured,
         "error": ssc.get("error")
         or next((e["error"] for e in found.values() if e.get("error")), ""),
@@ -228,6 +239,11 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     ddm = Ddm(spec, 0, ld)
     try:
         ddm.initialize()
+        # then the node's real-time priority, as a worker takes it after its
+        # initialization (zenoh's threads get it at the session's opening)
+        from redistro.ipc import sched
+
+        out["scheduling"] = sched.apply(spec.workers[0].priority, None, spec.sched_policy).policy
         poll = _Waits(ddm)
         robots = spec.robots
         if kind == "esc":

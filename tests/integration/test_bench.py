@@ -56,3 +56,29 @@ def test_bench_cycle_measures_the_cyclictest_baseline_in_the_same_run(tmp_path: 
     parts = r["deadline_misses"] + r["incomplete_cycles"] + r["missed_ticks"]
     assert r["overrun_cycles"] == parts
     assert 0 <= r["overrun_fraction"] <= 1
+
+
+@pytest.mark.parametrize("transport", ["socket", "reflective", "zenoh"])
+def test_bench_ddm_moves_every_record_over_each_transport(transport: str, tmp_path: Path) -> None:
+    """Three ESC ddms and their SSC ddm, real processes over the real
+    transport: every command delivered and answered, the latencies of each
+    robot, the ddms' scheduling said."""
+    out = tmp_path / "ddm.json"
+    done = run_cli(
+        "bench", "ddm", "--transport", transport, "--robots", "3", "--rate", "200",
+        "--seconds", "2", "--json", str(out), timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    r = load_json(out)
+    assert r["connected"] and not r["error"], r["error"]
+    assert r["transport"] == transport and r["robots"] == 3
+    assert set(r["per_robot"]) == {"r1", "r2", "r3"}
+    for robot, f in r["per_robot"].items():
+        assert f["commands_sent"] >= 300, (robot, f)  # 2 s at 200 Hz
+        assert f["commands_taken"] == f["commands_sent"], (robot, f)
+        assert f["feedback_taken"] >= f["commands_taken"] - 1, (robot, f)
+        c = f["command_latency_us"]
+        assert 0 < c["p50"] <= c["p99"] <= c["max"], (robot, c)
+    assert r["lost_commands"] == 0 and r["dropped"] == 0
+    assert r["scheduling"] in ("SCHED_RR", "nice", "default")
+    assert r["commands_per_s"] == pytest.approx(600, rel=0.05)
