@@ -293,11 +293,18 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, np: Any) -> 
         fb["step"] = seq
         writer.publish(fb.bytes)
 
+    first_cmd = commands.seq
+    next_datum = 0.0
     while time.monotonic() < end_by and not ddm.lost:
         events = poll.wait(0.05)
         ddm.ready_fds = [fd for fd, _ in events] or None
-        if ddm.replying or not events:
-            sample()  # (and the start-up datum, on its own, until a command comes)
+        now = time.monotonic()
+        if ddm.replying or (commands.seq == first_cmd and now >= next_datum):
+            # (and the start-up datum, on its own, every 50 ms until a
+            # command comes: on reflective memory the other robots' data
+            # wake this process too, so silence cannot be waited for)
+            sample()
+            next_datum = now + 0.05
         cycle += 1
         ddm.step(cycle)
         if not ddm.replying and commands.seq != last_cmd:
@@ -360,7 +367,11 @@ def _ssc_loop(
     while not all(last) and time.monotonic() < connect_by and not ddm.lost:
         turn(0.05, False)
     if not all(last):
-        return {"connected": False, "error": "not every ESC's ddm was heard from"}
+        silent = [r for r, s in zip(robots, last, strict=True) if not s]
+        return {
+            "connected": False,
+            "error": f"not heard from within {CONNECT_S:g} s: {', '.join(silent)}",
+        }
     cpu0, t0 = _cpu_s(), time.monotonic()
     stop = min(end_by - 2.0, t0 + seconds)
     due = time.monotonic_ns()
