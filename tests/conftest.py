@@ -18,7 +18,9 @@ SHM = Path("/dev/shm")
 
 
 def redistro_shm_entries() -> set[str]:
-    return {e for e in os.listdir(SHM) if "redistro" in e}
+    """The project's IPC objects, and zenoh's shared-memory files (the
+    sessions turn zenoh's shared memory off: none may appear)."""
+    return {e for e in os.listdir(SHM) if "redistro" in e or e.endswith(".zenoh")}
 
 
 def descendants(root: int) -> set[int]:

@@ -235,6 +235,9 @@ def session_config(
         "connect/endpoints": connect,
         "scouting/multicast/enabled": z.scouting,
         "scouting/gossip/enabled": z.scouting,
+        # records of a few hundred bytes, between hosts: no zenoh shared
+        # memory (on by default, it leaves a /dev/shm/*.zenoh file per process)
+        "transport/shared_memory/enabled": False,
         "transport/auth/usrpwd": {
             "user": me,
             "password": users[me],
@@ -493,6 +496,7 @@ def look(endpoint: str, users_file: str, seconds: float = 1.5) -> dict[str, Any]
         "connect/endpoints": [endpoint],
         "scouting/multicast/enabled": False,
         "scouting/gossip/enabled": False,
+        "transport/shared_memory/enabled": False,
         "transport/auth/usrpwd": {
             "user": VIEWER,
             "password": users[VIEWER],
