@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zenoh
 
 from redistro.ddm import record as wire
 from redistro.ddm import zenoh_transport as zt
@@ -56,6 +57,7 @@ def _publish_as(user: str, users: Path, endpoint: str, key: str, records: list[b
             "connect/endpoints": [endpoint],
             "scouting/multicast/enabled": False,
             "scouting/gossip/enabled": False,
+            "transport/shared_memory/enabled": False,
             "transport/auth/usrpwd": {
                 "user": user,
                 "password": passwords[user],
@@ -114,8 +116,20 @@ def test_two_groups_share_one_network_and_nothing_else(calibrated: Path, tmp_pat
                 "--out", str(tmp_path / f"ssc.{group}"),
             )  # fmt: skip
         procs += nodes.values()
-        time.sleep(3.0)  # the nodes meet; the tasks run ~12 s (no sync to wait on from here)
         b_door = f"tcp/127.0.0.1:{port['lab-b']}"
+
+        def met(group: str) -> bool:
+            """The group's SSC session is up (its door opens at the ddm's
+            first receive) and both its nodes' tokens are seen through it."""
+            door = f"tcp/127.0.0.1:{port[group]}"
+            try:
+                seen = zt.look(door, str(users), seconds=0.2)["groups"].get(group, [])
+            except zenoh.ZError:  # the door is not open yet
+                return False
+            return {n["node"] for n in seen if n["alive"]} >= {"ssc", f"esc.{ROBOT[group]}"}
+
+        # the nodes meet (the tasks then run ~12 s)
+        wait_for(lambda: met("lab-a") and met("lab-b"), 120, "both groups' nodes to meet")
         b_feedback = zt.feedback_key("lab-b", "r2")
         # lab-a's credentials on lab-b's keys: refused by lab-b's SSC
         _publish_as(zt.user_of("esc.r1", "lab-a"), users, b_door, b_feedback, _forged(SENT))
