@@ -209,6 +209,34 @@ def _peer_nodes(kind: str, robots: list[str]) -> list[str]:
     return [f"esc.{r}" for r in robots] if kind == "ssc" else ["ssc"]
 
 
+def _settings(user: str, users_file: str, *, scouting: bool) -> dict[str, Any]:
+    """What every session of the project sets: scouting, no shared memory,
+    and ``user``'s password from ``users_file`` (ValueError: none there)."""
+    users = read_users(users_file)
+    if user not in users:
+        raise ValueError(f"{users_file}: no password for {user}")
+    return {
+        "scouting/multicast/enabled": scouting,
+        "scouting/gossip/enabled": scouting,
+        # records of a few hundred bytes, between hosts: no zenoh shared
+        # memory (on by default, it leaves a /dev/shm/*.zenoh file per process)
+        "transport/shared_memory/enabled": False,
+        "transport/auth/usrpwd": {
+            "user": user,
+            "password": users[user],
+            "dictionary_file": str(users_file),
+        },
+    }
+
+
+def client_settings(endpoint: str, user: str, users_file: str) -> dict[str, Any]:
+    """A client session of ``user`` through the session listening at
+    ``endpoint`` (which routes for it), without scouting."""
+    out = _settings(user, users_file, scouting=False)
+    out.update({"mode": "client", "connect/endpoints": [endpoint]})
+    return out
+
+
 def session_config(
     cfg: Config, group: str, node: str, kind: str, robots: list[str], users_file: str
 ) -> dict[str, Any]:
@@ -223,27 +251,12 @@ def session_config(
             listen = [endpoint]
         else:
             connect = [f"tcp/127.0.0.1:{ssc_port(cfg, group)}"]
-    users = read_users(users_file)
-    me = user_of(node, group)
-    if me not in users:
-        raise ValueError(f"{users_file}: no password for {me}")
-    out: dict[str, Any] = {
-        # the SSC's session accepts the group's and routes for them (a peer);
-        # the ESCs' are ``ddm.zenoh.mode`` (clients by default: through it)
-        "mode": "peer" if kind == "ssc" else z.mode,
-        "listen/endpoints": listen,
-        "connect/endpoints": connect,
-        "scouting/multicast/enabled": z.scouting,
-        "scouting/gossip/enabled": z.scouting,
-        # records of a few hundred bytes, between hosts: no zenoh shared
-        # memory (on by default, it leaves a /dev/shm/*.zenoh file per process)
-        "transport/shared_memory/enabled": False,
-        "transport/auth/usrpwd": {
-            "user": me,
-            "password": users[me],
-            "dictionary_file": str(users_file),
-        },
-    }
+    out = _settings(user_of(node, group), users_file, scouting=z.scouting)
+    # the SSC's session accepts the group's and routes for them (a peer);
+    # the ESCs' are ``ddm.zenoh.mode`` (clients by default: through it)
+    out["mode"] = "peer" if kind == "ssc" else z.mode
+    out["listen/endpoints"] = listen
+    out["connect/endpoints"] = connect
     if z.access_control and listen:
         # the rules name users, and zenoh's user/password authentication
         # names the side that connects: they sit where sessions are
@@ -488,21 +501,7 @@ def look(endpoint: str, users_file: str, seconds: float = 1.5) -> dict[str, Any]
     """What a viewer sees through one session's door (``endpoint``): every
     group's nodes alive (their liveliness tokens) and the last status each
     published within ``seconds``. Connects as the viewer user."""
-    users = read_users(users_file)
-    if VIEWER not in users:
-        raise ValueError(f"{users_file}: no password for the viewer ({VIEWER})")
-    settings = {
-        "mode": "client",  # through the session at the door, which routes for it
-        "connect/endpoints": [endpoint],
-        "scouting/multicast/enabled": False,
-        "scouting/gossip/enabled": False,
-        "transport/shared_memory/enabled": False,
-        "transport/auth/usrpwd": {
-            "user": VIEWER,
-            "password": users[VIEWER],
-            "dictionary_file": str(users_file),
-        },
-    }
+    settings = client_settings(endpoint, VIEWER, users_file)
     status: dict[tuple[str, str], Any] = {}
 
     def take(sample: Any) -> None:

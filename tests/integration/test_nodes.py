@@ -114,7 +114,7 @@ def test_the_ssc_and_the_escs_run_as_nodes_on_two_hosts(
 
         users = tmp_path / "zenoh.users"  # shared like the key
         zt.new_users_file(users, link, ["ssc", "esc.r1", "esc.r2"])
-        port = 36000 + os.getpid() % 4000
+        port = 26000 + os.getpid() % 3000  # below the ephemeral ports (32768-)
         common += ["--set", f"ddm.zenoh.users_file={users}"]
     with two_hosts() as hosts:
         if transport == "zenoh":

@@ -15,14 +15,15 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from redistro.ddm import record as wire
 from redistro.ddm import zenoh_transport as zt
 from redistro.localdata.layout import FEEDBACK
+from redistro.localdata.view import NodeView
 from tests.helpers import ROOT, load_json, read_session_id, run_cli, wait_for
 
 TASKS = {
@@ -48,28 +49,33 @@ def _forged(n: int) -> list[bytes]:
     return [wire.encode(wire.KIND_FEEDBACK, 1, "esc.r2", k, k, fb, key=bytes(32)) for k in range(n)]
 
 
-def _publish_as(user: str, users: Path, endpoint: str, key: str, records: list[bytes]) -> None:
-    """A zenoh session of ``user`` at ``endpoint`` putting ``records`` on ``key``."""
-    passwords = zt.read_users(users)
-    session = zt.open_session(
-        {
-            "mode": "client",
-            "connect/endpoints": [endpoint],
-            "scouting/multicast/enabled": False,
-            "scouting/gossip/enabled": False,
-            "transport/shared_memory/enabled": False,
-            "transport/auth/usrpwd": {
-                "user": user,
-                "password": passwords[user],
-                "dictionary_file": str(users),
-            },
-        }
-    )
+def _publish_as(
+    user: str,
+    users: Path,
+    endpoint: str,
+    key: str,
+    records: list[bytes],
+    arrived: Callable[[], bool] | None = None,
+) -> None:
+    """A zenoh session of ``user`` at ``endpoint`` putting ``records`` on
+    ``key``. Given ``arrived`` (records that must get through), it waits
+    until a subscriber matches the key before the puts and until
+    ``arrived()`` after them; else (records that must be refused, with no
+    event to wait on) it gives the routes 1 s and the puts 0.5 s."""
+    session = zt.open_session(zt.client_settings(endpoint, user, str(users)))
     try:
-        time.sleep(1.0)  # the session's routes, before the puts (no sync exists for this)
+        pub = session.declare_publisher(key)
+        if arrived is None:
+            time.sleep(1.0)
+        else:
+            wait_for(lambda: pub.matching_status.matching, 30, f"a subscriber of {key}")
         for r in records:
-            session.put(key, r)
-        time.sleep(0.5)  # the puts leave before the close
+            pub.put(r)
+        if arrived is None:
+            time.sleep(0.5)
+        else:
+            wait_for(arrived, 30, f"{user}'s records to arrive")
+        pub.undeclare()
     finally:
         session.close()
 
@@ -88,7 +94,7 @@ def test_two_groups_share_one_network_and_nothing_else(calibrated: Path, tmp_pat
         "".join(f"{u}:pw-{i}-{os.getpid()}\n" for i, u in enumerate([*lines, zt.VIEWER])).encode(),
     )
     os.close(fd)
-    base = 36000 + os.getpid() % 3000
+    base = 29000 + 2 * (os.getpid() % 1500)  # below the ephemeral ports (32768-)
     port = {"lab-a": base, "lab-b": base + 1}
     common = ["--set", f"session.runs_dir={runs}", "--set", "ddm.transport=zenoh"]
     common += ["--set", f"ddm.key_file={key}", "--set", f"ddm.zenoh.users_file={users}"]
@@ -118,23 +124,33 @@ def test_two_groups_share_one_network_and_nothing_else(calibrated: Path, tmp_pat
         procs += nodes.values()
         b_door = f"tcp/127.0.0.1:{port['lab-b']}"
 
-        def met(group: str) -> bool:
-            """The group's SSC session is up (its door opens at the ddm's
-            first receive) and both its nodes' tokens are seen through it."""
-            door = f"tcp/127.0.0.1:{port[group]}"
-            try:
-                seen = zt.look(door, str(users), seconds=0.2)["groups"].get(group, [])
-            except zenoh.ZError:  # the door is not open yet
-                return False
-            return {n["node"] for n in seen if n["alive"]} >= {"ssc", f"esc.{ROBOT[group]}"}
+        sids = {name: read_session_id(p) for name, p in nodes.items()}
+
+        def exchange(node: str, figure: str) -> int:
+            """A count of the node's ddm (0 while its Local Data is not there)."""
+            view = NodeView.open(sids[node], "ssc" if node.startswith("ssc.") else node)
+            if view is None:
+                return 0
+            with view:
+                return int(view.read("exchange", 0)[figure])
+
+        def met() -> bool:
+            """Every node is running and both groups' ddms hear their peers
+            (a SSC's door opens at its ddm's first receive)."""
+            ended = {n: p.returncode for n, p in nodes.items() if p.poll() is not None}
+            assert not ended, f"a node ended before the groups met: {ended}"
+            return all(exchange(n, "updates") > 0 for n in nodes)
 
         # the nodes meet (the tasks then run ~12 s)
-        wait_for(lambda: met("lab-a") and met("lab-b"), 120, "both groups' nodes to meet")
+        wait_for(met, 120, "both groups' nodes to meet")
         b_feedback = zt.feedback_key("lab-b", "r2")
         # lab-a's credentials on lab-b's keys: refused by lab-b's SSC
         _publish_as(zt.user_of("esc.r1", "lab-a"), users, b_door, b_feedback, _forged(SENT))
         # lab-b's own ESC's credentials: let in, and dropped by the ddm as forged
-        _publish_as(zt.user_of("esc.r2", "lab-b"), users, b_door, b_feedback, _forged(SENT))
+        _publish_as(
+            zt.user_of("esc.r2", "lab-b"), users, b_door, b_feedback, _forged(SENT),
+            arrived=lambda: exchange("ssc.lab-b", "forged") >= SENT,
+        )  # fmt: skip
         seen = run_cli(
             "--set", f"ddm.zenoh.users_file={users}", "top", "--once", "--json",
             "--zenoh", f"tcp/127.0.0.1:{port['lab-a']}", "--zenoh", b_door,
