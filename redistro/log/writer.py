@@ -11,15 +11,48 @@ the file is finished: summary, indexes, the counters as metadata, and a
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
 import struct
+import time
 from typing import IO, Any
 
 from redistro.log.frames import FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
 
 CHUNK_BYTES = 256 * 1024
+PACE_S = 0.01  # after a read that emptied the pipe, the next waits this long
+
+
+class PacedPipe(io.RawIOBase):
+    """The pipe's read end, read in batches. A reader asleep in ``read``
+    makes every write into the pipe wake it: the recording worker (real
+    time, every cycle) paid that wake-up, a cross-CPU one on a VM, inside
+    its ``os.write``. After a read that took all there was, the next read
+    waits ``PACE_S`` first: the frames of about ten 1 kHz cycles then wait
+    in the pipe (its size is far more), the worker's writes find nobody to
+    wake, and the writer wakes 100 times a second instead of once a cycle."""
+
+    def __init__(self, fd: int) -> None:
+        super().__init__()
+        self.fd = fd
+        self.emptied = False
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: Any) -> int:
+        if self.emptied:
+            time.sleep(PACE_S)
+        n = os.readv(self.fd, [b])
+        self.emptied = n < len(b)
+        return n
+
+    def close(self) -> None:
+        if not self.closed:
+            os.close(self.fd)
+        super().close()
 
 
 def _read_exact(f: IO[bytes], n: int) -> bytes | None:
@@ -38,7 +71,7 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
         os.write(ready_fd, b"R")
         os.close(ready_fd)
 
-    src = os.fdopen(fd, "rb", buffering=1 << 16)
+    src = io.BufferedReader(PacedPipe(fd), 1 << 16)
     tmp = out + ".tmp"
     sink = open(tmp, "wb", buffering=1 << 20)  # noqa: SIM115
     writer = Writer(sink, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
@@ -50,8 +83,6 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
     header: dict[str, Any] = {}
     stats: dict[str, Any] = {}
     frames = messages = 0
-    import time
-
     cpu0, wall0 = time.process_time(), time.monotonic()
     while True:
         head = _read_exact(src, FRAME.size)

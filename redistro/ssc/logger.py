@@ -78,7 +78,7 @@ class SscLogger(Worker):
         self.robots = list(self.spec.robots)
         self.figures = [SegmentFigures(p.name, p.robot, p.scheme) for p in self.plans]
         # per segment: the plan of its robot at the segment's last cycle
-        self.last_plan = [np.zeros((), PLAN) for _ in self.plans]
+        self.last_plan = [Record(PLAN) for _ in self.plans]
         hole = cfg.workcell.hole
         self.hole = [float(v) for v in hole.xyz_m]
         self.hole_depth = hole.depth_m
@@ -181,7 +181,7 @@ class SscLogger(Worker):
             fig = self.figures[k - 1]
             fig.samples += 1
             fig.duration_s = rec["segment_t_s"]
-            self.last_plan[k - 1][...] = rec.array
+            self.last_plan[k - 1].bytes[:] = rec.bytes  # (a numpy record's copy: 4 us)
             if fig.scheme == "force" and rec["contact"]:
                 if fig.contact_t_s is None:
                     fig.contact_t_s = fig.duration_s
@@ -197,9 +197,10 @@ class SscLogger(Worker):
     def _final_errors(self) -> None:
         """Each segment's final pose error, from its last plan (the goal pose of
         a joint segment is the TCP pose at the joint goal)."""
-        for fig, pl in zip(self.figures, self.last_plan, strict=True):
+        for fig, last in zip(self.figures, self.last_plan, strict=True):
             if not fig.samples:
                 continue
+            pl = last.array
             e = pose_error(
                 pl["tcp_xyz_m"],
                 rotvec_to_matrix(pl["tcp_rot_xyz"]),
