@@ -23,9 +23,11 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <dlfcn.h>
+#include <errno.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#include <sys/socket.h>
 #include <time.h>
 
 #define BARRIER() __asm__ __volatile__("" ::: "memory")
@@ -138,6 +140,7 @@ static const Signature SIGNATURES[] = {
     {"ddm_emit",
      ARGS({"ld", 'B'}, {"codec", 'B'}, {"params", 'q'}, {"rows", 'q'}, {"out", 'B'},
           {"wire", 'B'}, {"ex", 'B'})},
+    {"ddm_send", ARGS({"wire", 'B'}, {"fds", 'q'}, {"status", 'q'})},
     {"guard_prepare",
      ARGS({"fb", 'B'}, {"fb_off", 'q'}, {"src", 'B'}, {"src_off", 'q'}, {"home", 'B'},
           {"home_off", 'q'}, {"limits", 'd'}, {"on", 'B'}, {"released", 'B'}, {"tau", 'd'},
@@ -1599,7 +1602,7 @@ enum {
     DA_EX_LAST, DA_EX_FRESH, DA_SENT_SEQ, DA_SENT_PAY, DA_DELIV_SEQ, DA_DELIV_PAY, DA_NPARAMS
 };
 enum { DR_GID, DR_SEQ_OFF, DR_PAY_OFF, DR_CLAIMED, DR_LAST_SEQ, DR_LAST_STAMP, DR_ROW = 8 };
-enum { DS_LAT_COUNT, DS_FAST, DS_NSTATE };
+enum { DS_LAT_COUNT, DS_FAST, DS_MASK, DS_NSTATE };
 
 static int64_t now_ns(void) {
     struct timespec ts;
@@ -1635,33 +1638,26 @@ static int seqlock_read(const uint8_t *seq_at, const uint8_t *src, uint8_t *dst,
 
 enum { DA_LD, DA_CODEC, DA_PARAMS, DA_ROWS, DA_SRC, DA_EX, DA_LAT, DA_STATE };
 
-static PyObject *ddm_admit(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "ddm_admit(plan, record)");
-        return NULL;
-    }
-    PlanObject *pl = plan_arg(args[0], "ddm_admit");
-    if (pl == NULL)
-        return NULL;
+static int admit_plan_ok(PlanObject *pl) {
     if (pl->n[DA_PARAMS] < DA_NPARAMS || pl->n[DA_STATE] < DS_NSTATE ||
         pl->n[DA_CODEC] != (Py_ssize_t)sizeof(Codec)) {
         PyErr_SetString(PyExc_ValueError, "ddm_admit: a plan of the wrong sizes");
-        return NULL;
+        return 0;
     }
-    Py_buffer b;
-    if (PyObject_GetBuffer(args[1], &b, PyBUF_SIMPLE) < 0)
-        return NULL;
+    return 1;
+}
+
+/* The common case of one record (see above): the local robot, or -1. */
+static long admit_record(PlanObject *pl, const uint8_t *r, Py_ssize_t len) {
     const int64_t *P = I64(pl, DA_PARAMS);
     const Codec *c = (const Codec *)U8(pl, DA_CODEC);
-    const uint8_t *r = b.buf;
-    long result = -1;
     Py_ssize_t nrows = pl->n[DA_ROWS] / DR_ROW;
     int64_t *row = NULL;
     Py_ssize_t i = 0;
-    if (b.len != c->body + 32 || ld_u32(r + P[DA_H_MAGIC]) != (uint32_t)P[DA_MAGIC] ||
+    if (len != c->body + 32 || ld_u32(r + P[DA_H_MAGIC]) != (uint32_t)P[DA_MAGIC] ||
         (r[P[DA_H_VERSION]] | r[P[DA_H_VERSION] + 1] << 8) != P[DA_VERSION] ||
         r[P[DA_H_KIND]] != P[DA_KIND] || r[P[DA_H_ESTOP]] != 0)
-        goto done;
+        return -1;
     for (i = 0; i < nrows; i++)
         if (I64(pl, DA_ROWS)[i * DR_ROW + DR_GID] == r[P[DA_H_ROBOT]]) {
             row = I64(pl, DA_ROWS) + i * DR_ROW;
@@ -1669,22 +1665,22 @@ static PyObject *ddm_admit(PyObject *mod, PyObject *const *args, Py_ssize_t narg
         }
     if (row == NULL || !row[DR_CLAIMED] ||
         memcmp(r + P[DA_H_SOURCE], U8(pl, DA_SRC) + 16 * i, 16) != 0)
-        goto done;
+        return -1;
     uint8_t *ex = U8(pl, DA_EX) + i * P[DA_EX_SIZE];
     if (!ex[P[DA_EX_FRESH]])
-        goto done;
+        return -1;
     uint64_t seq = ld_u64(r + P[DA_H_SEQ]);
     int64_t stamp = (int64_t)ld_u64(r + P[DA_H_STAMP]);
     if (seq <= (uint64_t)row[DR_LAST_SEQ] || stamp <= row[DR_LAST_STAMP])
-        goto done; /* a drop to count: the Python path */
+        return -1; /* a drop to count: the Python path */
     if (ld_u32(r + c->crc_at) != codec_crc(c, r))
-        goto done;
+        return -1;
     uint8_t tag[32], diff = 0;
     codec_tag(c, r, (size_t)c->body, tag);
     for (int k = 0; k < 32; k++)
         diff |= tag[k] ^ r[c->body + k];
     if (diff)
-        goto done;
+        return -1;
     /* admitted */
     row[DR_LAST_SEQ] = (int64_t)seq;
     row[DR_LAST_STAMP] = stamp;
@@ -1709,10 +1705,110 @@ static PyObject *ddm_admit(PyObject *mod, PyObject *const *args, Py_ssize_t narg
         }
     }
     state[DS_FAST] += 1;
-    result = (long)i;
-done:
+    return (long)i;
+}
+
+static PyObject *ddm_admit(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "ddm_admit(plan, record)");
+        return NULL;
+    }
+    PlanObject *pl = plan_arg(args[0], "ddm_admit");
+    if (pl == NULL || !admit_plan_ok(pl))
+        return NULL;
+    Py_buffer b;
+    if (PyObject_GetBuffer(args[1], &b, PyBUF_SIMPLE) < 0)
+        return NULL;
+    long result = admit_record(pl, b.buf, b.len);
     PyBuffer_Release(&b);
     return PyLong_FromLong(result);
+}
+
+/* ddm_recv(plan, rx, fd) -> int: one non-blocking recv(2) from the stream
+ * socket fd into the writable buffer rx, and its records admitted: the
+ * bytes received (0: the peer closed) or -errno (nothing received:
+ * -EAGAIN). When the bytes are whole records (a multiple of the record
+ * size, rx not filled to the brim, at most 64), each is offered to
+ * ddm_admit's common case; the plan's state DS_MASK has bit k set for each
+ * record k admitted, the others are the caller's (they stay in rx). The
+ * socket's system call and the records' admission without the
+ * interpreter in between: the receiving half of a ddm's step. */
+static PyObject *ddm_recv(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "ddm_recv(plan, rx, fd)");
+        return NULL;
+    }
+    PlanObject *pl = plan_arg(args[0], "ddm_admit");
+    if (pl == NULL || !admit_plan_ok(pl))
+        return NULL;
+    int fd = (int)PyLong_AsLong(args[2]);
+    if (fd == -1 && PyErr_Occurred())
+        return NULL;
+    Py_buffer b;
+    if (PyObject_GetBuffer(args[1], &b, PyBUF_WRITABLE) < 0)
+        return NULL;
+    const Codec *c = (const Codec *)U8(pl, DA_CODEC);
+    Py_ssize_t size = c->body + 32;
+    int64_t *state = I64(pl, DA_STATE);
+    state[DS_MASK] = 0;
+    ssize_t got = recv(fd, b.buf, (size_t)b.len, MSG_DONTWAIT);
+    long result = got < 0 ? -errno : (long)got;
+    if (got > 0 && got % size == 0 && got < b.len && got / size <= 64) {
+        uint64_t mask = 0;
+        for (Py_ssize_t k = 0; k < got / size; k++)
+            if (admit_record(pl, (const uint8_t *)b.buf + k * size, size) >= 0)
+                mask |= (uint64_t)1 << k;
+        state[DS_MASK] = (int64_t)mask;
+    }
+    PyBuffer_Release(&b);
+    return PyLong_FromLong(result);
+}
+
+/* ddm_send(plan, mask, reverse) -> int: the records ddm_emit encoded (bits
+ * of mask) sent, each with one non-blocking send(2) to its row's stream
+ * socket (fds; -1: none), rows in order or in reverse order. status[i]
+ * gets the bytes sent or -errno. Returns the bits of the records not sent
+ * whole (no socket, a full buffer, an error, a short send): the caller's
+ * transport counts or raises what each means. */
+enum { DSD_WIRE, DSD_FDS, DSD_STATUS };
+
+static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "ddm_send(plan, mask, reverse, size)");
+        return NULL;
+    }
+    PlanObject *pl = plan_arg(args[0], "ddm_send");
+    if (pl == NULL)
+        return NULL;
+    long mask = PyLong_AsLong(args[1]);
+    long reverse = PyLong_AsLong(args[2]);
+    long size = PyLong_AsLong(args[3]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_ssize_t n = pl->n[DSD_FDS];
+    if (n > 62 || pl->n[DSD_STATUS] < n || size <= 0 || pl->n[DSD_WIRE] < n * size) {
+        PyErr_SetString(PyExc_ValueError, "ddm_send: a plan of the wrong sizes");
+        return NULL;
+    }
+    long trouble = 0;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        Py_ssize_t i = reverse ? n - 1 - k : k;
+        if (!(mask >> i & 1))
+            continue;
+        int fd = (int)I64(pl, DSD_FDS)[i];
+        int64_t *status = I64(pl, DSD_STATUS) + i;
+        if (fd < 0) {
+            *status = 0;
+            trouble |= 1L << i;
+            continue;
+        }
+        ssize_t sent = send(fd, U8(pl, DSD_WIRE) + i * size, (size_t)size,
+                            MSG_DONTWAIT | MSG_NOSIGNAL);
+        *status = sent < 0 ? -errno : (int64_t)sent;
+        if (sent != size)
+            trouble |= 1L << i;
+    }
+    return PyLong_FromLong(trouble);
 }
 
 /* ddm_emit(plan) -> a bit mask of the robots whose wire buffer holds a new
@@ -1819,6 +1915,10 @@ static PyMethodDef METHODS[] = {
     {"ddm_admit", (PyCFunction)(void (*)(void))ddm_admit, METH_FASTCALL,
      "The DDM: a sound, fresh record of the usual kind admitted into Local Data, or -1."},
     {"ddm_emit", ddm_emit, METH_O, "The DDM: new records encoded for sending (a bit mask)."},
+    {"ddm_recv", (PyCFunction)(void (*)(void))ddm_recv, METH_FASTCALL,
+     "The DDM: one recv from a socket, its whole records admitted (see the source)."},
+    {"ddm_send", (PyCFunction)(void (*)(void))ddm_send, METH_FASTCALL,
+     "The DDM: encoded records sent to their sockets; the bits of those not sent whole."},
     {"wire_backend", wire_backend, METH_NOARGS, "Which SHA-256 block and crc32 functions run."},
     {"signature", signature, METH_O, "A kernel's arguments: ((name, type), ...)."},
     {NULL, NULL, 0, NULL},

@@ -136,6 +136,11 @@ def _parser() -> argparse.ArgumentParser:
     dd.add_argument("--robots", type=_positive_int, default=2, help="ESC ddms (1-16)")
     dd.add_argument("--rate", type=float, default=200.0, help="commands per robot per second")
     dd.add_argument("--seconds", type=float, default=10.0, help="how long to measure")
+    dd.add_argument(
+        "--floor",
+        action="store_true",
+        help="then the socket floor at the same rate (a bare receive and reply, 3 s)",
+    )
     dd.add_argument("--json", dest="json_path", default=None, help="write the figures here")
 
     kb = bsub.add_parser(

@@ -262,6 +262,14 @@ def _bench_ddm(args: argparse.Namespace, cfg: Any) -> int:
         raise ConfigError(f"--seconds {args.seconds:g}: expected 1 to 3600")
     _writable("--json", args.json_path)
     out = ddm.run(cfg, args.transport, args.robots, args.rate, args.seconds)
+    if args.floor:
+        # what the host alone gives a ddm's exchange now: a bare receive and
+        # reply on TCP loopback at the same rate and priority (redistro.bench.floor)
+        from redistro.bench import floor
+
+        out["socket_floor"] = floor.measure(
+            args.rate, 3.0, cfg.scheduling.priorities.get("ddm", 19), cfg.scheduling.cpu_latency_us
+        )
     ddm.print_figures(out)
     if args.json_path:
         write_json(Path(args.json_path), out)

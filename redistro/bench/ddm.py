@@ -152,6 +152,7 @@ def _figures(
             "feedback_taken": (ssc.get("taken") or {}).get(r, 0),
             "dropped": esc.get("dropped", 0) + (ssc.get("dropped") or {}).get(r, 0),
             "cpu_percent": esc.get("cpu_percent"),
+            "step_cpu_us": esc.get("step_cpu_us"),
         }
     measured = ssc.get("measured_s") or 0.0
     sent = sum(v["commands_sent"] for v in per_robot.values())
@@ -187,6 +188,13 @@ def _figures(
         "dropped": sum(v["dropped"] for v in per_robot.values()),
         "ssc_cpu_percent": ssc.get("cpu_percent"),
         "esc_cpu_percent_max": max(esc_cpu, default=None),
+        # each ddm's step (its thread's CPU; the process's loop around it is not in it)
+        "ssc_step_cpu_us": ssc.get("step_cpu_us"),
+        "ssc_steps_per_s": ssc.get("steps_per_s"),
+        "esc_step_cpu_us_p50_max": max(
+            (v["step_cpu_us"]["p50"] for v in per_robot.values() if v["step_cpu_us"]),
+            default=None,
+        ),
         "per_robot": per_robot,
     }
 
@@ -223,8 +231,6 @@ def _cpu_s() -> float:
 
 
 def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: float) -> None:
-    import numpy as np
-
     from redistro.ddm.worker import Ddm
     from redistro.localdata.block import Record
     from redistro.localdata.layout import COMMAND, FEEDBACK
@@ -247,7 +253,7 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
         poll = _Waits(ddm)
         robots = spec.robots
         if kind == "esc":
-            out.update(_esc_loop(ddm, ld, poll, end_by, Record(FEEDBACK), np))
+            out.update(_esc_loop(ddm, ld, poll, end_by, Record(FEEDBACK), Samples))
         else:
             out.update(
                 _ssc_loop(
@@ -272,7 +278,7 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     Path(out_path).write_text(json.dumps(out))
 
 
-def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, np: Any) -> dict[str, Any]:
+def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, Samples: Any) -> dict[str, Any]:
     """Woken by the transport: a fresh sample beside each command that came,
     then the ddm. A replying ddm (sockets, zenoh) answers the command with
     it in the same step, so the sample goes first; otherwise (reflective
@@ -295,6 +301,15 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, np: Any) -> 
 
     first_cmd = commands.seq
     next_datum = 0.0
+    steps = Samples()
+
+    def step() -> None:
+        nonlocal cycle
+        cycle += 1
+        c0 = time.thread_time_ns()
+        ddm.step(cycle)
+        steps.add(time.thread_time_ns() - c0)
+
     while time.monotonic() < end_by and not ddm.lost:
         events = poll.wait(0.05)
         ddm.ready_fds = [fd for fd, _ in events] or None
@@ -305,16 +320,17 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, np: Any) -> 
             # wake this process too, so silence cannot be waited for)
             sample()
             next_datum = now + 0.05
-        cycle += 1
-        ddm.step(cycle)
+        step()
         if not ddm.replying and commands.seq != last_cmd:
             last_cmd = commands.seq
             sample()
-            cycle += 1
-            ddm.step(cycle)
+            step()
         poll.refresh()
     wall = max(1e-9, time.monotonic() - t0)
-    return {"cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2)}
+    return {
+        "cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2),
+        "step_cpu_us": steps.summary_us(),
+    }
 
 
 def _ssc_loop(
@@ -376,6 +392,7 @@ def _ssc_loop(
     stop = min(end_by - 2.0, t0 + seconds)
     due = time.monotonic_ns()
     seq = 0
+    steps = samples()  # the CPU of each of the ddm's steps
     while time.monotonic() < stop and not ddm.lost:
         now = time.monotonic_ns()
         if now >= due:
@@ -386,14 +403,16 @@ def _ssc_loop(
                 w.publish(cmd.bytes)
                 sent[i] += 1
             due += period_ns
-            ddm.ready_fds = None
+            ddm.ready_fds = []  # woken by its worker's command (as by a node's wake event)
         else:
             events = poll.wait(max(0.0, (due - now) / 1e9))
             ddm.ready_fds = [fd for fd, _ in events]
             if not events:
                 continue
         cycle += 1
+        c0 = time.thread_time_ns()
         ddm.step(cycle)
+        steps.add(time.thread_time_ns() - c0)
         poll.refresh()
         take(True)
     wall = max(1e-9, time.monotonic() - t0)
@@ -405,6 +424,8 @@ def _ssc_loop(
         "connected": True,
         "measured_s": round(wall, 3),
         "cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2),
+        "step_cpu_us": steps.summary_us(),
+        "steps_per_s": round(steps.count / wall, 1),
         "sent": dict(zip(robots, sent, strict=True)),
         "taken": dict(zip(robots, taken, strict=True)),
         "feedback_latency_us": {r: s.summary_us() for r, s in zip(robots, lat, strict=True)},
@@ -426,6 +447,14 @@ def print_figures(out: dict[str, Any]) -> None:
         f"lost {out['lost_commands']}, dropped {out['dropped']}; CPU: SSC ddm "
         f"{out['ssc_cpu_percent']} %, ESC ddm up to {out['esc_cpu_percent_max']} % of a vCPU"
     )
+    step = out.get("ssc_step_cpu_us") or {}
+    print(
+        f"  step CPU us p50: SSC ddm {step.get('p50')} (p99 {step.get('p99')}, "
+        f"{out.get('ssc_steps_per_s')} steps/s), ESC ddm up to {out['esc_step_cpu_us_p50_max']}"
+    )
+    fl = (out.get("socket_floor") or {}).get("reply_cpu_us") or {}
+    if fl:
+        print(f"  socket floor (receive + reply alone) CPU us p50 {fl['p50']} p99 {fl['p99']}")
 
 
 if __name__ == "__main__":

@@ -96,7 +96,8 @@ class FastPath:
         self.src = np.zeros(n * 16, dtype=np.uint8)
         sent = ld.block_offsets("starving_sent") if starving else (-1, -1, 0)
         delivered = ld.block_offsets("starving_delivered") if starving else (-1, -1, 0)
-        self.state = np.zeros(2, dtype=np.int64)  # latency count, records taken
+        # latency count, records taken, the last ddm_recv's admitted records (a mask)
+        self.state = np.zeros(3, dtype=np.int64)
         self.latency = latency
         # the kernel's params, in its order (DA_* in the C source)
         admit_params = np.array(
@@ -155,8 +156,17 @@ class FastPath:
             wire=self.wire,
             ex=self.ex_arena,
         )
+        # sending on stream sockets (a transport that has them): each robot's
+        # socket, refreshed when the transport's peers change
+        self.send_fds = np.full(n, -1, dtype=np.int64)
+        self.send_status = np.zeros(n, dtype=np.int64)
+        self.send_plan = plan(
+            "ddm_send", wire=self.wire, fds=self.send_fds, status=self.send_status
+        )
         self.admit_call = KERNELS.ddm_admit
         self.emit_call = KERNELS.ddm_emit
+        self.recv_call = KERNELS.ddm_recv
+        self.send_call = KERNELS.ddm_send
         # the Python path's counters, in the kernels' rows
         self.seq = self.emit_rows[:, _E_SEQ]
         self.last_out = self.emit_rows[:, _E_LAST_OUT]

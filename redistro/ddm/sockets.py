@@ -26,7 +26,7 @@ import time
 import zlib
 from collections.abc import Collection
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from redistro.ddm import record as wire
 from redistro.ddm.record import SIZE
@@ -43,6 +43,7 @@ class _Link:
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.sock = sock
+        self.fd = sock.fileno()
         self.name = name
         self.buf = bytearray()
 
@@ -111,6 +112,9 @@ class SocketTransport(Transport):
             self.server = srv
         self.pending: dict[int, _Pending] = {}
         self._receives = 0
+        self.generation = 0  # bumped whenever a peer or a link comes or goes
+        self.closed = False
+        self._admit: tuple[Any, Any, Any] | None = None  # the ddm_recv kernel, its plan, state
         self.rx = bytearray(MAX_RECORDS * SIZE)  # the listening side's usual receive
         self.rx_view = memoryview(self.rx)
         self.dropped_unconnected = 0
@@ -190,6 +194,7 @@ class SocketTransport(Transport):
                     if err == 0:
                         link = self.links[robot] = _Link(p.sock, p.name)
                         del self.pending[robot]
+                        self.generation += 1
                         if self.hello:
                             with contextlib.suppress(OSError):
                                 link.sock.send(self.hello)
@@ -215,6 +220,7 @@ class SocketTransport(Transport):
             if self.peer is not None:  # never authenticated: the newcomer may be the SSC
                 self.peer.close()
             self.peer = _Link(sock, f"{addr[0]}:{addr[1]}")
+            self.generation += 1
             self.peer_since = time.monotonic()
             self.pinned = not self.authenticate
 
@@ -226,6 +232,7 @@ class SocketTransport(Transport):
         if self.server is not None and self.peer is not None and not self.pinned:
             self.peer.close()
             self.peer = None
+            self.generation += 1
             self.refused_count += 1
 
     def refused(self) -> int:
@@ -240,12 +247,52 @@ class SocketTransport(Transport):
         try:
             sent = link.sock.send(record)
         except BlockingIOError:
-            self.dropped_full += 1
-            return
-        except OSError:
+            sent = -errno.EAGAIN
+        except OSError as exc:
+            sent = -(exc.errno or errno.EIO)
+        self._sent(link, sent, len(record))
+
+    def _sent(self, link: _Link, sent: int, size: int) -> None:
+        if sent in (-errno.EAGAIN, -errno.EWOULDBLOCK):
+            self.dropped_full += 1  # the peer is not reading
+        elif sent < 0:
             return  # the loss shows in the next receive (with what came before it)
-        if sent != len(record):  # a partial record would desynchronise the stream
-            raise TransportError(f"link to {link.name}: short send ({sent} of {len(record)})")
+        elif sent != size:  # a partial record would desynchronise the stream
+            raise TransportError(f"link to {link.name}: short send ({sent} of {size})")
+
+    # -- the compiled common case (Transport's) --
+
+    def admit_with(self, call: Any, plan: Any, state: Any) -> bool:
+        self._admit = (call, plan, state)
+        return True
+
+    def send_fd(self, robot: int) -> int:
+        link = self.peer if self.server is not None else self.links.get(robot)
+        return -1 if link is None or self.closed else link.fd
+
+    def send_result(self, robot: int, result: int) -> None:
+        link = self.peer if self.server is not None else self.links.get(robot)
+        if link is not None:
+            self._sent(link, result, SIZE)
+
+    def _kernel_recv(self, link: _Link, out: list[bytes]) -> int:
+        """One recv from ``link`` by the admitting kernel, its whole records
+        admitted (counted in ``taken``) or put in ``out``. Returns the
+        bytes received (0: closed) or -errno; a part record, or a full
+        buffer (more to come), goes into ``link.buf`` for the general path."""
+        call, plan, state = self._admit  # type: ignore[misc]
+        got: int = call(plan, self.rx, link.fd)
+        if got > 0 and got % SIZE == 0 and got < len(self.rx):
+            n, mask = got // SIZE, int(state[2])
+            if mask == (1 << n) - 1:
+                self.taken += n
+            else:
+                self.taken += bin(mask).count("1")
+                rx = self.rx_view
+                out += [bytes(rx[k * SIZE : (k + 1) * SIZE]) for k in range(n) if not mask >> k & 1]
+        elif got > 0:
+            link.buf += self.rx_view[:got]
+        return got
 
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         """Every whole record that arrived. A link that failed or was closed
@@ -257,26 +304,37 @@ class SocketTransport(Transport):
         link is lost."""
         if self.lost is not None:
             raise TransportError(self.lost)
+        self.taken = 0
         peer = self.peer
         if peer is not None and self.pinned and (self._receives + 1) & 63 and not peer.buf:
             # the usual case of a listening side: its pinned peer sent whole
             # records (one recv into a buffer kept for it, no link to find)
             self._receives += 1
-            if ready is not None and peer.sock.fileno() not in ready:
+            if ready is not None and peer.fd not in ready:
                 return []  # woken by something else: nothing came
-            try:
-                got = peer.sock.recv_into(self.rx)
-            except BlockingIOError:
-                return []
-            except OSError:
-                got = -1
-            if got > 0 and got % SIZE == 0 and got < len(self.rx):
-                rx = self.rx_view
-                return [bytes(rx[at : at + SIZE]) for at in range(0, got, SIZE)]
-            if got > 0:  # a part record, or more to come: the general path
-                peer.buf += self.rx_view[:got]
+            if self._admit is not None:
+                fast: list[bytes] = []
+                got = self._kernel_recv(peer, fast)  # (a part record went into peer.buf)
+                if got == -errno.EAGAIN or got > 0:
+                    if not peer.buf:
+                        return fast
+                    self.taken = 0  # (a part record: the general path, below, has them all)
+                else:
+                    self._receives -= 1  # the general path sees the end or the error itself
             else:
-                self._receives -= 1  # the general path sees the end or the error itself
+                try:
+                    got = peer.sock.recv_into(self.rx)
+                except BlockingIOError:
+                    return []
+                except OSError:
+                    got = -1
+                if got > 0 and got % SIZE == 0 and got < len(self.rx):
+                    rx = self.rx_view
+                    return [bytes(rx[at : at + SIZE]) for at in range(0, got, SIZE)]
+                if got > 0:  # a part record, or more to come: the general path
+                    peer.buf += self.rx_view[:got]
+                else:
+                    self._receives -= 1  # the general path sees the end or the error itself
         if self.server is not None:
             self._receives += 1
             if (
@@ -291,16 +349,21 @@ class SocketTransport(Transport):
         else:
             if self.pending:
                 self._progress()
-            links = {
-                r: link
-                for r, link in self.links.items()
-                if ready is None or link.sock.fileno() in ready
-            }
+            links = {r: link for r, link in self.links.items() if ready is None or link.fd in ready}
         out: list[bytes] = []
         budget = MAX_RECORDS * SIZE
         for robot, link in links.items():
             why = None
-            while True:
+            if self._admit is not None and not link.buf:
+                # the usual case: whole records, admitted by the kernel as they come
+                got = self._kernel_recv(link, out)
+                if got == -errno.EAGAIN or (got > 0 and not link.buf):
+                    continue
+                if got == 0:
+                    why = f"link to {link.name} lost: closed by the peer"
+                elif got < 0:
+                    why = f"link to {link.name} lost: {os.strerror(-got)}"
+            while why is None:
                 room = budget - len(link.buf)
                 if room <= 0:
                     break  # the rest waits in the socket for the next receive
@@ -324,10 +387,12 @@ class SocketTransport(Transport):
                 if self.server is not None and not self.pinned:
                     link.close()
                     self.peer = None  # an unauthenticated connection went: no loss
+                    self.generation += 1
                 elif self.server is not None:
                     self.lost = why
                 else:
                     self.links.pop(robot).close()
+                    self.generation += 1
                     self.lost_robots[robot] = why
                     if not self.links and not self.pending:
                         self.lost = "; ".join(self.lost_robots.values())
@@ -349,15 +414,17 @@ class SocketTransport(Transport):
             if self.peer is None or not self.pinned:
                 out.append(self.server.fileno())
             if self.peer is not None:
-                out.append(self.peer.sock.fileno())
+                out.append(self.peer.fd)
         else:
-            out += [link.sock.fileno() for link in self.links.values()]
+            out += [link.fd for link in self.links.values()]
         return out
 
     def lost_links(self) -> dict[int, str]:
         return self.lost_robots
 
     def close(self) -> None:
+        self.closed = True
+        self.generation += 1
         for link in self.links.values():
             link.close()
         for p in self.pending.values():

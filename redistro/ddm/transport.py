@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Collection
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from redistro.lazy import load
 
@@ -62,6 +62,27 @@ class Transport(ABC):
     def refused(self) -> int:
         """Connections refused so far (the link already had its peer)."""
         return 0
+
+    # -- the compiled common case (stream sockets; the others ignore these) --
+
+    generation = 0  # changes whenever a robot's peer (and so its send_fd) changes
+    taken = 0  # records the last receive handed to the admitting kernel, admitted
+
+    def admit_with(self, call: Any, plan: Any, state: Any) -> bool:
+        """Hand each whole record, as it arrives, to ``call(plan, rx, fd)``
+        (the ``ddm_recv`` kernel: one recv and the records' admission; the
+        admitted ones are not returned by ``receive``, ``taken`` counts
+        them). False: this transport cannot (it has no stream sockets)."""
+        return False
+
+    def send_fd(self, robot: int) -> int:
+        """The stream socket a record for ``robot`` is sent on (-1: none
+        now, or a transport whose records do not go out on one)."""
+        return -1
+
+    def send_result(self, robot: int, result: int) -> None:  # noqa: B027 - optional
+        """What a send on ``send_fd(robot)`` made elsewhere returned (the
+        bytes sent or -errno), counted or raised as ``send`` would."""
 
     # -- the node's status, for viewers on other hosts (zenoh; the others
     # have no such channel and ignore it) --

@@ -101,6 +101,7 @@ class Ddm(Worker):
         self.exchange_blocks = [ld.writer("exchange", i, role="ddm") for i in range(n)]
         self.ex = [Record(EXCHANGE) for _ in range(n)]
         self.fast: FastPath | None = None
+        self.socket_kernels = False  # (see _plan_fast)
         if self.kind == "esc":
             self.in_kind, self.out_kind = wire.KIND_COMMAND, wire.KIND_FEEDBACK
             self.in_blocks = [ld.writer("command", 0, role="ddm")]
@@ -180,6 +181,11 @@ class Ddm(Worker):
         order = list(enumerate(self.gid[r] for r in self.robots))
         self.send_orders = (order, order[::-1])
         self.sends = 0
+        # a transport on stream sockets: the records received and admitted,
+        # and sent, by the kernels, without the interpreter between the
+        # system calls and the records (ddm_recv, ddm_send)
+        self.socket_kernels = self.transport.admit_with(fast.recv_call, fast.admit_plan, fast.state)
+        self.send_generation = -1
 
     # -- one tick --
 
@@ -273,6 +279,9 @@ class Ddm(Worker):
         """Admit what came; the number of fresh records."""
         fresh = 0
         received = self.transport.receive(self.ready_fds)
+        taken = self.transport.taken  # (admitted as they came: ddm_recv)
+        if taken:
+            self.dirty = True
         refused = self.transport.refused()
         if refused != self.refused_seen:
             for ex in self.ex:
@@ -280,7 +289,6 @@ class Ddm(Worker):
             self.refused_seen = refused
             self.dirty = self.urgent = True
         fast = self.fast
-        taken = 0
         for raw in received:
             self.dirty = True
             if fast is not None and fast.admit_call(fast.admit_plan, raw) >= 0:
@@ -363,11 +371,14 @@ class Ddm(Worker):
             mask = self.fast.emit_call(self.fast.emit_plan)  # FastPath.emit
             if mask >= 0:  # else a torn read: the Python path reads again
                 if mask:
-                    views = self.fast.wire_views
                     self.sends += 1
-                    for i, robot in self.send_orders[self.sends & 1]:
-                        if mask >> i & 1:
-                            self.transport.send(bytes(views[i]), robot)
+                    if self.socket_kernels:
+                        self._send_kernel(mask)
+                    else:
+                        views = self.fast.wire_views
+                        for i, robot in self.send_orders[self.sends & 1]:
+                            if mask >> i & 1:
+                                self.transport.send(bytes(views[i]), robot)
                     self.dirty = True
                 return
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
@@ -381,6 +392,26 @@ class Ddm(Worker):
             self.last_out[i] = produced
         if estop:
             self.estop_sent = True
+
+    def _send_kernel(self, mask: int) -> None:
+        """The records emitted (mask) sent on their sockets by ddm_send, the
+        robots in turn; what it could not send whole goes to the transport."""
+        fast = self.fast
+        assert fast is not None
+        transport = self.transport
+        if transport.generation != self.send_generation:  # a peer came or went
+            self.send_generation = transport.generation
+            for i, robot in enumerate(self.gid[r] for r in self.robots):
+                fast.send_fds[i] = transport.send_fd(robot)
+        trouble = fast.send_call(fast.send_plan, mask, self.sends & 1, wire.SIZE)
+        if trouble:
+            for i, robot in self.send_orders[0]:
+                if trouble >> i & 1:
+                    result = int(fast.send_status[i])
+                    if result == 0:  # no socket: the transport's own send counts it
+                        transport.send(bytes(fast.wire_views[i]), robot)
+                    else:
+                        transport.send_result(robot, result)
 
     def _send_one(self, i: int, rec: Record, estop: bool) -> None:
         self.seq[i] += 1

@@ -7,7 +7,8 @@ as the reply; a forged record is dropped and counted."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
 from redistro.process.books import node_local_data
 from redistro.process.spec import NodeSpec
 from redistro.ssc.plan import ssc_spec
-from tests.helpers import ROOT
+from tests.helpers import ROOT, wait_for
 
 ROBOTS = ["r1", "r2"]
 
@@ -177,3 +178,134 @@ def test_the_ssc_worker_plans_and_commands_in_one_process(
         assert int(escs["r2"].ld.block("command", 0).read()["seq_src"]) == 10
     finally:
         worker.cleanup()
+
+
+# -- the same ddms over real TCP sockets on loopback: the compiled socket path --
+
+
+@pytest.fixture
+def socket_group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
+    """The group of :func:`group`, each ddm on its own real SocketTransport
+    (the ESCs listening on free ports, the SSC connecting to them)."""
+    from redistro.ddm.sockets import SocketTransport
+
+    key = tmp_path / "link.key"
+    wire.new_key(key)
+    cfg = load_config(ROOT / "config/redistro.yaml", [f"ddm.key_file={key}"])
+    task = load_task(ROOT / "tasks/peg_insertion_short.yaml", cfg)
+    hw = load_hardware(cfg)
+    sid = new_session_id()
+    gids = [list(cfg.robots).index(r) for r in ROBOTS]
+    ends = {g: SocketTransport(listen=("127.0.0.1", 0), authenticate=True) for g in gids}
+    hello = wire.encode(
+        wire.KIND_HELLO, 0, "ssc", 1, time.monotonic_ns(), bytes(COUNTER.itemsize),
+        key=wire.load_key(str(key)),
+    )  # fmt: skip
+    ssc_end = SocketTransport(hello=hello, peers={g: ends[g].address for g in gids})
+    nodes: list[Node] = []
+    try:
+        for r, g in zip(ROBOTS, gids, strict=True):
+            spec = esc_spec(cfg, task, r, hw[r], sid, positions_file="p.json")
+            nodes.append(_node(spec, ends[g]))
+        nodes.insert(0, _node(ssc_spec(cfg, task, sid, run_dir=""), ssc_end))
+        yield nodes[0], dict(zip(ROBOTS, nodes[1:], strict=True))
+    finally:
+        for n in nodes:
+            n.ddm.cleanup()
+            n.ld.close()
+            n.ld.unlink()
+        for end in [ssc_end, *ends.values()]:
+            end.close()
+
+
+def _step_until(nodes: list[Node], done: Callable[[], bool], what: str) -> None:
+    """Step every ddm (the SSC's first) until ``done`` (the records cross
+    the loopback between two steps), with a deadline."""
+    cycle = 0
+
+    def turn() -> bool:
+        nonlocal cycle
+        cycle += 1
+        for n in nodes:
+            n.ddm.ready_fds = None  # (look at every socket)
+            n.ddm.step(cycle)
+        return done()
+
+    wait_for(turn, 5.0, what)
+
+
+def test_over_sockets_the_kernels_receive_admit_and_send(
+    socket_group: tuple[Node, dict[str, Node]],
+) -> None:
+    """Real sockets: the records go out through ddm_send and come in
+    through ddm_recv, admitted without the Python path; a forged and a
+    replayed record on the same connection are refused and counted by it."""
+    from redistro.kernels import KERNELS
+
+    if KERNELS is None:
+        pytest.skip("the compiled kernels are not built")
+    ssc, escs = socket_group
+    nodes = [ssc, *escs.values()]
+    for k, esc in enumerate(escs.values()):
+        fb = Record(FEEDBACK)
+        fb["seq_src"] = 1
+        fb.array["q_rad"] = np.arange(7) + 10 * k
+        esc.ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
+    _step_until(
+        nodes,
+        lambda: all(int(ssc.ld.block("feedback", i).read()["seq_src"]) == 1 for i in range(2)),
+        "every ESC's start-up datum at the SSC",
+    )
+    assert all(n.ddm.socket_kernels for n in nodes)
+    for seq in range(1, 11):
+        for i in range(len(ROBOTS)):
+            cmd = Record(COMMAND)
+            cmd["seq_src"] = seq
+            cmd.array["tau_nm"] = i + seq / 10
+            ssc.ld.writer("command", i, role="worker").publish(cmd.bytes)
+        for k, esc in enumerate(escs.values()):
+            fb = Record(FEEDBACK)
+            fb["seq_src"] = seq + 1
+            fb.array["q_rad"] = -(np.arange(7) + seq + 10 * k)
+            esc.ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
+        _step_until(
+            nodes,
+            lambda s=seq: (
+                all(int(e.ld.block("command", 0).read()["seq_src"]) == s for e in escs.values())
+                and all(
+                    int(ssc.ld.block("feedback", i).read()["seq_src"]) == s + 1 for i in range(2)
+                )
+            ),
+            f"command {seq} down and its reply up",
+        )
+    for i, esc in enumerate(escs.values()):
+        got = esc.ld.block("command", 0).read()
+        assert float(got["tau_nm"][0]) == pytest.approx(i + 1.0)
+        assert list(ssc.ld.block("feedback", i).read()["q_rad"]) == list(
+            -(np.arange(7) + 10 + 10 * i)
+        )
+        ex = esc.ddm.ex[0]
+        assert ex["updates"] == 10 and ex["dropped"] == 0
+        fast = esc.ddm.fast
+        assert fast is not None and int(fast.state[1]) >= 9  # admitted by the kernel
+        assert int(fast.send_fds[0]) >= 0  # sent by ddm_send, on the peer's socket
+    assert ssc.ddm.fast is not None and int(ssc.ddm.fast.state[1]) >= 18
+    # a forged record, then a replay of a sound one, on the pinned connection
+    esc = escs["r2"]
+    gid = esc.ddm.gid["r2"]
+    cmd = np.zeros((), COMMAND)
+    cmd["seq_src"] = 99
+    cmd["tau_nm"] = 300.0
+    ssc.ddm.transport.send(
+        wire.encode(wire.KIND_COMMAND, gid, "ssc", 99, 1, cmd, key=bytes(32)), gid
+    )
+    replay = bytes(ssc.ddm.fast.wire_views[1])  # the last command sent to r2
+    ssc.ddm.transport.send(replay, gid)
+    wait_for(
+        lambda: esc.ddm.step(99) or esc.ddm.ex[0]["dropped"] == 2,
+        5.0,
+        "the forged and the replayed record refused",
+    )
+    assert esc.ddm.ex[0]["forged"] == 1 and esc.ddm.ex[0]["duplicate"] == 1
+    assert float(esc.ld.block("command", 0).read()["tau_nm"][0]) == pytest.approx(2.0)
+    assert esc.ddm.ex[0]["updates"] == 10
