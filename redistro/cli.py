@@ -139,7 +139,7 @@ def _parser() -> argparse.ArgumentParser:
     dd.add_argument(
         "--floor",
         action="store_true",
-        help="then the socket floor at the same rate (a bare receive and reply, 3 s)",
+        help="then the socket floor: bare receives and replies, the same robots and rate, 3 s",
     )
     dd.add_argument("--json", dest="json_path", default=None, help="write the figures here")
 

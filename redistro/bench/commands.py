@@ -263,12 +263,17 @@ def _bench_ddm(args: argparse.Namespace, cfg: Any) -> int:
     _writable("--json", args.json_path)
     out = ddm.run(cfg, args.transport, args.robots, args.rate, args.seconds)
     if args.floor:
-        # what the host alone gives a ddm's exchange now: a bare receive and
-        # reply on TCP loopback at the same rate and priority (redistro.bench.floor)
+        # what the host alone gives a ddm's exchange now: bare receives and
+        # replies on TCP loopback, one per robot sent to in turn, at the same
+        # rate and priority (redistro.bench.floor)
         from redistro.bench import floor
 
         out["socket_floor"] = floor.measure(
-            args.rate, 3.0, cfg.scheduling.priorities.get("ddm", 19), cfg.scheduling.cpu_latency_us
+            args.rate,
+            3.0,
+            cfg.scheduling.priorities.get("ddm", 19),
+            cfg.scheduling.cpu_latency_us,
+            robots=args.robots,
         )
     ddm.print_figures(out)
     if args.json_path:

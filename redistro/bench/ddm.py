@@ -454,7 +454,11 @@ def print_figures(out: dict[str, Any]) -> None:
     )
     fl = (out.get("socket_floor") or {}).get("reply_cpu_us") or {}
     if fl:
-        print(f"  socket floor (receive + reply alone) CPU us p50 {fl['p50']} p99 {fl['p99']}")
+        lat = out["socket_floor"].get("latency_us") or {}
+        print(
+            f"  socket floor (receive + reply alone) CPU us p50 {fl['p50']} p99 {fl['p99']}; "
+            f"latency p50 {lat.get('p50')} p99 {lat.get('p99')} (the worst robot's)"
+        )
 
 
 if __name__ == "__main__":

@@ -9,13 +9,18 @@ priority wakes in epoll, reads the stamp and sends a command-sized record
 over TCP loopback, then takes the reply, as the SSC ddm does; a *replier*
 at the same priority wakes in epoll, receives the record and sends a
 feedback-sized reply, as an ESC ddm does. No record is checked, encoded or
-copied into Local Data.
+copied into Local Data. With ``--robots N`` there are N repliers, and the
+forwarder sends to them in turn (the order reversed every other step), as
+the SSC's ddm sends a group's N commands: the floor under ``bench ddm
+--robots N``.
 
 - ``reply_cpu_us``: the replier's CPU for its receive and send
   (``thread_time`` around the two calls, as a ddm's step CPU is taken around
   its step): the floor under an ESC ddm's exchange.
 - ``latency_us``: from the worker's stamp to the replier's clock after its
   receive: the floor under the DDM command latency (two wake-ups, one TCP hop).
+
+Both are the worst replier's percentiles when there are several.
 
 The caller holds the CPUs' wake-up latency as the nodes do
 (``--cpu-latency US``, ``scheduling.cpu_latency_us``). Run as
@@ -56,6 +61,16 @@ def _percentiles(ns: list[int]) -> dict[str, float]:
     }
 
 
+def _worst(rows: list[dict[str, float]]) -> dict[str, float]:
+    """Each percentile's worst over the robots (their samples summed)."""
+    rows = [r for r in rows if r]
+    if not rows:
+        return {}
+    out = {k: max(r[k] for r in rows) for k in ("p50", "p99", "max")}
+    out["samples"] = sum(r["samples"] for r in rows)
+    return out
+
+
 def _real_time(priority: int) -> None:
     # refused: the floor is then measured at the default policy
     with contextlib.suppress(OSError):
@@ -89,8 +104,9 @@ def _replier(port: int, count: int, priority: int) -> int:
     return 0
 
 
-def _forwarder(efd: int, sock_fd: int, stamp_fd: int, count: int, priority: int) -> int:
-    s = socket.socket(fileno=sock_fd)
+def _forwarder(efd: int, sock_fds: list[int], stamp_fd: int, count: int, priority: int) -> int:
+    socks = [socket.socket(fileno=fd) for fd in sock_fds]
+    orders = (socks, socks[::-1])  # the robots in turn, as the SSC's ddm sends
     stamp = mmap.mmap(stamp_fd, 8)
     _real_time(priority)
     ep = select.epoll()
@@ -98,14 +114,16 @@ def _forwarder(efd: int, sock_fd: int, stamp_fd: int, count: int, priority: int)
     command = bytearray(COMMAND_BYTES)
     buf = bytearray(4 * REPLY_BYTES)
     timeout = 10.0
-    for _ in range(count):
+    for k in range(count):
         if not ep.poll(timeout):
             break
         timeout = 0.5
         os.eventfd_read(efd)
         command[:8] = stamp[:8]
-        s.send(command)
-        s.recv_into(buf)
+        for s in orders[k & 1]:
+            s.send(command)
+        for s in socks:
+            s.recv_into(buf)
     return 0
 
 
@@ -114,15 +132,20 @@ def _module(*args: str) -> list[str]:
 
 
 def measure(
-    rate_hz: float, seconds: float, priority: int, cpu_latency_us: int | None = None
+    rate_hz: float,
+    seconds: float,
+    priority: int,
+    cpu_latency_us: int | None = None,
+    robots: int = 1,
 ) -> dict[str, Any]:
     """The floor at ``rate_hz`` for ``seconds`` (run in a fresh interpreter),
     with the CPUs' wake-up latency held at ``cpu_latency_us`` as the nodes
-    hold it (None: left alone)."""
+    hold it (None: left alone), for ``robots`` repliers."""
     latency = [] if cpu_latency_us is None else ["--cpu-latency", str(cpu_latency_us)]
     out = subprocess.run(
         _module(
-            "--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority), *latency
+            *("--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority)),
+            *("--robots", str(robots), *latency),
         ),
         capture_output=True,
         text=True,
@@ -135,13 +158,15 @@ def measure(
         return {"error": (out.stderr.strip().splitlines() or ["no output"])[-1]}
 
 
-def _worker(rate_hz: float, seconds: float, priority: int, cpu_latency_us: int | None) -> int:
+def _worker(
+    rate_hz: float, seconds: float, priority: int, cpu_latency_us: int | None, robots: int
+) -> int:
     count = max(1, int(rate_hz * seconds))
     granted = sched.Granted()
     held = None if cpu_latency_us is None else sched.hold_cpu_latency(cpu_latency_us, granted)
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
-    listener.listen(1)
+    listener.listen(robots)
     port = listener.getsockname()[1]
     efd = os.eventfd(0, os.EFD_CLOEXEC)
     stamp_fd = os.memfd_create("redistro-floor")  # the worker's stamp, shared
@@ -149,31 +174,37 @@ def _worker(rate_hz: float, seconds: float, priority: int, cpu_latency_us: int |
     stamp = mmap.mmap(stamp_fd, 8)
     children: list[Any] = []
     try:
-        children.append(
-            subprocess.Popen(
-                _module("--reply", str(port), "--count", str(count), "--priority", str(priority)),
-                stdout=subprocess.PIPE,
-                text=True,
-            )
-        )
+        conns = []
         listener.settimeout(10.0)
-        conn, _ = listener.accept()
-        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        conn.setblocking(True)
-        children.append(
-            subprocess.Popen(
-                _module(
-                    "--forward",
-                    f"{efd},{conn.fileno()},{stamp_fd}",
-                    "--count",
-                    str(count),
-                    "--priority",
-                    str(priority),
-                ),
-                pass_fds=(efd, conn.fileno(), stamp_fd),
+        for _ in range(robots):  # one replier per robot, as one ESC ddm each
+            children.append(
+                subprocess.Popen(
+                    _module(
+                        "--reply", str(port), "--count", str(count), "--priority", str(priority)
+                    ),
+                    stdout=subprocess.PIPE,
+                    text=True,
+                )
             )
+            conn, _ = listener.accept()
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            conn.setblocking(True)
+            conns.append(conn)
+        fds = [c.fileno() for c in conns]
+        forwarder = subprocess.Popen(
+            _module(
+                "--forward",
+                ",".join(str(v) for v in (efd, stamp_fd, *fds)),
+                "--count",
+                str(count),
+                "--priority",
+                str(priority),
+            ),
+            pass_fds=(efd, stamp_fd, *fds),
         )
-        conn.close()
+        children.append(forwarder)
+        for c in conns:
+            c.close()
         period = 1.0 / rate_hz
         due = time.monotonic() + 0.5  # the forwarder's start-up
         for _ in range(count):
@@ -183,8 +214,8 @@ def _worker(rate_hz: float, seconds: float, priority: int, cpu_latency_us: int |
                 time.sleep(wait)
             stamp[:8] = time.monotonic_ns().to_bytes(8, "little")
             os.eventfd_write(efd, 1)
-        out, _ = children[0].communicate(timeout=10.0)
-        children[1].wait(timeout=10.0)
+        outs = [child.communicate(timeout=10.0)[0] for child in children[:-1]]
+        forwarder.wait(timeout=10.0)
     finally:
         for child in children:
             if child.poll() is None:
@@ -194,10 +225,12 @@ def _worker(rate_hz: float, seconds: float, priority: int, cpu_latency_us: int |
         stamp.close()
         os.close(stamp_fd)
         os.close(efd)
-    figures = json.loads(out.strip().splitlines()[-1])
+    figures = [json.loads(out.strip().splitlines()[-1]) for out in outs]
     result = {
-        "reply_cpu_us": figures["cpu"],
-        "latency_us": figures["latency"],
+        # the worst robot's (one replier: its own)
+        "reply_cpu_us": _worst([f["cpu"] for f in figures]),
+        "latency_us": _worst([f["latency"] for f in figures]),
+        "robots": robots,
         "rate_hz": rate_hz,
         "seconds": seconds,
         "cpu_latency_us": granted.cpu_latency_us,
@@ -214,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--priority", type=int, default=19)
     ap.add_argument("--cpu-latency", type=int, default=None, help="hold the PM QoS at this [us]")
+    ap.add_argument("--robots", type=int, default=1, help="repliers, sent to in turn (1-16)")
     ap.add_argument("--reply", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--forward", default="", help=argparse.SUPPRESS)
     ap.add_argument("--count", type=int, default=0, help=argparse.SUPPRESS)
@@ -221,9 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.reply:
         return _replier(a.reply, a.count, a.priority)
     if a.forward:
-        efd, sock_fd, stamp_fd = (int(v) for v in a.forward.split(","))
-        return _forwarder(efd, sock_fd, stamp_fd, a.count, a.priority)
-    return _worker(a.rate, a.seconds, a.priority, a.cpu_latency)
+        efd, stamp_fd, *sock_fds = (int(v) for v in a.forward.split(","))
+        return _forwarder(efd, sock_fds, stamp_fd, a.count, a.priority)
+    return _worker(a.rate, a.seconds, a.priority, a.cpu_latency, max(1, min(16, a.robots)))
 
 
 if __name__ == "__main__":

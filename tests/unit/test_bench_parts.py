@@ -152,6 +152,19 @@ def test_the_socket_floor_measures_every_exchange() -> None:
     assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < 1e6, got
 
 
+def test_the_socket_floor_sends_to_every_robot_in_turn() -> None:
+    """With three repliers each gets every stamp (its samples summed into
+    the worst robot's percentiles)."""
+    from redistro.bench import floor
+
+    got = floor.measure(500.0, 0.2, 19, robots=3)
+    assert got["robots"] == 3, got
+    cpu, latency = got["reply_cpu_us"], got["latency_us"]
+    assert 3 * 90 <= cpu["samples"] <= 3 * 100, got
+    assert cpu["samples"] == latency["samples"], got
+    assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < 1e6, got
+
+
 def test_the_kernels_bench_times_each_kernel_and_its_reference() -> None:
     from pathlib import Path
 

@@ -215,3 +215,62 @@ def test_emit_encodes_each_new_sample_once(ld: LocalData) -> None:
     assert fast.emit() == 1
     assert wire.decode(bytes(fast.wire_views[0]), KEY).seq == 2
     assert list(fast.seq) == [2] and list(fast.last_out) == [6]
+
+
+# -- the socket calls: ddm_recv and ddm_send, on a real stream socket pair --
+
+
+def test_recv_admits_whole_records_and_leaves_the_rest(ld: LocalData) -> None:
+    import errno
+    import socket
+
+    fast = _esc_fast(ld, Samples(8))
+    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    fast.ex[0]["fresh"] = 1
+    rx = bytearray(64 * wire.SIZE)
+    a, b = socket.socketpair()
+    try:
+        a.setblocking(False)
+        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == -errno.EAGAIN
+        forged = _command(3, 300, key=LONG_KEY)
+        b.sendall(_command(2, 200, mark=1.5) + forged)
+        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == 2 * wire.SIZE
+        assert int(fast.state[2]) == 0b01  # the first admitted, the forged one left
+        assert bytes(rx[wire.SIZE : 2 * wire.SIZE]) == forged
+        assert float(ld.block("command", 0).read()["tau_nm"][0]) == 1.5
+        assert int(fast.ex[0]["updates"]) == 1
+        b.sendall(_command(3, 300)[:100])  # a part record: received, not admitted
+        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == 100
+        assert int(fast.state[2]) == 0 and int(fast.ex[0]["updates"]) == 1
+        b.close()
+        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == 0  # closed by the peer
+    finally:
+        a.close()
+        b.close()
+
+
+def test_send_sends_whole_records_and_returns_what_it_could_not(ld: LocalData) -> None:
+    import errno
+    import socket
+
+    fast = _esc_fast(ld, Samples(8))
+    feedback = ld.writer("feedback", 0, role="acquisition")
+    rec = Record(FEEDBACK)
+    rec["seq_src"] = 1
+    feedback.publish(rec.bytes)
+    assert fast.emit() == 1
+    assert fast.send_call(fast.send_plan, 1, 0, wire.SIZE) == 1  # no socket: the caller's
+    assert int(fast.send_status[0]) == 0
+    a, b = socket.socketpair()
+    try:
+        fast.send_fds[0] = a.fileno()
+        assert fast.send_call(fast.send_plan, 1, 1, wire.SIZE) == 0
+        assert int(fast.send_status[0]) == wire.SIZE
+        assert b.recv(4 * wire.SIZE) == bytes(fast.wire_views[0])
+        assert fast.send_call(fast.send_plan, 0, 0, wire.SIZE) == 0  # nothing to send
+        b.close()
+        assert fast.send_call(fast.send_plan, 1, 0, wire.SIZE) == 1  # the peer gone
+        assert int(fast.send_status[0]) == -errno.EPIPE
+    finally:
+        a.close()
+        b.close()
