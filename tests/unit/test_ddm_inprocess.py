@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -49,15 +50,30 @@ def _node(spec: NodeSpec, end: Loopback) -> Node:
     return Node(spec, ld, ddm)
 
 
-@pytest.fixture
-def group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
+@dataclass
+class Setup:
+    key: Path
+    cfg: Any
+    task: Any
+    hw: Any
+    sid: str
+    gids: list[int]
+
+
+def _setup(tmp_path: Path) -> Setup:
+    """A group's link key, config, task, hardware, session id and robot ids."""
     key = tmp_path / "link.key"
     wire.new_key(key)
     cfg = load_config(ROOT / "config/redistro.yaml", [f"ddm.key_file={key}"])
     task = load_task(ROOT / "tasks/peg_insertion_short.yaml", cfg)
-    hw = load_hardware(cfg)
-    sid = new_session_id()
     gids = [list(cfg.robots).index(r) for r in ROBOTS]
+    return Setup(key, cfg, task, load_hardware(cfg), new_session_id(), gids)
+
+
+@pytest.fixture
+def group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
+    g = _setup(tmp_path)
+    cfg, task, hw, sid, gids = g.cfg, g.task, g.hw, g.sid, g.gids
     ssc_end, esc_ends = Loopback.group(gids)
     ssc = _node(ssc_spec(cfg, task, sid, run_dir=""), ssc_end)
     escs = {
@@ -189,13 +205,8 @@ def socket_group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
     (the ESCs listening on free ports, the SSC connecting to them)."""
     from redistro.ddm.sockets import SocketTransport
 
-    key = tmp_path / "link.key"
-    wire.new_key(key)
-    cfg = load_config(ROOT / "config/redistro.yaml", [f"ddm.key_file={key}"])
-    task = load_task(ROOT / "tasks/peg_insertion_short.yaml", cfg)
-    hw = load_hardware(cfg)
-    sid = new_session_id()
-    gids = [list(cfg.robots).index(r) for r in ROBOTS]
+    g = _setup(tmp_path)
+    key, cfg, task, hw, sid, gids = g.key, g.cfg, g.task, g.hw, g.sid, g.gids
     ends = {g: SocketTransport(listen=("127.0.0.1", 0), authenticate=True) for g in gids}
     hello = wire.encode(
         wire.KIND_HELLO, 0, "ssc", 1, time.monotonic_ns(), bytes(COUNTER.itemsize),
