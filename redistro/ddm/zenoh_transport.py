@@ -400,8 +400,13 @@ class ZenohTransport(Transport):
     # -- zenoh's threads --
 
     def _take(self, sample: Any) -> None:
-        self.inbox.append(sample.payload.to_bytes())
-        self._wake()
+        inbox = self.inbox
+        inbox.append(sample.payload.to_bytes())
+        if len(inbox) == 1:
+            # the first of a burst wakes the ddm; a later one finds an earlier
+            # record still there, so the ddm, which empties the inbox, has
+            # not yet finished taking it and takes this one too
+            self._wake()
 
     def _wake(self) -> None:
         if not self.closed:  # (the eventfd closes after the session)
