@@ -1765,16 +1765,17 @@ static PyObject *ddm_recv(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
 }
 
 /* ddm_send(plan, mask, reverse) -> int: the records ddm_emit encoded (bits
- * of mask) sent, each with one non-blocking send(2) to its row's stream
- * socket (fds; -1: none), rows in order or in reverse order. status[i]
+ * of mask; wire holds one record per row of fds) sent, each with one
+ * non-blocking send(2) to its row's stream socket (fds; -1: none), rows in
+ * order or in reverse order. status[i]
  * gets the bytes sent or -errno. Returns the bits of the records not sent
  * whole (no socket, a full buffer, an error, a short send): the caller's
  * transport counts or raises what each means. */
 enum { DSD_WIRE, DSD_FDS, DSD_STATUS };
 
 static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 4) {
-        PyErr_SetString(PyExc_TypeError, "ddm_send(plan, mask, reverse, size)");
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "ddm_send(plan, mask, reverse)");
         return NULL;
     }
     PlanObject *pl = plan_arg(args[0], "ddm_send");
@@ -1782,11 +1783,11 @@ static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
         return NULL;
     long mask = PyLong_AsLong(args[1]);
     long reverse = PyLong_AsLong(args[2]);
-    long size = PyLong_AsLong(args[3]);
     if (PyErr_Occurred())
         return NULL;
     Py_ssize_t n = pl->n[DSD_FDS];
-    if (n > 62 || pl->n[DSD_STATUS] < n || size <= 0 || pl->n[DSD_WIRE] < n * size) {
+    Py_ssize_t size = n > 0 ? pl->n[DSD_WIRE] / n : 0;
+    if (n < 1 || n > 62 || pl->n[DSD_STATUS] < n || size <= 0 || pl->n[DSD_WIRE] != n * size) {
         PyErr_SetString(PyExc_ValueError, "ddm_send: a plan of the wrong sizes");
         return NULL;
     }

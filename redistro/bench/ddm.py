@@ -278,7 +278,7 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     Path(out_path).write_text(json.dumps(out))
 
 
-def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, Samples: Any) -> dict[str, Any]:
+def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any) -> dict[str, Any]:
     """Woken by the transport: a fresh sample beside each command that came,
     then the ddm. A replying ddm (sockets, zenoh) answers the command with
     it in the same step, so the sample goes first; otherwise (reflective
@@ -301,7 +301,7 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, Samples: Any
 
     first_cmd = commands.seq
     next_datum = 0.0
-    steps = Samples()
+    steps = samples()  # the CPU of each of the ddm's steps
 
     def step() -> None:
         nonlocal cycle

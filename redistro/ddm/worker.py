@@ -403,7 +403,7 @@ class Ddm(Worker):
             self.send_generation = transport.generation
             for i, robot in enumerate(self.gid[r] for r in self.robots):
                 fast.send_fds[i] = transport.send_fd(robot)
-        trouble = fast.send_call(fast.send_plan, mask, self.sends & 1, wire.SIZE)
+        trouble = fast.send_call(fast.send_plan, mask, self.sends & 1)
         if trouble:
             for i, robot in self.send_orders[0]:
                 if trouble >> i & 1:
