@@ -29,6 +29,7 @@ if __name__ == "__main__":
     block_runtime_signals()
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import contextlib
 import dataclasses
 import json
 import select
@@ -153,6 +154,9 @@ def _figures(
             "dropped": esc.get("dropped", 0) + (ssc.get("dropped") or {}).get(r, 0),
             "cpu_percent": esc.get("cpu_percent"),
             "step_cpu_us": esc.get("step_cpu_us"),
+            # why its ESC side stopped: the SSC's last command ("finished"),
+            # the link closed ("lost"), or its deadline ("deadline")
+            "ended": esc.get("ended"),
         }
     measured = ssc.get("measured_s") or 0.0
     sent = sum(v["commands_sent"] for v in per_robot.values())
@@ -209,14 +213,17 @@ class _Waits:
     def __init__(self, ddm: Any) -> None:
         self.ddm = ddm
         self.poll = select.epoll()
-        self.fds: set[int] = set()
+        self.fds: list[int] = []
         self.refresh()
 
     def refresh(self) -> None:
-        now = set(self.ddm.fds())
-        for fd in self.fds - now:
-            self.poll.unregister(fd)
-        for fd in now - self.fds:
+        now = list(self.ddm.fds())
+        if now == self.fds:
+            return
+        for fd in self.fds:  # a closed one has left the epoll already
+            with contextlib.suppress(OSError):
+                self.poll.unregister(fd)
+        for fd in now:
             self.poll.register(fd, select.EPOLLIN)
         self.fds = now
 
@@ -283,7 +290,10 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
     then the ddm. A replying ddm (sockets, zenoh) answers the command with
     it in the same step, so the sample goes first; otherwise (reflective
     memory, where every write wakes every node) the ddm takes the command,
-    and only a new one brings a sample and a second step to send it."""
+    and only a new one brings a sample and a second step to send it. It
+    ends with a command that says the session finished (or a lost link)."""
+    from redistro.localdata.layout import SessionStatus
+
     writer = ld.writer("feedback", 0, role="acquisition")
     commands = ld.block("command", 0)
     cycle = 0
@@ -299,7 +309,7 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
         fb["step"] = seq
         writer.publish(fb.bytes)
 
-    first_cmd = commands.seq
+    first_cmd = checked = commands.seq
     next_datum = 0.0
     steps = samples()  # the CPU of each of the ddm's steps
 
@@ -326,8 +336,16 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
             sample()
             step()
         poll.refresh()
+        if commands.seq != checked:
+            checked = commands.seq
+            if int(commands.read()["session_status"]) == SessionStatus.FINISHED:
+                ended = "finished"  # the SSC's last command (its reply, if any, sent)
+                break
+    else:
+        ended = "lost" if ddm.lost else "deadline"
     wall = max(1e-9, time.monotonic() - t0)
     return {
+        "ended": ended,
         "cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2),
         "step_cpu_us": steps.summary_us(),
     }
@@ -347,7 +365,7 @@ def _ssc_loop(
     """A command per robot every period (stamped), the ddm woken for it and
     for what comes; each robot's fresh feedback timed from its stamp."""
     from redistro.localdata.block import Record
-    from redistro.localdata.layout import FEEDBACK
+    from redistro.localdata.layout import FEEDBACK, SessionStatus
 
     writers = [ld.writer("command", i, role="worker") for i in range(len(robots))]
     readers = [ld.block("feedback", i) for i in range(len(robots))]
@@ -416,6 +434,16 @@ def _ssc_loop(
         poll.refresh()
         take(True)
     wall = max(1e-9, time.monotonic() - t0)
+    # the last command says the session finished (as a session's last does):
+    # an ESC ends on it, where no closed link tells it (reflective memory)
+    seq += 1
+    cmd["session_status"] = SessionStatus.FINISHED
+    for i, w in enumerate(writers):
+        cmd["seq_src"] = seq
+        cmd["stamp_ns"] = time.monotonic_ns()
+        w.publish(cmd.bytes)
+        sent[i] += 1
+    ddm.ready_fds = []
     # the last replies
     tail = time.monotonic() + 0.2
     while time.monotonic() < tail and not ddm.lost:

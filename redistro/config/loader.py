@@ -7,8 +7,6 @@ import dataclasses
 from pathlib import Path
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
-import yaml
-
 from redistro.config.model import Config
 from redistro.config.validate import build
 from redistro.errors import ConfigError
@@ -18,6 +16,8 @@ DEFAULT_CONFIG_PATH = Path("config/redistro.yaml")
 
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``a.b.c=value`` -> (["a", "b", "c"], value parsed as YAML)."""
+    import yaml  # here: a node's processes read their config as JSON
+
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not key or any(not part for part in key.split(".")):

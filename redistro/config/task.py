@@ -17,7 +17,8 @@ A task names its robots and its kind; each kind has its own section.
   (``relative_to: hole``, the hole's pose from the config). A segment ends
   after ``duration_s``, or earlier when its ``end`` conditions hold for
   ``end.hold_s``. Needs known joint positions: when they are unknown, a
-  self-calibration runs first (``calibrate_if_needed``).
+  self-calibration runs first (``calibrate_if_needed``), as the task's own
+  ``calibration`` section says (the defaults where it has none).
 """
 
 from __future__ import annotations

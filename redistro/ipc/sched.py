@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import ctypes.util
 import os
 import threading
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+from redistro.ipc import signals
 
 _MCL_CURRENT = 1
 _MCL_FUTURE = 2
@@ -172,7 +173,7 @@ def hold_cpu_latency(us: int, granted: Granted, path: str = CPU_LATENCY_PATH) ->
 
 
 def _mlockall(granted: Granted) -> bool:
-    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    libc = signals.c_library()
     # MCL_FUTURE under a small RLIMIT_MEMLOCK would make later allocations fail,
     # so only root (CAP_IPC_LOCK, no limit) asks for it.
     flags = _MCL_CURRENT | (_MCL_FUTURE if os.geteuid() == 0 else 0)

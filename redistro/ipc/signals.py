@@ -7,7 +7,7 @@ threads (before any thread exists) and takes them synchronously.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
+import functools
 import os
 import select
 import signal
@@ -72,12 +72,20 @@ _SFD_CLOEXEC = os.O_CLOEXEC
 SIGINFO_BYTES = 128  # struct signalfd_siginfo
 
 
+@functools.cache
+def c_library() -> ctypes.CDLL:
+    """The C library, as the process already has it (``dlopen(NULL)``):
+    ``ctypes.util.find_library`` would run ``ldconfig -p`` in a child of every
+    process that asks."""
+    return ctypes.CDLL(None, use_errno=True)
+
+
 def signalfd(sigs: frozenset[int] | set[int]) -> int:
     """A file descriptor that becomes readable when one of ``sigs`` (blocked,
     as every runtime signal is) is pending: a process that waits on sockets
     with poll can take its signals in the same wait. Read them with
     :func:`read_signalfd`."""
-    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    libc = c_library()
     mask = bytearray(128)  # sigset_t: 1024 bits
     for sig in sigs:
         n = int(sig) - 1
@@ -104,7 +112,7 @@ def read_signalfd(fd: int) -> list[int]:
 
 
 def _prctl(option: int, value: int) -> None:
-    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    libc = c_library()
     if libc.prctl(option, value, 0, 0, 0) != 0:
         err = ctypes.get_errno()
         raise OSError(err, os.strerror(err))

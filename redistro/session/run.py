@@ -63,12 +63,7 @@ def run_session(
             robots = [r for r in task.robots if r in unknown]
             say(f"joint positions unknown ({'; '.join(unknown.values())})")
             say(f"self-calibration of {', '.join(robots)} first")
-            cal = Task(
-                task=f"self_calibration (before {task.task})",
-                kind="self_calibration",
-                robots=robots,
-                source=task.source,
-            )
+            cal = calibration_first(task, robots)
             cal_dir = str(Path(out_dir) / "self_calibration") if out_dir else None
             rc = _run_task(cfg, cal, out_dir=cal_dir, say=say)
             if rc != 0:
@@ -76,6 +71,18 @@ def run_session(
                 return rc
     with around_task() if around_task is not None else contextlib.nullcontext():
         return _run_task(cfg, task, out_dir=out_dir, say=say)
+
+
+def calibration_first(task: Task, robots: list[str]) -> Task:
+    """The self-calibration of ``robots`` a strategy task runs first: as its
+    own ``calibration`` section says (the defaults where it has none)."""
+    return Task(
+        task=f"self_calibration (before {task.task})",
+        kind="self_calibration",
+        robots=robots,
+        calibration=task.calibration,
+        source=task.source,
+    )
 
 
 def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:

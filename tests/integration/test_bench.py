@@ -79,6 +79,9 @@ def test_bench_ddm_moves_every_record_over_each_transport(transport: str, tmp_pa
         assert f["feedback_taken"] >= f["commands_taken"] - 1, (robot, f)
         c = f["command_latency_us"]
         assert 0 < c["p50"] <= c["p99"] <= c["max"], (robot, c)
+        # each ESC side ends on the SSC's last command (which says the session
+        # finished), or on its closed link: reflective memory has no link to close
+        assert f["ended"] in (("finished",) if transport == "reflective" else ("finished", "lost"))
     assert r["lost_commands"] == 0 and r["dropped"] == 0
     assert r["scheduling"] in ("SCHED_RR", "nice", "default")
     assert r["commands_per_s"] == pytest.approx(600, rel=0.05)

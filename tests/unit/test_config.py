@@ -209,3 +209,18 @@ def test_deep_yaml_is_one_refusal_whichever_parser_finds_it(
     with pytest.raises(ConfigError) as err:
         inputs.load_yaml(text, "deep.yaml")
     assert str(err.value) == "deep.yaml:1: invalid YAML (nested deeper than 64 levels)"
+
+
+def test_a_strategy_task_calibrates_first_as_its_own_section_says() -> None:
+    """The self-calibration before a strategy task (its positions unknown)
+    takes the task's ``calibration`` section; a task without one, the defaults."""
+    from redistro.config.task import CalibrationTask, load_task
+    from redistro.session.run import calibration_first
+
+    cfg = load_config(ROOT / "config/redistro.yaml")
+    drill = load_task(ROOT / "tasks/fault_drill.yaml", cfg)
+    cal = calibration_first(drill, ["r2"])
+    assert cal.kind == "self_calibration" and cal.robots == ["r2"]
+    assert cal.calibration.segment_s == [2.4, 2.4, 1.8] and cal.calibration.range_deg == 12.0
+    peg = load_task(ROOT / "tasks/peg_insertion.yaml", cfg)
+    assert calibration_first(peg, ["r1", "r2"]).calibration == CalibrationTask()

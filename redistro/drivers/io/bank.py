@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import functools
 import hashlib
 import os
 from typing import Any
@@ -100,6 +101,7 @@ def bank_dtype(board_types: list[BoardType], n_robots: int) -> np.dtype[Any]:
     return np.dtype([(n, *rest) for n, *rest in fields], align=True)
 
 
+@functools.cache
 def _hash(dt: np.dtype[Any]) -> int:
     return int.from_bytes(hashlib.sha256(repr(dt.descr).encode()).digest()[:8], "little")
 
