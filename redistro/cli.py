@@ -408,7 +408,7 @@ def _plant(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
     from redistro.config.hardware import load_hardware
-    from redistro.ipc import session
+    from redistro.ipc import session, signals
     from redistro.plant.launch import PlantProcess
     from redistro.session.run import plant_config
 
@@ -424,8 +424,8 @@ def _plant(args: argparse.Namespace, cfg: Any) -> int:
         try:
             end = time.monotonic() + args.seconds if args.seconds else None
             while plant.proc.poll() is None and (end is None or time.monotonic() < end):
-                info = signal.sigtimedwait(
-                    {signal.SIGINT, signal.SIGTERM},
+                info = signals.wait(
+                    frozenset({signal.SIGINT, signal.SIGTERM}),
                     1.0 if end is None else max(0.0, min(1.0, end - time.monotonic())),
                 )
                 st = plant.status()

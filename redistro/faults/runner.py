@@ -367,6 +367,12 @@ def _verdict(
     row["got"] = got
     row["cause"] = summary.get("reason", "")
     nodes: dict[str, Any] = summary.get("nodes", {})
+    # a manager that failed on its own error (not on the fault it met)
+    row["manager_errors"] = [
+        f"{name}: {n.get('reason', '')}"
+        for name, n in nodes.items()
+        if str(n.get("reason", "")).startswith("manager error")
+    ]
     faults = [
         (n["fault_monotonic_ns"], name, n)
         for name, n in nodes.items()

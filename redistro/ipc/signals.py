@@ -11,6 +11,7 @@ import functools
 import os
 import select
 import signal
+import time
 
 SIG_SYNC = signal.SIGRTMIN + 1
 """Manager -> worker: a new cycle has started. Queued, so a backlog is countable."""
@@ -46,8 +47,15 @@ def wait(signals: frozenset[int] | set[int], timeout_s: float) -> signal.struct_
     """Take one of ``signals`` within ``timeout_s`` (monotonic), else None.
 
     sigtimedwait restarts on EINTR with a recomputed monotonic timeout (PEP 475).
+    A process stopped (SIGSTOP) inside it and continued may see it return no
+    signal at all (signal number 0, the rest of the record unfilled): that is
+    no signal, and the wait goes on to its deadline.
     """
-    return signal.sigtimedwait(signals, max(0.0, timeout_s))
+    deadline = time.monotonic() + max(0.0, timeout_s)
+    while True:
+        info = signal.sigtimedwait(signals, max(0.0, deadline - time.monotonic()))
+        if info is None or info.si_signo != 0:
+            return info
 
 
 def drain(sig: int) -> int:

@@ -93,12 +93,14 @@ class PlantProcess:
             return None
 
     def stop(self, timeout_s: float = 10.0) -> int:
-        """SIGTERM, wait; SIGKILL if it does not end in time. Returns the exit code."""
+        """SIGTERM (and SIGCONT: a stopped plant takes it too), wait; SIGKILL
+        if it does not end in time. Returns the exit code."""
         if self.bank is not None:
             self.bank.close()
             self.bank = None
         if self.proc.poll() is None:
             os.kill(self.proc.pid, signal.SIGTERM)
+            os.kill(self.proc.pid, signal.SIGCONT)
             try:
                 self.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:

@@ -161,6 +161,8 @@ class _Node:
         if self.status is None and self.kill_at is None:
             self.interrupted = why
             signals.send(self.pidfd, signal.SIGTERM)
+            # a stopped (SIGSTOP) manager takes it too, and ends in order
+            signals.send(self.pidfd, signal.SIGCONT)
             self.kill_at = now + self.spec.shutdown_timeout_s + 2.0
 
     def result(self) -> NodeResult:

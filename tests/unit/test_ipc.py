@@ -224,3 +224,27 @@ print(before == os.SCHED_OTHER, raised >= 1, after == os.SCHED_RR, prio)
     if done.stdout.strip() == "not permitted":
         pytest.skip("SCHED_RR is not permitted here")
     assert done.stdout.split() == ["True", "True", "True", "3"], done.stdout
+
+
+def test_a_signal_wait_that_returns_no_signal_waits_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A manager stopped (SIGSTOP) inside its wait and continued saw
+    sigtimedwait return signal number 0 (the record unfilled), and failed on
+    it; the wait takes that for no signal and goes on to its deadline."""
+    import signal
+    from types import SimpleNamespace
+
+    from redistro.ipc import signals
+
+    returns: list[object] = [SimpleNamespace(si_signo=0), SimpleNamespace(si_signo=signal.SIGTERM)]
+    asked: list[float] = []
+
+    def fake(sigs: object, timeout: float) -> object:
+        asked.append(timeout)
+        return returns.pop(0)
+
+    monkeypatch.setattr(signal, "sigtimedwait", fake)
+    info = signals.wait(frozenset({signal.SIGTERM}), 1.0)
+    assert info is not None and info.si_signo == signal.SIGTERM
+    assert len(asked) == 2 and asked[1] <= asked[0] <= 1.0  # the same deadline
+    returns[:] = [SimpleNamespace(si_signo=0), None]
+    assert signals.wait(frozenset({signal.SIGTERM}), 0.0) is None
