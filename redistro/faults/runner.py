@@ -535,8 +535,9 @@ def _stale_ipc(
     positions unclean, calibrate first and run the task."""
     row: dict[str, Any] = {}
     first = out_dir / "crashed"
+    task = str(_first_segment_drill(out_dir))  # the crash comes within it
     proc = subprocess.Popen(
-        [*_session_args(sc, runs, config_args), "session", TASK, "--out", str(first)],
+        [*_session_args(sc, runs, config_args), "session", task, "--out", str(first)],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
@@ -567,7 +568,7 @@ def _stale_ipc(
             proc.communicate()
     second = out_dir / "next"
     done = subprocess.run(
-        [*_session_args(sc, runs, config_args), "session", TASK, "--out", str(second)],
+        [*_session_args(sc, runs, config_args), "session", task, "--out", str(second)],
         capture_output=True,
         text=True,
         timeout=SESSION_TIMEOUT_S + 300,
