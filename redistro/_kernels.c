@@ -1738,7 +1738,7 @@ static PyObject *ddm_recv(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
         PyErr_SetString(PyExc_TypeError, "ddm_recv(plan, rx, fd)");
         return NULL;
     }
-    PlanObject *pl = plan_arg(args[0], "ddm_admit");
+    PlanObject *pl = plan_arg(args[0], "ddm_admit"); /* ddm_admit's plan */
     if (pl == NULL || !admit_plan_ok(pl))
         return NULL;
     int fd = (int)PyLong_AsLong(args[2]);
