@@ -69,3 +69,63 @@ def test_converters_round_and_saturate() -> None:
     assert R.dac_code(20.0) == R.DAC_CODE_MAX
     assert abs(R.dac_volts(R.dac_code(1.2345)) - 1.2345) <= 10 / 2048
     assert abs(R.adc_volts(R.adc_code(-3.3)) + 3.3) <= 10 / 32768
+
+
+class _Reactions:
+    """PyBullet's three calls ``World.read_wrist`` makes, with the wrist
+    joint's reaction set by the test (the sensor level, no tool weight)."""
+
+    def __init__(self) -> None:
+        self.fz = 0.0
+
+    def getLinkState(self, *_a: object, **_k: object) -> tuple[object, ...]:
+        return (None,) * 4 + ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+
+    def getMatrixFromQuaternion(self, _q: object) -> tuple[float, ...]:
+        return (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+    def getJointState(self, *_a: object, **_k: object) -> tuple[object, ...]:
+        return (0.0, 0.0, (0.0, 0.0, -self.fz, 0.0, 0.0, 0.0), 0.0)
+
+
+def _wrist(bandwidth_hz: float) -> tuple[object, _Reactions]:
+    from math import exp, pi
+
+    from redistro.plant.world import Arm, World
+
+    world = World.__new__(World)  # the read alone: no physics
+    pb = _Reactions()
+    world.pb, world.client, world.dt = pb, 0, 1e-3
+    world.ft_alpha = 1.0 - exp(-2 * pi * bandwidth_hz * world.dt) if bandwidth_hz else 1.0
+    arm = Arm("r2", 0, [], 0, 0, 0.0, np.zeros(3), np.zeros(7, bool), np.zeros(7))
+    cfg = load_config(ROOT / "config" / "redistro.yaml")
+    assert cfg.plant.ft_bandwidth_hz == 100.0  # the default the sessions use
+    return (world, arm), pb
+
+
+def test_the_wrist_sensor_reads_through_its_bandwidth() -> None:
+    """A contact the rigid physics resolves in one 1 ms step is read at a
+    fraction of its height (the sensor's low-pass); a sustained force is
+    read whole within a few ms; a bandwidth of 0 reads every step as it is."""
+    (world, arm), pb = _wrist(100.0)
+    xyz, rot9, wrench = np.zeros(3), np.zeros(9), np.zeros(6)
+
+    def read(fz: float) -> float:
+        pb.fz = fz
+        world.read_wrist(arm, xyz, rot9, wrench)  # type: ignore[attr-defined]
+        return float(wrench[2])
+
+    for _ in range(20):
+        read(6.0)  # pressing 6 N
+    assert abs(wrench[2] - 6.0) < 0.01
+    spike = read(80.0)  # one step's impact
+    assert 30.0 < spike < 45.0, spike
+    after = [read(6.0) for _ in range(10)]
+    assert after[0] < spike and abs(after[-1] - 6.0) < 0.1, after
+    held = [read(150.0) for _ in range(5)]  # a sustained push: 95 % within 5 ms
+    assert held[2] > 120.0 and held[-1] > 0.95 * 150.0, held
+
+    (world, arm), pb = _wrist(0.0)
+    wrench[:] = 0.0
+    read(6.0)
+    assert read(80.0) == 80.0 and read(6.0) == 6.0
