@@ -5,7 +5,8 @@ their ddms and the session log; a self-calibration first when the joint
 positions are unknown, not measured) and gathers, in one document:
 
 - per node and per process: cycles, overrun cycles, compute p50/p99/max,
-  lateness p50/p99, CPU as a share of one vCPU;
+  lateness p50/p99, CPU as a share of one vCPU and per node cycle (a
+  recorder's step drains many cycles, a ddm wakes several times a cycle);
 - the plant: real-time factor, step cost split into physics (PyBullet's
   step) and chassis (everything else a step does), late and skipped steps;
 - DDM command latency per robot (and the transport);
@@ -73,6 +74,14 @@ def figures(summary: dict[str, Any]) -> dict[str, Any]:
         procs["manager"]["tick_work_us"] = _triple(mgr.get("tick_work_us"))
         for w in n.get("workers", []):
             procs[str(w.get("name"))] = _process(w)
+        rate = float(n.get("rate_hz") or 0.0)
+        for proc in procs.values():
+            # what a process costs per node cycle, wake-ups and all: a recorder
+            # drains many cycles a step, a ddm wakes several times a cycle
+            pct = proc.get("cpu_percent")
+            proc["cpu_per_cycle_us"] = (
+                round(float(pct) / 100 * 1e6 / rate, 1) if pct is not None and rate else None
+            )
         node_cpu = sum(float(p.get("cpu_percent") or 0.0) for p in procs.values())
         group_cpu += node_cpu
         nodes[name] = {
@@ -205,13 +214,14 @@ def print_figures(f: dict[str, Any], out: Any = sys.stdout) -> None:
             f"{lat['p50']}/{lat['p99']} us, CPU {n['cpu_percent']}%"
         )
         for pname, pr in n["processes"].items():
+            cpu = f"CPU {pr['cpu_percent']}% ({pr['cpu_per_cycle_us']} us a cycle)"
             if pname == "manager":
-                p(f"      {'manager':12s} CPU {pr['cpu_percent']}%")
+                p(f"      {'manager':12s} {cpu}")
                 continue
             c, u = pr["compute_us"], pr["step_cpu_us"]
             p(
                 f"      {pname:12s} step CPU p50/p99 {u['p50']}/{u['p99']} us, wall p50/p99/max "
-                f"{c['p50']}/{c['p99']}/{c['max']} us, CPU {pr['cpu_percent']}%"
+                f"{c['p50']}/{c['p99']}/{c['max']} us, {cpu}"
             )
     pl = f["plant"]
     p(

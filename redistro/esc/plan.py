@@ -15,8 +15,9 @@ from redistro.process.spec import NodeParams, NodeSpec
 # Within a cycle: acquisition publishes feedback, the calibration its joint
 # reference, the pid its torques, then the sender checks and sends.
 ESC_WORKERS = (("acquisition", 0), ("calibration", 1), ("pid", 2), ("sender", 3))
-# ... and, given a run folder, the recorder logs the cycle last.
-ESC_RECORDER = ("recorder", 4)
+# ... and, given a run folder, the recorder logs the cycles, off the cycle
+# (it drains the log ring on its own timer, log.drain_hz).
+ESC_RECORDER = ("recorder", -1)
 # In a strategy session the SSC computes the torques: the acquisition
 # publishes feedback, the sender checks and sends the SSC's command, and the
 # ddm (off the cycle, on its own timer) carries both between the nodes.

@@ -1,12 +1,15 @@
 """The ESC-side recorder (ESC-only sessions: self-calibration, positioning).
 
-The last stage of the ESC cycle: it logs the robot's feedback, the joint
+Off the cycle, on its own timer (``log.drain_hz``), it drains the log ring
+the manager fills at every tick and logs the robot's feedback, the joint
 reference (setpoint), the PID's torques, what the sender sent (guard) and
 the node's timing, plus segment changes and a guard trip as events. A
 strategy session is logged by the SSC's logger instead.
 """
 
 from __future__ import annotations
+
+import contextlib
 
 from redistro.localdata.layout import GUARD, SETPOINT
 from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
@@ -52,4 +55,6 @@ class EscRecorder(Worker):
             self.rec.event("events", cycle, event="guard trip", robot=self.robot, text=text)
 
     def cleanup(self) -> None:
+        with contextlib.suppress(Exception):  # the cycles since the last drain
+            self.rec.drain(self._cycle)
         self.rec.close()

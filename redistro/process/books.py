@@ -74,6 +74,9 @@ class NodeBooks:
         self.limits = [w.heartbeat_limit_cycles or node_limit for w in spec.workers]
         self.last_hb = [0] * n
         self.last_stage = spec.stages()[-1]
+        # late and missed heartbeats are counted for the workers on the cycle
+        # (an off-cycle one signs when it runs: a recorder 50 times a second)
+        self.per_cycle = [w.on_cycle for w in spec.workers]
         self.late_heartbeats = 0
         self.missed_heartbeats = 0
         self.deadline_misses = 0  # cycles completed, but after their period ended
@@ -125,7 +128,9 @@ class NodeBooks:
                 snaps.append(None)
         for j, last_hb in enumerate(self.last_hb):
             age = cycle - last_hb
-            if age == 1:
+            if not self.per_cycle[j]:
+                pass
+            elif age == 1:
                 self.late_heartbeats += 1  # signed late; may still come
             elif age > 1:
                 self.missed_heartbeats += 1  # a whole cycle without a sign-up

@@ -19,6 +19,10 @@ def recorder_heartbeat_limit(cfg: Config, rate_hz: float) -> int:
     return max(cfg.log.heartbeat_limit_cycles, math.ceil(cfg.log.heartbeat_limit_s * rate_hz))
 
 
+def _off_cycle_rate(cfg: Config, role: str) -> float:
+    return cfg.log.drain_hz if role in RECORDERS else cfg.ddm.rate_hz
+
+
 def worker_specs(
     cfg: Config,
     roles: tuple[tuple[str, int], ...],
@@ -26,9 +30,9 @@ def worker_specs(
     rate_hz: float = 0.0,
 ) -> list[WorkerSpec]:
     """One WorkerSpec per (role, stage), at the role's configured priority; an
-    off-cycle worker (negative stage: the ddm) runs on data (ddm.rate_hz 0) or on its
-    own timer at ddm.rate_hz;
-    the recorders get the log's heartbeat limit."""
+    off-cycle worker (negative stage) runs on its own timer: a recorder at
+    ``log.drain_hz``, the ddm at ``ddm.rate_hz`` (0: on data); the recorders
+    get the log's heartbeat limit."""
     prio = cfg.scheduling.priorities
     return [
         WorkerSpec(
@@ -37,7 +41,7 @@ def worker_specs(
             stage=stage,
             priority=prio.get(role, 16),
             params=params,
-            rate_hz=cfg.ddm.rate_hz if stage < 0 else 0.0,
+            rate_hz=0.0 if stage >= 0 else _off_cycle_rate(cfg, role),
             heartbeat_limit_cycles=(
                 recorder_heartbeat_limit(cfg, rate_hz) if role in RECORDERS else 0
             ),

@@ -1,9 +1,11 @@
-"""The SSC logger (paper priority 15): after the worker, every cycle, it takes
-the plan of each robot and keeps the figures of each segment: its duration,
-the final pose error against the goal, and on force segments the force
-error after the first contact (mean and RMS). It also follows the peg's tip:
-how deep it went inside the hole. At Cleanup it writes them to
-``ssc-segments.json`` in the run folder (the manager puts them in its result).
+"""The SSC logger (paper priority 15): off the cycle, on its own timer
+(``log.drain_hz``), it drains the cycles the manager captured into the log
+ring since its last run, and from each cycle's plan of each robot keeps the
+figures of each segment: its duration, the final pose error against the
+goal, and on force segments the force error after the first contact (mean
+and RMS). It also follows the peg's tip: how deep it went inside the hole.
+At Cleanup (after a last drain) it writes them to ``ssc-segments.json`` in
+the run folder (the manager puts them in its result).
 
 It also records the session log (:mod:`redistro.log.recorder`): every cycle,
 per robot the feedback, the command and the plan (references, TCP pose,
@@ -243,6 +245,8 @@ class SscLogger(Worker):
 
     def cleanup(self) -> None:
         if self.recorder is not None:
+            with contextlib.suppress(Exception):  # the cycles since the last drain
+                self.recorder.drain(self._cycle)
             self.recorder.close()
         if not self.out_path:
             return

@@ -15,7 +15,9 @@ from redistro.process.spec import NodeParams, NodeSpec
 
 SCHEMES = {"hold": 0, "joint": 1, "position": 2, "force": 3}
 # Within an SSC cycle: the worker computes the commands, then the logger records them.
-SSC_WORKERS = (("worker", 0), ("logger", 1), ("ddm", -1))
+# The logger drains the log ring the manager fills at every tick, off the
+# cycle on its own timer (log.drain_hz): nothing in the cycle waits for it.
+SSC_WORKERS = (("worker", 0), ("logger", -1), ("ddm", -1))
 
 
 @dataclass(frozen=True)

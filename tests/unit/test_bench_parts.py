@@ -134,6 +134,9 @@ def test_group_figures_from_a_summary() -> None:
     assert n["overrun_percent"] == 0.3  # of 1000 periods (cycles + missed ticks)
     assert n["cpu_percent"] == 9.0
     assert n["processes"]["sender"]["step_cpu_us"]["p99"] == 15.0
+    # 4 % of a vCPU at 200 Hz: 200 us a cycle (a recorder's step drains many)
+    assert n["processes"]["sender"]["cpu_per_cycle_us"] == 200.0
+    assert n["processes"]["manager"]["cpu_per_cycle_us"] == 100.0
     assert f["group_cpu_percent"] == 34.0  # 9 + the plant's 20 + the writer's 5
     assert f["ddm"]["r1"]["command_latency_us"]["p50"] == 150.0
 
