@@ -1773,24 +1773,20 @@ static PyObject *ddm_recv(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
  * transport counts or raises what each means. */
 enum { DSD_WIRE, DSD_FDS, DSD_STATUS };
 
-static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "ddm_send(plan, mask, reverse)");
-        return NULL;
-    }
-    PlanObject *pl = plan_arg(args[0], "ddm_send");
-    if (pl == NULL)
-        return NULL;
-    long mask = PyLong_AsLong(args[1]);
-    long reverse = PyLong_AsLong(args[2]);
-    if (PyErr_Occurred())
-        return NULL;
+/* The send plan's sizes: its rows (robots), or 0 (an error is set). */
+static Py_ssize_t send_rows_ok(PlanObject *pl) {
     Py_ssize_t n = pl->n[DSD_FDS];
     Py_ssize_t size = n > 0 ? pl->n[DSD_WIRE] / n : 0;
     if (n < 1 || n > 62 || pl->n[DSD_STATUS] < n || size <= 0 || pl->n[DSD_WIRE] != n * size) {
         PyErr_SetString(PyExc_ValueError, "ddm_send: a plan of the wrong sizes");
-        return NULL;
+        return 0;
     }
+    return n;
+}
+
+/* ddm_send's loop over a valid plan of n rows: the trouble bits. */
+static long send_rows(PlanObject *pl, Py_ssize_t n, long mask, long reverse) {
+    Py_ssize_t size = pl->n[DSD_WIRE] / n;
     long trouble = 0;
     for (Py_ssize_t k = 0; k < n; k++) {
         Py_ssize_t i = reverse ? n - 1 - k : k;
@@ -1809,7 +1805,25 @@ static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
         if (sent != size)
             trouble |= 1L << i;
     }
-    return PyLong_FromLong(trouble);
+    return trouble;
+}
+
+static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "ddm_send(plan, mask, reverse)");
+        return NULL;
+    }
+    PlanObject *pl = plan_arg(args[0], "ddm_send");
+    if (pl == NULL)
+        return NULL;
+    long mask = PyLong_AsLong(args[1]);
+    long reverse = PyLong_AsLong(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_ssize_t n = send_rows_ok(pl);
+    if (n == 0)
+        return NULL;
+    return PyLong_FromLong(send_rows(pl, n, mask, reverse));
 }
 
 /* ddm_emit(plan) -> a bit mask of the robots whose wire buffer holds a new
@@ -1825,28 +1839,34 @@ enum {
 enum { DE_SEQ_OFF, DE_PAY_OFF, DE_LAST_OUT, DE_SEQ, DE_ROW = 8 };
 enum { DE_LD, DE_CODEC, DE_PARAMS, DE_ROWS, DE_OUT, DE_WIRE, DE_EX };
 
-static PyObject *ddm_emit(PyObject *mod, PyObject *arg) {
-    PlanObject *pl = plan_arg(arg, "ddm_emit");
-    if (pl == NULL)
-        return NULL;
+/* The emit plan's sizes are sound (else an error is set, 0). */
+static int emit_plan_ok(PlanObject *pl) {
     if (pl->n[DE_PARAMS] < DE_NPARAMS || pl->n[DE_CODEC] != (Py_ssize_t)sizeof(Codec)) {
         PyErr_SetString(PyExc_ValueError, "ddm_emit: a plan of the wrong sizes");
-        return NULL;
+        return 0;
     }
     const int64_t *P = I64(pl, DE_PARAMS);
     const Codec *c = (const Codec *)U8(pl, DE_CODEC);
     Py_ssize_t nrows = pl->n[DE_ROWS] / DE_ROW, size = P[DE_SIZE], wsize = c->body + 32;
     if (nrows > 62 || pl->n[DE_OUT] < nrows * size || pl->n[DE_WIRE] < nrows * wsize) {
         PyErr_SetString(PyExc_ValueError, "ddm_emit: a plan of the wrong sizes");
-        return NULL;
+        return 0;
     }
+    return 1;
+}
+
+/* ddm_emit's work over a valid plan: the mask, or -1 (a torn read). */
+static long emit_rows(PlanObject *pl) {
+    const int64_t *P = I64(pl, DE_PARAMS);
+    const Codec *c = (const Codec *)U8(pl, DE_CODEC);
+    Py_ssize_t nrows = pl->n[DE_ROWS] / DE_ROW, size = P[DE_SIZE], wsize = c->body + 32;
     uint8_t *ld = U8(pl, DE_LD);
     long mask = 0;
     for (Py_ssize_t i = 0; i < nrows; i++) {
         int64_t *row = I64(pl, DE_ROWS) + i * DE_ROW;
         uint8_t *out = U8(pl, DE_OUT) + i * size;
         if (!seqlock_read(ld + row[DE_SEQ_OFF], ld + row[DE_PAY_OFF], out, (size_t)size))
-            return PyLong_FromLong(-1);
+            return -1;
         int64_t produced = (int64_t)ld_u64(out + P[DE_SEQSRC_AT]);
         if (produced == 0 || produced == row[DE_LAST_OUT])
             continue;
@@ -1863,7 +1883,83 @@ static PyObject *ddm_emit(PyObject *mod, PyObject *arg) {
         st_u64(ex + P[DE_EX_SENT], ld_u64(ex + P[DE_EX_SENT]) + 1);
         mask |= 1L << i;
     }
-    return PyLong_FromLong(mask);
+    return mask;
+}
+
+static PyObject *ddm_emit(PyObject *mod, PyObject *arg) {
+    PlanObject *pl = plan_arg(arg, "ddm_emit");
+    if (pl == NULL || !emit_plan_ok(pl))
+        return NULL;
+    return PyLong_FromLong(emit_rows(pl));
+}
+
+/* ddm_reply(admit_plan, emit_plan, send_plan, rx, fd) -> int: an ESC ddm's
+ * usual step over a stream socket in one call, the paper's receive and
+ * reply: ddm_recv (one non-blocking recv(2) from fd into rx, its whole
+ * records offered to ddm_admit's common case; the admit plan's DS_MASK
+ * says which were taken), and when every record received was admitted,
+ * ddm_emit and ddm_send (the node's new feedback sealed and sent back, row
+ * 0 of the send plan). Returns what recv returned (bytes, 0 closed,
+ * -errno); the send plan's status holds, after its n rows, the emit's
+ * mask (-2: not run; -1: a torn read) and the send's trouble bits. The
+ * usual step done whole (every record admitted, the reply sent or none
+ * new) returns DDM_REPLIED instead (not a byte count: 2^40). A return the
+ * caller does not take whole (a part record, a record refused, the end)
+ * is the general path's, with the bytes left in rx. */
+enum { DRP_EMIT = 0, DRP_TROUBLE = 1, DRP_EXTRA = 2 };
+#define DDM_REPLIED ((int64_t)1 << 40)
+
+static PyObject *ddm_reply(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "ddm_reply(admit_plan, emit_plan, send_plan, rx, fd)");
+        return NULL;
+    }
+    PlanObject *ap = plan_arg(args[0], "ddm_admit");
+    PlanObject *ep = ap == NULL ? NULL : plan_arg(args[1], "ddm_emit");
+    PlanObject *sp = ep == NULL ? NULL : plan_arg(args[2], "ddm_send");
+    if (sp == NULL || !admit_plan_ok(ap) || !emit_plan_ok(ep))
+        return NULL;
+    Py_ssize_t n = send_rows_ok(sp);
+    if (n == 0)
+        return NULL;
+    if (sp->n[DSD_STATUS] < n + DRP_EXTRA) {
+        PyErr_SetString(PyExc_ValueError, "ddm_reply: the send plan's status has no room");
+        return NULL;
+    }
+    int fd = (int)PyLong_AsLong(args[4]);
+    if (fd == -1 && PyErr_Occurred())
+        return NULL;
+    Py_buffer b;
+    if (PyObject_GetBuffer(args[3], &b, PyBUF_WRITABLE) < 0)
+        return NULL;
+    const Codec *c = (const Codec *)U8(ap, DA_CODEC);
+    Py_ssize_t size = c->body + 32;
+    int64_t *state = I64(ap, DA_STATE), *status = I64(sp, DSD_STATUS) + n;
+    state[DS_MASK] = 0;
+    status[DRP_EMIT] = -2;
+    status[DRP_TROUBLE] = 0;
+    ssize_t got = recv(fd, b.buf, (size_t)b.len, MSG_DONTWAIT);
+    long result = got < 0 ? -errno : (long)got;
+    if (got > 0 && got % size == 0 && got < b.len && got / size <= 64) {
+        Py_ssize_t records = got / size;
+        uint64_t mask = 0;
+        for (Py_ssize_t k = 0; k < records; k++)
+            if (admit_record(ap, (const uint8_t *)b.buf + k * size, size) >= 0)
+                mask |= (uint64_t)1 << k;
+        state[DS_MASK] = (int64_t)mask;
+        if (mask == ((uint64_t)1 << records) - 1) {
+            long emitted = emit_rows(ep);
+            status[DRP_EMIT] = emitted;
+            if (emitted > 0)
+                status[DRP_TROUBLE] = send_rows(sp, n, emitted, 0);
+            if (emitted >= 0 && status[DRP_TROUBLE] == 0) {
+                PyBuffer_Release(&b);
+                return PyLong_FromLongLong(DDM_REPLIED);
+            }
+        }
+    }
+    PyBuffer_Release(&b);
+    return PyLong_FromLong(result);
 }
 
 /* -- introspection -- */
@@ -1920,6 +2016,8 @@ static PyMethodDef METHODS[] = {
      "The DDM: one recv from a socket, its whole records admitted (see the source)."},
     {"ddm_send", (PyCFunction)(void (*)(void))ddm_send, METH_FASTCALL,
      "The DDM: encoded records sent to their sockets; the bits of those not sent whole."},
+    {"ddm_reply", (PyCFunction)(void (*)(void))ddm_reply, METH_FASTCALL,
+     "The DDM: an ESC's receive and reply on a stream socket in one call (see the source)."},
     {"wire_backend", wire_backend, METH_NOARGS, "Which SHA-256 block and crc32 functions run."},
     {"signature", signature, METH_O, "A kernel's arguments: ((name, type), ...)."},
     {NULL, NULL, 0, NULL},

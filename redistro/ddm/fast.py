@@ -159,7 +159,9 @@ class FastPath:
         # sending on stream sockets (a transport that has them): each robot's
         # socket, refreshed when the transport's peers change
         self.send_fds = np.full(n, -1, dtype=np.int64)
-        self.send_status = np.zeros(n, dtype=np.int64)
+        # per robot the bytes sent or -errno; then ddm_reply's emit mask and
+        # trouble bits
+        self.send_status = np.zeros(n + 2, dtype=np.int64)
         self.send_plan = plan(
             "ddm_send", wire=self.wire, fds=self.send_fds, status=self.send_status
         )
@@ -167,6 +169,19 @@ class FastPath:
         self.emit_call = KERNELS.ddm_emit
         self.recv_call = KERNELS.ddm_recv
         self.send_call = KERNELS.ddm_send
+        self.reply_call = KERNELS.ddm_reply
+        # the exchange records published into Local Data in one call
+        rows = []
+        for i in range(n):
+            seq_off, pay_off, size = ld.block_offsets("exchange", i)
+            rows.append((seq_off, pay_off, size, i * EXCHANGE.itemsize))
+        self.publish_plan = plan(
+            "seq_write",
+            dst=ld_raw,
+            src=self.ex_arena,
+            table=np.array(rows, dtype=np.int64).reshape(-1),
+        )
+        self.publish_call = KERNELS.seq_write
         # the Python path's counters, in the kernels' rows
         self.seq = self.emit_rows[:, _E_SEQ]
         self.last_out = self.emit_rows[:, _E_LAST_OUT]

@@ -115,6 +115,7 @@ class SocketTransport(Transport):
         self.generation = 0  # bumped whenever a peer or a link comes or goes
         self.closed = False
         self._admit: tuple[Any, Any, Any] | None = None  # the ddm_recv kernel, its plan, state
+        self._got: int | None = None  # a recv ddm_reply made that the next receive takes on
         self.rx = bytearray(MAX_RECORDS * SIZE)  # the listening side's usual receive
         self.rx_view = memoryview(self.rx)
         self.dropped_unconnected = 0
@@ -275,13 +276,51 @@ class SocketTransport(Transport):
         if link is not None:
             self._sent(link, result, SIZE)
 
+    def reply_fd(self, ready: Collection[int] | None) -> int:
+        """The pinned peer's socket when this receive is the usual one (a
+        listening side whose peer sent whole records so far, woken by it):
+        the ddm may take the whole step in one kernel call (``ddm_reply``;
+        counted as this transport's receive) and hand back what it did not
+        take whole (:meth:`received`); else -1."""
+        peer = self.peer
+        if (
+            self.lost is None
+            and peer is not None
+            and self.pinned
+            and (self._receives + 1) & 63
+            and not peer.buf
+            and (ready is None or peer.fd in ready)
+        ):
+            self._receives += 1
+            return peer.fd
+        return -1
+
+    def received(self, got: int) -> bool:
+        """What ``ddm_reply`` received from the peer of :meth:`reply_fd`
+        (into ``rx``, its whole records offered to the admitting kernel):
+        True when the receive is done with (whole records, every one
+        admitted); else the next :meth:`receive` takes it on, as if it had
+        made that recv itself."""
+        state = self._admit[2]  # type: ignore[index]
+        whole = got > 0 and got % SIZE == 0 and got < len(self.rx)
+        if whole and int(state[2]) == (1 << (got // SIZE)) - 1:
+            return True
+        self._receives -= 1  # (the next receive counts itself)
+        self._got = got
+        return False
+
     def _kernel_recv(self, link: _Link, out: list[bytes]) -> int:
         """One recv from ``link`` by the admitting kernel, its whole records
         admitted (counted in ``taken``) or put in ``out``. Returns the
         bytes received (0: closed) or -errno; a part record, or a full
-        buffer (more to come), goes into ``link.buf`` for the general path."""
+        buffer (more to come), goes into ``link.buf`` for the general path.
+        A recv ``ddm_reply`` made (:meth:`received`) is taken instead."""
         call, plan, state = self._admit  # type: ignore[misc]
-        got: int = call(plan, self.rx, link.fd)
+        got: int | None = self._got
+        if got is None:
+            got = call(plan, self.rx, link.fd)
+        else:
+            self._got = None
         if got > 0 and got % SIZE == 0 and got < len(self.rx):
             n, mask = got // SIZE, int(state[2])
             if mask == (1 << n) - 1:

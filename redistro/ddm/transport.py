@@ -84,6 +84,19 @@ class Transport(ABC):
         """What a send on ``send_fd(robot)`` made elsewhere returned (the
         bytes sent or -errno), counted or raised as ``send`` would."""
 
+    rx: Any = None  # the receive buffer of reply_fd's socket
+
+    def reply_fd(self, ready: Collection[int] | None) -> int:
+        """A replying side (an ESC) on a stream socket: the peer's socket
+        when this receive is the usual one, which the ddm may make in one
+        kernel call with its reply (``ddm_reply``, into ``rx``); else -1."""
+        return -1
+
+    def received(self, got: int) -> bool:
+        """What that call's recv returned: True when the receive is done
+        with; False: the next ``receive`` takes it on as its own."""
+        return False
+
     # -- the node's status, for viewers on other hosts (zenoh; the others
     # have no such channel and ignore it) --
 

@@ -27,6 +27,7 @@ for an e-stop (one robot's fault stops the group).
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import time
 from typing import Any
@@ -46,6 +47,9 @@ from redistro.process import hooks
 from redistro.process.spec import NodeSpec
 from redistro.process.stats import Samples
 from redistro.process.worker import Worker
+
+REPLIED = 1 << 40  # ddm_reply: the usual step done whole
+NOTHING = -errno.EAGAIN  # ... nothing had come
 
 
 def link_id(spec: NodeSpec) -> str:
@@ -102,6 +106,8 @@ class Ddm(Worker):
         self.ex = [Record(EXCHANGE) for _ in range(n)]
         self.fast: FastPath | None = None
         self.socket_kernels = False  # (see _plan_fast)
+        self.replies_in_kernel = False
+        self.publish_call: Any = None
         if self.kind == "esc":
             self.in_kind, self.out_kind = wire.KIND_COMMAND, wire.KIND_FEEDBACK
             self.in_blocks = [ld.writer("command", 0, role="ddm")]
@@ -186,6 +192,12 @@ class Ddm(Worker):
         # system calls and the records (ddm_recv, ddm_send)
         self.socket_kernels = self.transport.admit_with(fast.recv_call, fast.admit_plan, fast.state)
         self.send_generation = -1
+        # an ESC that replies on a stream socket: its usual step is one
+        # kernel call (ddm_reply: the command received and admitted, the
+        # feedback emitted and sent back)
+        self.replies_in_kernel = self.socket_kernels and self.replying
+        self.publish_call = fast.publish_call
+        self.publish_plan = fast.publish_plan
 
     # -- one tick --
 
@@ -198,6 +210,11 @@ class Ddm(Worker):
         estop = bool(self.estop_flag[0])  # the manager's e-stop, read alone
         try:
             if self.kind == "esc":
+                if self.replies_in_kernel and self.commanded and not estop and self._reply():
+                    self.steps += 1
+                    if not self.steps & 63:
+                        self._publish()
+                    return
                 fresh = self._receive()
                 new_estop = estop and not self.estop_sent
                 if not (self.replying and self.commanded and not fresh and not new_estop):
@@ -230,6 +247,53 @@ class Ddm(Worker):
         every = self.transport.status_every
         if every and not self.steps % every:
             self._status(estop)
+
+    def _reply(self) -> bool:
+        """An ESC's usual step on a stream socket, in one kernel call
+        (``ddm_reply``): the command received and admitted, then the new
+        feedback emitted and sent back as the reply. True when that was the
+        whole step: nothing came, or whole records, every one admitted (the
+        exchange counted, the starving index paid back, the latency taken by
+        the kernel). Else the general path takes the step on, with what the
+        call received."""
+        transport = self.transport
+        fd = transport.reply_fd(self.ready_fds)
+        if fd < 0:
+            return False
+        fast = self.fast
+        assert fast is not None
+        if transport.generation != self.send_generation:
+            self._refresh_send_fds()
+        got = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, transport.rx, fd)
+        if got == REPLIED:
+            self.dirty = True
+            return True
+        if got == NOTHING:
+            return True
+        return self._replied(got)
+
+    def _replied(self, got: int) -> bool:
+        """What ddm_reply did not take whole: the reply's trouble (a torn
+        read of the feedback, a send not made whole), or a receive the
+        general path takes on."""
+        fast, transport = self.fast, self.transport
+        assert fast is not None
+        if not transport.received(got):
+            return False
+        self.dirty = True
+        if fast.send_status[2]:
+            transport.send_result(self.gid[self.robots[0]], int(fast.send_status[0]))
+        elif fast.send_status[1] == -1:  # a torn read of the feedback: read it again
+            self._send(False)
+        return True
+
+    def _refresh_send_fds(self) -> None:
+        """Each robot's socket for the send kernels (a peer came or went)."""
+        fast = self.fast
+        assert fast is not None
+        self.send_generation = self.transport.generation
+        for i, robot in enumerate(self.gid[r] for r in self.robots):
+            fast.send_fds[i] = self.transport.send_fd(robot)
 
     def _status(self, estop: bool) -> None:
         """The node's status for viewers on other hosts (off the hot path:
@@ -400,9 +464,7 @@ class Ddm(Worker):
         assert fast is not None
         transport = self.transport
         if transport.generation != self.send_generation:  # a peer came or went
-            self.send_generation = transport.generation
-            for i, robot in enumerate(self.gid[r] for r in self.robots):
-                fast.send_fds[i] = transport.send_fd(robot)
+            self._refresh_send_fds()
         trouble = fast.send_call(fast.send_plan, mask, self.sends & 1)
         if trouble:
             for i, robot in self.send_orders[0]:
@@ -421,8 +483,11 @@ class Ddm(Worker):
         self.dirty = True
 
     def _publish(self) -> None:
-        for block, ex in zip(self.exchange_blocks, self.ex, strict=True):
-            block.publish(ex.bytes)
+        if self.publish_call is not None:  # the kernels' arena, in one call
+            self.publish_call(self.publish_plan)
+        else:
+            for block, ex in zip(self.exchange_blocks, self.ex, strict=True):
+                block.publish(ex.bytes)
         self.dirty = self.urgent = False
 
     def cleanup(self) -> None:

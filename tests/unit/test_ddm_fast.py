@@ -274,3 +274,64 @@ def test_send_sends_whole_records_and_returns_what_it_could_not(ld: LocalData) -
     finally:
         a.close()
         b.close()
+
+
+def test_reply_receives_admits_and_sends_back_in_one_call(ld: LocalData) -> None:
+    """ddm_reply: a whole command admitted and the new feedback sent back
+    as the reply (DDM_REPLIED); nothing there (-EAGAIN); a record refused
+    leaves everything to the general path (no reply); a part record too;
+    a command with no new feedback: admitted, nothing sent."""
+    import errno
+    import socket
+
+    from redistro.ddm.worker import NOTHING, REPLIED
+
+    fast = _esc_fast(ld, Samples(8))
+    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    fast.ex[0]["fresh"] = 1
+    feedback = ld.writer("feedback", 0, role="acquisition")
+    rec = Record(FEEDBACK)
+    rx = bytearray(64 * wire.SIZE)
+    a, b = socket.socketpair()
+
+    def reply() -> int:
+        got: int = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, rx, a.fileno())
+        return got
+
+    try:
+        a.setblocking(False)
+        b.settimeout(2.0)
+        fast.send_fds[0] = a.fileno()
+        assert reply() == NOTHING == -errno.EAGAIN
+        assert int(fast.send_status[1]) == -2  # no emit
+
+        rec["seq_src"] = 7
+        feedback.publish(rec.bytes)
+        b.sendall(_command(2, 200, mark=1.5))
+        assert reply() == REPLIED
+        assert float(ld.block("command", 0).read()["tau_nm"][0]) == 1.5
+        back = wire.decode(b.recv(4 * wire.SIZE), KEY)
+        assert back.kind == wire.KIND_FEEDBACK and int(back.payload["seq_src"]) == 7
+        assert int(fast.ex[0]["updates"]) == 1 and int(fast.ex[0]["sent"]) == 1
+
+        b.sendall(_command(3, 300))  # no new feedback: admitted, nothing to send
+        assert reply() == REPLIED
+        assert int(fast.send_status[1]) == 0 and int(fast.ex[0]["sent"]) == 1
+        assert int(fast.ex[0]["updates"]) == 2
+
+        rec["seq_src"] = 8
+        feedback.publish(rec.bytes)
+        forged = _command(4, 400, key=LONG_KEY)
+        b.sendall(forged)  # refused by the kernel: the general path's, no reply
+        assert reply() == wire.SIZE
+        assert int(fast.state[2]) == 0 and int(fast.send_status[1]) == -2
+        assert bytes(rx[: wire.SIZE]) == forged
+        b.setblocking(False)
+        with pytest.raises(BlockingIOError):
+            b.recv(4 * wire.SIZE)
+
+        b.sendall(_command(4, 400)[:100])  # a part record
+        assert reply() == 100 and int(fast.send_status[1]) == -2
+    finally:
+        a.close()
+        b.close()
