@@ -2,6 +2,8 @@
 
     python tools/profile.py TASK NODE/WORKER [--set KEY=VALUE ...] [--top N]
 
+(NODE/manager profiles the node's manager.)
+
 runs ``redistro session TASK`` with that one process under cProfile (every
 other process runs as usual; the profiled one runs about twice as slow, so
 its figures are for where the time goes, not how much), then prints its

@@ -32,6 +32,7 @@ from redistro.ipc.timer import IntervalTimer
 from redistro.localdata import Block, LocalData, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, MSG_TEXT
+from redistro.process import hooks
 from redistro.process.books import NodeBooks, node_local_data
 from redistro.process.result import NodeResult
 from redistro.process.spawn import spawn
@@ -164,7 +165,10 @@ class Manager:
             self.books.msg_file = open(self.spec.messages_path, "a", buffering=1)  # noqa: SIM115
         try:
             self._initialization()
-            self._routine()
+            # a developer's profile of the manager (tools/profile.py NODE/manager)
+            profiled = hooks.profile(f"{self.spec.node}/manager")
+            with profiled if profiled is not None else contextlib.nullcontext():
+                self._routine()
         except NodeFault as fault:
             self._fault(fault.reason, str(fault))
         except Exception as exc:
