@@ -2,12 +2,16 @@
 
 Each node has its own memory card: a SysV shared-memory segment with one
 slot per (record kind, robot). A write to a node's card is broadcast to
-every other node's card: the record goes out as one UDP datagram to a
-multicast group on loopback (and to configured peers on other hosts);
-``receive`` drains the datagrams that arrived and writes each into this
-node's card. Nobody blocks and nobody waits for anybody: a card always holds
-the latest record of each slot, whoever wrote it last. Each slot is
-seqlocked (a counter, odd while written) so a reader never takes a torn copy.
+every other node's card: the records a node writes in one step (the
+SSC's commands for every robot) go out together, as one UDP datagram to a
+multicast group on loopback (and to configured peers on other hosts), at
+most ``BATCH`` records a datagram (1 284 bytes: one Ethernet frame between
+hosts); ``receive`` drains the datagrams that arrived and writes each record
+into this node's card. A node sends from a socket of its own that is not a
+member of the group, so its own writes do not come back to wake it. Nobody
+blocks and nobody waits for anybody: a card always holds the latest record
+of each slot, whoever wrote it last. Each slot is seqlocked (a counter, odd
+while written) so a reader never takes a torn copy.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ if TYPE_CHECKING:
 
 KINDS = 2
 MAX_DATAGRAMS = 256  # per receive(): a flood waits in the socket for the next
+BATCH = 4  # records per datagram at most (1 284 bytes)
 SLOT = 8 + SIZE  # seq (u8) + one record
 DEFAULT_GROUP = "239.255.68.68"
 _SOURCE = slice(8, 24)  # the record header's source field
@@ -86,11 +91,15 @@ class ReflectiveTransport(Transport):
         self.peers = list(peers or [])
         self.card = Card.create(card_key(session_id, node), KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
+        self.pending: list[bytes] = []  # written this step, not yet sent (flush)
         try:
             # no peers on other hosts: only the group's datagrams on loopback
             # are received (bound to the group address, joined on lo)
             self.sock = _multicast_socket(*self.group, any_source=bool(self.peers))
+            self.out = _sending_socket()
         except OSError as exc:
+            with contextlib.suppress(AttributeError):
+                self.sock.close()
             self.card.close()
             self.card.remove()
             raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
@@ -125,29 +134,46 @@ class ReflectiveTransport(Transport):
         raise IPCError(f"card slot {kind}/{robot}: no consistent copy")
 
     def send(self, record: bytes, robot: int) -> None:
+        """Write ``record`` to this node's card; it goes out to the others'
+        with the step's other writes, at :meth:`flush`."""
         self._write_card(self._slot(record, robot), record)
-        for addr in (self.group, *self.peers):
-            try:
-                self.sock.sendto(record, addr)
-            except BlockingIOError:
-                pass  # the network is a broadcast medium: a lost update is a lost update
-            except OSError as exc:
-                raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
+        self.pending.append(record)
+
+    def flush(self) -> None:
+        pending = self.pending
+        for at in range(0, len(pending), BATCH):
+            datagram = b"".join(pending[at : at + BATCH])
+            for addr in (self.group, *self.peers):
+                try:
+                    self.out.sendto(datagram, addr)
+                except BlockingIOError:
+                    pass  # the network is a broadcast medium: a lost update is a lost update
+                except OSError as exc:
+                    pending.clear()
+                    raise TransportError(
+                        f"reflective memory network: {exc.strerror or exc}"
+                    ) from None
+        pending.clear()
 
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         out: list[bytes] = []
         for _ in range(MAX_DATAGRAMS):  # a flood waits for the next receive
             try:
-                data = self.sock.recv(2 * SIZE)
+                data = self.sock.recv(BATCH * SIZE + 1)
             except BlockingIOError:
                 return out
             except OSError as exc:
                 raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
-            if len(data) == SIZE and data[_SOURCE] == self.source:
-                continue  # our own broadcast, looped back
-            if len(data) == SIZE and 1 <= data[6] <= KINDS and data[7] < MAX_ROBOTS:
-                self._write_card(self._slot(data, data[7]), data)
-            out.append(data)
+            if len(data) % SIZE or len(data) > BATCH * SIZE:
+                out.append(data)  # not whole records: the ddm counts it malformed
+                continue
+            for at in range(0, len(data), SIZE):
+                rec = data[at : at + SIZE] if len(data) > SIZE else data
+                if rec[_SOURCE] == self.source:
+                    continue  # our own write, back from a peer on another host
+                if 1 <= rec[6] <= KINDS and rec[7] < MAX_ROBOTS:
+                    self._write_card(self._slot(rec, rec[7]), rec)
+                out.append(rec)
         return out
 
     def fds(self) -> list[int]:
@@ -156,8 +182,26 @@ class ReflectiveTransport(Transport):
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self.sock.close()
+        with contextlib.suppress(OSError):
+            self.out.close()
         self.card.close()
         self.card.remove()
+
+
+def _sending_socket() -> socket.socket:
+    """Where a node's writes leave from: not bound to the group's port nor a
+    member of it, so the host's multicast loop does not hand them back."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    try:
+        lo = socket.inet_aton("127.0.0.1")
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, lo)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+        s.setblocking(False)
+    except OSError:
+        s.close()
+        raise
+    return s
 
 
 def _multicast_socket(group: str, port: int, any_source: bool = False) -> socket.socket:

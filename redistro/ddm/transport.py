@@ -84,6 +84,11 @@ class Transport(ABC):
         """What a send on ``send_fd(robot)`` made elsewhere returned (the
         bytes sent or -errno), counted or raised as ``send`` would."""
 
+    def flush(self) -> None:  # noqa: B027 - optional, a no-op by default
+        """Send what ``send`` held back (a transport that carries a step's
+        records together: reflective memory); the ddm calls it after each
+        step's sends."""
+
     rx: Any = None  # the receive buffer of reply_fd's socket
 
     def reply_fd(self, ready: Collection[int] | None) -> int:

@@ -353,8 +353,11 @@ class Ddm(Worker):
             self.refused_seen = refused
             self.dirty = self.urgent = True
         fast = self.fast
+        size, hello, in_kind, gids = wire.SIZE, wire.KIND_HELLO, self.in_kind, self.local
         for raw in received:
             self.dirty = True
+            if len(raw) == size and raw[6] != hello and (raw[6] != in_kind or raw[7] not in gids):
+                continue  # another node's traffic on a broadcast medium (not checked)
             if fast is not None and fast.admit_call(fast.admit_plan, raw) >= 0:
                 taken += 1  # admitted, published and counted (FastPath.admit)
                 continue
@@ -443,6 +446,7 @@ class Ddm(Worker):
                         for i, robot in self.send_orders[self.sends & 1]:
                             if mask >> i & 1:
                                 self.transport.send(bytes(views[i]), robot)
+                        self.transport.flush()
                     self.dirty = True
                 return
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
@@ -454,6 +458,7 @@ class Ddm(Worker):
                 continue
             self._send_one(i, rec, estop)
             self.last_out[i] = produced
+        self.transport.flush()
         if estop:
             self.estop_sent = True
 
@@ -498,6 +503,7 @@ class Ddm(Worker):
                 for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
                     block.read_into(rec.bytes)
                     self._send_one(i, rec, True)
+                self.transport.flush()
         if self.fast is not None:
             self.latency.count = self.fast.latency_count()
         lat = self.latency.summary_us()

@@ -157,10 +157,15 @@ class InjectedTransport(Transport):
             _, record, robot = self.delayed.popleft()
             self.inner.send(record, robot)
 
+    def flush(self) -> None:
+        if not self.closed:
+            self.inner.flush()
+
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         if self.closed:
             raise TransportError("link closed (injected fault)")
         self._flush_delayed()
+        self.inner.flush()
         return self.inner.receive(ready)
 
     def lost_links(self) -> dict[int, str]:

@@ -132,11 +132,15 @@ def _collect(t: Transport, want: int, timeout_s: float = 2.0) -> list[bytes]:
 
 
 def test_send_receive_reply(pair: Pair) -> None:
+    """A step's sends go out by its flush at the latest (a transport may
+    hold them until then: reflective memory sends them together)."""
     ssc, esc = pair
     ssc.send(_command(1), 0)
+    ssc.flush()
     got = _collect(esc, 1)
     assert [decode(r).payload["tau_nm"][0] for r in got] == [1.0]
     esc.send(_feedback(1), 0)
+    esc.flush()
     got = _collect(ssc, 1)
     assert [decode(r).source for r in got] == ["esc.r1"]
 
@@ -150,6 +154,8 @@ def test_a_stream_of_records_arrives_in_order(pair: Pair) -> None:
     ssc, esc = pair
     for seq in range(1, 101):
         ssc.send(_command(seq), 0)
+        if seq % 10 == 0:
+            ssc.flush()
     got = [decode(r).seq for r in _collect(esc, 100)]
     assert got == sorted(got) and got[-1] == 100, got[-5:]
     assert len(got) >= 95  # the reflective network may lose an update; TCP does not
@@ -162,8 +168,46 @@ def test_reflective_cards_hold_the_latest_record() -> None:
         for seq in (1, 2, 3):
             ssc.send(_command(seq), 0)
         assert ssc.read_card(KIND_COMMAND, 0) == _command(3)  # type: ignore[attr-defined]
+        ssc.flush()
         _collect(esc, 3)
         assert esc.read_card(KIND_COMMAND, 0) == _command(3)  # type: ignore[attr-defined]
+    finally:
+        ssc.close()
+        esc.close()
+
+
+def test_a_reflective_step_goes_out_as_one_datagram_and_never_comes_back() -> None:
+    """The records a node writes in one step leave together (one datagram,
+    one wake-up of each other node, up to BATCH records); its own writes do
+    not come back to wake it; a datagram of no whole records is handed on
+    (the ddm counts it malformed)."""
+    import select
+
+    from redistro.ddm.reflective import BATCH
+    from redistro.ddm.record import SIZE
+
+    ssc, esc = _reflective_pair()
+    try:
+        ep = select.epoll()
+        ep.register(esc.fds()[0], select.EPOLLIN)
+        ssc.send(_command(1), 0)
+        ssc.send(_command(2), 1)
+        assert not ep.poll(0.05)  # held until the step's flush
+        ssc.flush()
+        assert ep.poll(2.0)
+        datagram = os.read(esc.fds()[0], 8 * SIZE)  # (what receive would take)
+        assert len(datagram) == 2 * SIZE  # both robots' commands, one datagram
+        assert ssc.receive() == []  # its own writes: not back
+        for seq in range(3, 3 + BATCH + 1):
+            ssc.send(_command(seq), 0)
+        ssc.flush()
+        got = _collect(esc, BATCH + 1)
+        assert [decode(r).seq for r in got] == list(range(3, 3 + BATCH + 1))
+        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        probe.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        probe.sendto(b"not a record", esc.group)  # type: ignore[attr-defined]
+        probe.close()
+        assert _collect(esc, 1) == [b"not a record"]
     finally:
         ssc.close()
         esc.close()
