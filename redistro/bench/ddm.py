@@ -13,7 +13,9 @@ sample. Per robot: command latency (the command's stamp to its admission
 in the ESC's Local Data, the ddm's own figure) and feedback latency (the
 sample's stamp to its admission in the SSC's); the records delivered each
 way per second; every ddm's CPU (% of one vCPU); records dropped or never
-delivered.
+delivered. While they run, the CPUs' wake-up latency is held as a node's
+manager holds it (``scheduling.cpu_latency_us``): the ddms wake as they
+would in a session.
 
 The process entry (``python -m redistro.bench.ddm``) blocks the runtime
 signals before anything that may start a thread is imported (zenoh's
@@ -81,10 +83,16 @@ def _spec(cfg: Any, sid: str, node: str, kind: str, robots: list[str], rate_hz: 
 def run(cfg: Any, transport: str, robots: int, rate_hz: float, seconds: float) -> dict[str, Any]:
     """Spawn the ddms, wait for them, gather their figures."""
     from redistro.ddm import record as wire
+    from redistro.ipc import sched
     from redistro.ipc import session as ipc_session
 
     procs: list[subprocess.Popen[bytes]] = []
-    with ipc_session.Session.create() as session:  # its 0700 folder, its IPC objects reaped
+    granted = sched.Granted()
+    us = cfg.scheduling.cpu_latency_us
+    held = None if us is None else sched.hold_cpu_latency(us, granted)
+    with contextlib.ExitStack() as stack, ipc_session.Session.create() as session:
+        if held is not None:  # as every node's manager holds it
+            stack.callback(os.close, held)
         sid = session.id
         folder = session.directory
         try:
@@ -130,7 +138,9 @@ def run(cfg: Any, transport: str, robots: int, rate_hz: float, seconds: float) -
                 if p.poll() is None:
                     p.kill()
                     p.wait()
-    return _figures(transport, robots, rate_hz, seconds, found, names)
+    out = _figures(transport, robots, rate_hz, seconds, found, names)
+    out["cpu_latency_us"] = granted.cpu_latency_us  # the PM QoS held (None: none)
+    return out
 
 
 def _figures(

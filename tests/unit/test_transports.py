@@ -183,8 +183,8 @@ def test_a_reflective_step_goes_out_as_one_datagram_and_never_comes_back() -> No
     (the ddm counts it malformed)."""
     import select
 
-    from redistro.ddm.reflective import BATCH
     from redistro.ddm.record import SIZE
+    from redistro.ddm.reflective import BATCH
 
     ssc, esc = _reflective_pair()
     try:
