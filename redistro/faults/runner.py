@@ -280,10 +280,22 @@ def _managers(sid: str) -> list[NodeView]:
     return [v for v in views if v is not None]
 
 
+def cycle_at(cycle: int, due_ns: int, when_ns: int, period_ms: float) -> int:
+    """The node's cycle at ``when_ns``, from a cycle it was in and when that
+    cycle's tick was due (the ticks come every period): a fault armed by the
+    trigger file takes effect when its process next looks, up to a cycle
+    after the trigger, and its detection counts from there."""
+    if not due_ns or when_ns <= due_ns:
+        return cycle
+    return cycle + int((when_ns - due_ns) // int(period_ms * 1e6))
+
+
 def _read_cycles(views: list[NodeView], into: dict[str, int]) -> None:
     for v in views:
         with contextlib.suppress(Exception):
-            into[v.node] = v.cycle()
+            m = v.manager()
+            into[v.node] = int(m["cycle"])
+            into[f"{v.node}/due_ns"] = int(m["tick_due_ns"])  # when that cycle's tick was due
     for v in views:  # an ESC's sender: each of its cycles sends a command
         with contextlib.suppress(Exception):
             into[f"{v.node}/sender"] = int(v.proc("sender")["cycles"])
@@ -393,7 +405,10 @@ def _verdict(
         # counter, as its checks count); ms / period is shown beside it
         cycles = ms / period_ms
         if cycles_at and first in cycles_at and n.get("fault_cycle") is not None:
-            cycles = int(n["fault_cycle"]) - cycles_at[first]
+            at = cycles_at[first]
+            if sc.kind == "inject":  # an armed point acts when its process next looks
+                at = cycle_at(at, cycles_at.get(f"{first}/due_ns", 0), inject_ns, period_ms)
+            cycles = int(n["fault_cycle"]) - at
             row["detection_node_cycles"] = cycles
         sender = next((w for w in n.get("workers", []) if w.get("name") == "sender"), None)
         if sc.limit == "starving" and cycles_at and f"{first}/sender" in cycles_at and sender:

@@ -188,3 +188,18 @@ def test_the_plants_faults_act_through_the_chassis_points(tmp_path: Path) -> Non
         assert (chassis._home_force == HOME_AS_SWITCH).all()  # the switch works again
     finally:
         world.close()
+
+
+def test_detection_counts_from_the_cycle_the_fault_took_effect_in() -> None:
+    """The trigger is read at the node's cycle 100 (tick due at t = 1 s);
+    the armed point acts when its process next looks: 4.9 ms later is
+    still cycle 100, 5.1 ms later cycle 101 (5 ms ticks); with no tick time
+    known, the cycle read stands."""
+    from redistro.faults.runner import cycle_at
+
+    due = 1_000_000_000
+    assert cycle_at(100, due, due + 4_900_000, 5.0) == 100
+    assert cycle_at(100, due, due + 5_100_000, 5.0) == 101
+    assert cycle_at(100, due, due + 12_000_000, 5.0) == 102
+    assert cycle_at(100, 0, due + 12_000_000, 5.0) == 100
+    assert cycle_at(100, due, due - 1, 5.0) == 100
