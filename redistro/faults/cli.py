@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import random
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -30,20 +31,24 @@ def run_faults(
         for s in chosen:
             print(f"{s.name:26s} {s.kind:11s} expect {'/'.join(s.expect):30s} {s.what}")
         return 0
+    from redistro.faults.common import StopWatch
     from redistro.faults.runner import ensure_calibrated, run_scenario
     from redistro.session.baseline import Baseline
 
+    stop = StopWatch()
     runs = Path(cfg.session.runs_dir).resolve()
     ensure_calibrated(runs, config_args, print)
     baseline = Baseline(runs)
     rng = random.Random(seed)
     rows: list[dict[str, Any]] = []
     for s in chosen:
+        if stop.requested():
+            break
         print(f"{s.name}: {s.what}", flush=True)
         baseline.restore()
         row = run_scenario(s, runs, cfg, config_args, rng)
         earlier: list[dict[str, Any]] = []
-        while not row["passed"] and len(earlier) < retries:
+        while not row["passed"] and len(earlier) < retries and not stop.requested():
             print("  " + _line(row) + "; once more", flush=True)
             earlier.append(row)
             baseline.restore()
@@ -51,14 +56,25 @@ def run_faults(
         row["attempts"] = len(earlier) + 1
         if earlier:
             row["failed_attempts"] = earlier
+        if stop.requested():
+            row["interrupted"] = True  # (its session was ended by the stop)
         rows.append(row)
         print("  " + _line(row), flush=True)
     baseline.restore()
     passed = sum(1 for r in rows if r["passed"])
     print(f"{passed} of {len(rows)} scenarios passed")
+    stopped = stop.requested()
+    if stopped:
+        name = signal.Signals(stopped).name
+        print(f"stopped by {name} after {len(rows)} of {len(chosen)} scenarios")
     if json_path:
-        Path(json_path).write_text(json.dumps({"scenarios": rows}, indent=1) + "\n")
+        doc: dict[str, Any] = {"scenarios": rows}
+        if stopped:
+            doc["stopped_by"] = signal.Signals(stopped).name
+        Path(json_path).write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {json_path}")
+    if stopped:
+        return 128 + stopped
     return 0 if passed == len(rows) else 1
 
 
