@@ -161,6 +161,7 @@ def _figures(
             "commands_sent": (ssc.get("sent") or {}).get(r, 0),
             "commands_taken": esc.get("taken", 0),
             "feedback_taken": (ssc.get("taken") or {}).get(r, 0),
+            "feedback_seen": (ssc.get("seen") or {}).get(r, 0),
             "dropped": esc.get("dropped", 0) + (ssc.get("dropped") or {}).get(r, 0),
             "cpu_percent": esc.get("cpu_percent"),
             "step_cpu_us": esc.get("step_cpu_us"),
@@ -382,7 +383,7 @@ def _ssc_loop(
     fbs = [Record(FEEDBACK) for _ in robots]
     last = [0] * len(robots)
     lat = [samples() for _ in robots]
-    taken = [0] * len(robots)
+    seen = [0] * len(robots)
     sent = [0] * len(robots)
     cycle = 0
 
@@ -394,7 +395,7 @@ def _ssc_loop(
             if s != last[i]:
                 last[i] = s
                 if measure:
-                    taken[i] += 1
+                    seen[i] += 1
                     lat[i].add(now - int(rec["stamp_ns"]))
 
     def turn(timeout_s: float, measure: bool) -> None:
@@ -417,6 +418,9 @@ def _ssc_loop(
             "error": f"not heard from within {CONNECT_S:g} s: {', '.join(silent)}",
         }
     cpu0, t0 = _cpu_s(), time.monotonic()
+    # feedback taken: what the ddm admitted into Local Data from here on (two
+    # that come within one of this process's reads leave one sample to see)
+    admitted0 = [int(e["updates"]) for e in ddm.ex]
     stop = min(end_by - 2.0, t0 + seconds)
     due = time.monotonic_ns()
     seq = 0
@@ -458,6 +462,7 @@ def _ssc_loop(
     tail = time.monotonic() + 0.2
     while time.monotonic() < tail and not ddm.lost:
         turn(0.02, True)
+    taken = [int(e["updates"]) - a for e, a in zip(ddm.ex, admitted0, strict=True)]
     return {
         "connected": True,
         "measured_s": round(wall, 3),
@@ -466,6 +471,7 @@ def _ssc_loop(
         "steps_per_s": round(steps.count / wall, 1),
         "sent": dict(zip(robots, sent, strict=True)),
         "taken": dict(zip(robots, taken, strict=True)),
+        "seen": dict(zip(robots, seen, strict=True)),
         "feedback_latency_us": {r: s.summary_us() for r, s in zip(robots, lat, strict=True)},
     }
 
