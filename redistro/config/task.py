@@ -132,7 +132,7 @@ class Search:
     drop_m: float = field(default=0.001, metadata={"gt": 0, "le": 0.02})
     stiffness_n_m: float = field(default=1500.0, metadata={"gt": 0, "le": 5000})
     max_lateral_n: float = field(default=6.0, metadata={"gt": 0, "le": 50})
-    yaw_stiffness_nm_rad: float = field(default=2.0, metadata={"ge": 0, "le": 100})
+    yaw_stiffness_nm_rad: float = field(default=1.0, metadata={"ge": 0, "le": 100})
     descent_m_s: float = field(default=0.02, metadata={"gt": 0, "le": 0.1})
     slow_above_m: float = field(default=0.012, metadata={"ge": 0, "le": 0.1})
     settle_s: float = field(default=0.3, metadata={"ge": 0, "le": 10})
