@@ -193,11 +193,7 @@ def _sending_socket() -> socket.socket:
     member of it, so the host's multicast loop does not hand them back."""
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
     try:
-        lo = socket.inet_aton("127.0.0.1")
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, lo)
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
-        s.setblocking(False)
+        _on_loopback(s)
     except OSError:
         s.close()
         raise
@@ -216,11 +212,17 @@ def _multicast_socket(group: str, port: int, any_source: bool = False) -> socket
             socket.IP_ADD_MEMBERSHIP,
             struct.pack("4s4s", socket.inet_aton(group), lo),
         )
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, lo)
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
-        s.setblocking(False)
+        _on_loopback(s)
     except OSError:
         s.close()
         raise
     return s
+
+
+def _on_loopback(s: socket.socket) -> None:
+    """A socket's multicast writes: out on loopback, looped back to the
+    host's members, never routed beyond; it never blocks."""
+    s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+    s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+    s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+    s.setblocking(False)

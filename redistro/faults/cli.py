@@ -70,7 +70,7 @@ def run_faults(
     if json_path:
         doc: dict[str, Any] = {"scenarios": rows}
         if stopped:
-            doc["stopped_by"] = signal.Signals(stopped).name
+            doc["stopped_by"] = name
         Path(json_path).write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {json_path}")
     if stopped:

@@ -153,9 +153,12 @@ class InjectedTransport(Transport):
 
     def _flush_delayed(self) -> None:
         now = time.monotonic_ns()
+        if not self.delayed or self.delayed[0][0] > now:
+            return
         while self.delayed and self.delayed[0][0] <= now:
             _, record, robot = self.delayed.popleft()
             self.inner.send(record, robot)
+        self.inner.flush()  # (sent outside a step of the ddm's)
 
     def flush(self) -> None:
         if not self.closed:
@@ -165,7 +168,6 @@ class InjectedTransport(Transport):
         if self.closed:
             raise TransportError("link closed (injected fault)")
         self._flush_delayed()
-        self.inner.flush()
         return self.inner.receive(ready)
 
     def lost_links(self) -> dict[int, str]:
