@@ -36,6 +36,7 @@ import dataclasses
 import json
 import select
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -162,6 +163,7 @@ def _figures(
             "commands_taken": esc.get("taken", 0),
             "feedback_taken": (ssc.get("taken") or {}).get(r, 0),
             "feedback_seen": (ssc.get("seen") or {}).get(r, 0),
+            "answered_in_transport": esc.get("answered", 0),
             "dropped": esc.get("dropped", 0) + (ssc.get("dropped") or {}).get(r, 0),
             "cpu_percent": esc.get("cpu_percent"),
             "step_cpu_us": esc.get("step_cpu_us"),
@@ -201,6 +203,7 @@ def _figures(
         else 0.0,
         "lost_commands": max(0, sent - taken),
         "dropped": sum(v["dropped"] for v in per_robot.values()),
+        "ssc_answered_in_transport": ssc.get("answered", 0),
         "ssc_cpu_percent": ssc.get("cpu_percent"),
         "esc_cpu_percent_max": max(esc_cpu, default=None),
         # each ddm's step (its thread's CPU; the process's loop around it is not in it)
@@ -293,6 +296,9 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     if kind == "esc":
         out["command_latency_us"] = ddm.latency.summary_us()
         out["taken"] = int(ex[0]["updates"])
+    # the records the ddm took whole in its transport's thread (zenoh's),
+    # without a step of its own
+    out["answered"] = ddm.answered
     Path(out_path).write_text(json.dumps(out))
 
 
@@ -312,13 +318,28 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
     last_cmd = commands.seq
     cpu0, t0 = _cpu_s(), time.monotonic()
 
+    sampling = threading.Lock()
+
     def sample() -> None:
         nonlocal seq
-        seq += 1
-        fb["seq_src"] = seq
-        fb["stamp_ns"] = time.monotonic_ns()
-        fb["step"] = seq
-        writer.publish(fb.bytes)
+        with sampling:  # (the ddm's step, or zenoh's thread answering)
+            seq += 1
+            fb["seq_src"] = seq
+            fb["stamp_ns"] = time.monotonic_ns()
+            fb["step"] = seq
+            writer.publish(fb.bytes)
+
+    if ddm.answering:
+        # a ddm that answers each command in its transport's thread: the
+        # fresh sample goes first there, as it does before a step here
+        answer = ddm.transport.answer
+
+        def answered(raw: bytes) -> int:
+            sample()
+            result: int = answer(raw)
+            return result
+
+        ddm.transport.answer = answered
 
     first_cmd = checked = commands.seq
     next_datum = 0.0
@@ -374,7 +395,9 @@ def _ssc_loop(
     samples: Any,
 ) -> dict[str, Any]:
     """A command per robot every period (stamped), the ddm woken for it and
-    for what comes; each robot's fresh feedback timed from its stamp."""
+    for what comes; each robot's fresh feedback timed from its stamp to its
+    admission (the exchange's ``last_update_ns``: a ddm that admits in its
+    transport's thread is not woken for it, and this loop reads it later)."""
     from redistro.localdata.block import Record
     from redistro.localdata.layout import FEEDBACK, SessionStatus
 
@@ -388,15 +411,15 @@ def _ssc_loop(
     cycle = 0
 
     def take(measure: bool) -> None:
-        now = time.monotonic_ns()
-        for i, (rd, rec) in enumerate(zip(readers, fbs, strict=True)):
-            rd.read_into(rec.bytes)
-            s = int(rec["seq_src"])
-            if s != last[i]:
-                last[i] = s
-                if measure:
-                    seen[i] += 1
-                    lat[i].add(now - int(rec["stamp_ns"]))
+        with ddm.step_lock:  # (the sample and its admission's time together)
+            for i, (rd, rec) in enumerate(zip(readers, fbs, strict=True)):
+                rd.read_into(rec.bytes)
+                s = int(rec["seq_src"])
+                if s != last[i]:
+                    last[i] = s
+                    if measure:
+                        seen[i] += 1
+                        lat[i].add(int(ddm.ex[i]["last_update_ns"]) - int(rec["stamp_ns"]))
 
     def turn(timeout_s: float, measure: bool) -> None:
         nonlocal cycle

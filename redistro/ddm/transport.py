@@ -12,13 +12,17 @@ chosen by ``ddm.transport`` and imported only when used.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
 from redistro.lazy import load
 
 if TYPE_CHECKING:
     from redistro.config import Config
+
+
+# what an answer (``Transport.answer_with``) did with a record
+NOT_TAKEN, ANSWERED, OWED = 0, 1, 2
 
 
 class Transport(ABC):
@@ -90,6 +94,19 @@ class Transport(ABC):
         step's sends."""
 
     rx: Any = None  # the receive buffer of reply_fd's socket
+
+    def answer_with(self, answer: Callable[[bytes], int]) -> bool:
+        """A replying side (an ESC) whose records arrive on a thread of the
+        transport's own (zenoh's): hand each record there, as it arrives, to
+        ``answer(raw)``, which makes the ddm's usual step whole (admitted,
+        the newest feedback sent back) without waking the ddm. It returns
+        ``NOT_TAKEN`` (the record is queued for the ddm's ``receive`` as
+        usual), ``ANSWERED``, or ``OWED`` (taken; the ddm is woken for the
+        rest of its step). False: this transport cannot."""
+        return False
+
+    def wake(self) -> None:  # noqa: B027 - optional, a no-op by default
+        """Make ``fds()`` readable: the ddm steps at its next poll."""
 
     def reply_fd(self, ready: Collection[int] | None) -> int:
         """A replying side (an ESC) on a stream socket: the peer's socket

@@ -18,6 +18,12 @@ sends what this node produced since:
 - in the SSC: feedback in (``feedback[i]`` per robot), commands out (each
   new command the worker wrote, one record per robot).
 
+Over a transport that delivers records on a thread of its own (zenoh),
+the usual record is taken there, as it arrives, without waking the ddm
+(``_answer``: admitted by the kernel; an ESC's reply emitted and sent):
+the step's state is shared under ``step_lock``, and whatever the answer
+does not take whole goes to the ddm's own step.
+
 Every record carries the node's e-stop: a manager that ended on a fault has
 its ddm say so in every record from then on, and once more at Cleanup. A
 record that comes in with the e-stop set makes the ddm ask its own manager
@@ -29,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import threading
 import time
 from typing import Any
 
@@ -37,7 +44,13 @@ import numpy as np
 from redistro.config import Config
 from redistro.ddm import record as wire
 from redistro.ddm.fast import FastPath
-from redistro.ddm.transport import Transport, transport_class
+from redistro.ddm.transport import (
+    ANSWERED,
+    NOT_TAKEN,
+    OWED,
+    Transport,
+    transport_class,
+)
 from redistro.errors import TransportError, WireError
 from redistro.ipc.session import Manifest
 from redistro.kernels import KERNELS
@@ -89,6 +102,12 @@ class Ddm(Worker):
         config, opened in :meth:`initialize`."""
         super().__init__(spec, index, ld)
         self._given = transport
+        # an ESC whose transport delivers on a thread of its own may answer
+        # there (_answer): the step's state is then shared under this lock
+        self.step_lock = threading.Lock()
+        self.answering = False
+        self.owed = False  # an answer's feedback the ddm's own step is to send
+        self.answered = 0  # records taken whole in the transport's thread
 
     def initialize(self) -> None:
         self.cfg = self.spec.cfg()
@@ -154,6 +173,7 @@ class Ddm(Worker):
             names = {g: r for r, g in self.gid.items()}
             self.transport = self.hooks.transport(self.transport, names)
         self.replying = self.kind == "esc" and self.transport.replies
+        self.answer_gid = self.gid[self.robots[0]]
         if KERNELS is not None and self.hooks is None:
             self._plan_fast(ld)
         for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
@@ -198,6 +218,8 @@ class Ddm(Worker):
         self.replies_in_kernel = self.socket_kernels and self.replying
         self.publish_call = fast.publish_call
         self.publish_plan = fast.publish_plan
+        if not self.socket_kernels:
+            self.answering = self.transport.answer_with(self._answer)
 
     # -- one tick --
 
@@ -205,6 +227,13 @@ class Ddm(Worker):
         return [] if self.lost else self.transport.fds()
 
     def step(self, cycle: int) -> None:
+        if self.answering:
+            with self.step_lock:  # (zenoh's thread may be answering)
+                self._step(cycle)
+        else:
+            self._step(cycle)
+
+    def _step(self, cycle: int) -> None:
         if self.lost:
             return  # the managers see the data go stale (starving)
         estop = bool(self.estop_flag[0])  # the manager's e-stop, read alone
@@ -217,7 +246,8 @@ class Ddm(Worker):
                     return
                 fresh = self._receive()
                 new_estop = estop and not self.estop_sent
-                if not (self.replying and self.commanded and not fresh and not new_estop):
+                owed, self.owed = self.owed, False
+                if owed or not (self.replying and self.commanded and not fresh and not new_estop):
                     self._send(estop)  # (replying, feedback goes out with a command only)
             else:
                 # the SSC sends first: the worker woke it for a fresh command,
@@ -271,6 +301,49 @@ class Ddm(Worker):
         if got == NOTHING:
             return True
         return self._replied(got)
+
+    def _answer(self, raw: bytes) -> int:
+        """The ddm's usual step for one record, made in the transport's
+        thread as it arrives (``Transport.answer_with``): the record
+        admitted by the kernel; in an ESC, the newest feedback emitted and
+        sent back as the reply; in the SSC, the exchange published (its
+        manager watches every robot's updates). Anything else (the ddm
+        stepping now, an ESC's first command, an e-stop, a record to
+        refuse, a lost link) is the ddm's own step's: the record goes to
+        its queue untouched."""
+        if not self.step_lock.acquire(blocking=False):
+            return NOT_TAKEN
+        try:
+            fast = self.fast
+            if not self.answering or self.lost or self.estop_flag[0]:
+                return NOT_TAKEN
+            esc = self.kind == "esc"
+            if esc and not self.commanded:
+                return NOT_TAKEN
+            assert fast is not None
+            if fast.admit_call(fast.admit_plan, raw) < 0:
+                return NOT_TAKEN
+            self.dirty = True
+            self.answered += 1
+            if not esc:
+                self._publish()
+                return ANSWERED
+            self.steps += 1
+            mask = fast.emit_call(fast.emit_plan)
+            if mask < 0:  # a torn read of the feedback: the ddm reads it again
+                self.owed = True
+                return OWED
+            if mask:
+                self.sends += 1
+                try:
+                    self.transport.send(bytes(fast.wire_views[0]), self.answer_gid)
+                except TransportError:
+                    return OWED  # (closed: the ddm's receive says so)
+            if not self.steps & 63:
+                self._publish()
+            return ANSWERED
+        finally:
+            self.step_lock.release()
 
     def _replied(self, got: int) -> bool:
         """What ddm_reply did not take whole: the reply's trouble (a torn
@@ -496,6 +569,8 @@ class Ddm(Worker):
         self.dirty = self.urgent = False
 
     def cleanup(self) -> None:
+        with self.step_lock:
+            self.answering = False  # the transport's thread answers no more
         with contextlib.suppress(Exception):
             self.manager_block.read_into(self.mgr.bytes)
             if self.mgr["estop"] and not self.lost:
