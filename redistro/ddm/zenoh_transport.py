@@ -270,7 +270,15 @@ def session_config(
     return out
 
 
+# zenoh's runtime, unless the user set it (``ZENOH_RUNTIME``): one RX
+# thread. A node's process has one link (an ESC's) or a few, records of a
+# few hundred bytes, and two vCPUs; with two, both woke for every record
+RUNTIME = "(rx: (worker_threads: 1))"
+
+
 def open_session(settings: dict[str, Any]) -> Any:
+    # (read once, when the process's first session starts zenoh's runtime)
+    os.environ.setdefault("ZENOH_RUNTIME", RUNTIME)
     import zenoh
 
     conf = zenoh.Config()

@@ -52,7 +52,9 @@ def _free_port() -> int:
     return port
 
 
-def _zenoh_pair(robots: tuple[str, ...] = ("r1",)) -> Pair:
+def _zenoh_pair(
+    robots: tuple[str, ...] = ("r1",), answer: Callable[[bytes], int] | None = None
+) -> Pair:
     """The SSC's session and r1's ESC's, authenticated, under access rules."""
     import shutil
     import tempfile
@@ -75,6 +77,8 @@ def _zenoh_pair(robots: tuple[str, ...] = ("r1",)) -> Pair:
 
     ssc = side("ssc", "ssc", list(robots))
     esc = side(f"esc.{robots[0]}", "esc", [robots[0]])
+    if answer is not None:
+        assert esc.answer_with(answer)
     try:
         # the sessions open at their first look (as a ddm's at its first
         # receive) and read the users file then: it stays until they met
@@ -508,3 +512,36 @@ def test_a_zenoh_node_with_a_wrong_password_is_refused_and_says_so() -> None:
             esc.close()
     finally:
         shutil.rmtree(folder)
+
+
+def test_a_zenoh_esc_answers_in_zenohs_thread_and_queues_what_it_leaves() -> None:
+    """An ESC side that answers (``Transport.answer_with``) is handed each
+    command in zenoh's thread as it arrives: what the answer takes never
+    reaches ``receive``; what it leaves goes to the inbox, in order, and
+    wakes the ddm's fd."""
+    import select
+    import threading
+
+    from redistro.ddm.transport import ANSWERED, NOT_TAKEN
+
+    seen: list[tuple[int, bytes]] = []
+
+    def answer(raw: bytes) -> int:
+        seen.append((threading.get_ident(), raw))
+        return ANSWERED if len(seen) % 2 else NOT_TAKEN
+
+    ssc, esc = _zenoh_pair(answer=answer)
+    try:
+        cmds = [_command(s) for s in range(1, 7)]
+        for c in cmds:
+            ssc.send(c, 0)
+        deadline = time.monotonic() + 5
+        while len(seen) < 6 and time.monotonic() < deadline:
+            select.select(esc.fds(), [], [], 0.05)  # woken by the queued ones
+        assert [raw for _, raw in seen] == cmds
+        assert threading.get_ident() not in {t for t, _ in seen}
+        assert select.select(esc.fds(), [], [], 0)[0] == esc.fds()
+        assert _collect(esc, 3) == cmds[1::2]  # the left ones, in order
+    finally:
+        ssc.close()
+        esc.close()
