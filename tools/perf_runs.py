@@ -4,7 +4,7 @@ peg figure) from fresh runs on this machine.
     python tools/perf_runs.py [--runs 3] [--prefix after] [--out docs/perf/group]
                               [--only main-socket,main-reflective,main-zenoh,1khz,selfcal-1khz]
                               [--figure]
-    python tools/perf_runs.py --ddm-sweep [--runs 3]      # docs/perf/ddm: bench ddm, N = 1..16
+    python tools/perf_runs.py --ddm-sweep [--runs 3] [--out DIR]  # docs/perf/ddm: bench ddm, N = 1..16
     python tools/perf_runs.py --peg-campaigns            # docs/perf/peg: 20 trials per transport
 
 Each benchmark is ``redistro bench group`` with the command docs/PERFORMANCE.md
@@ -120,10 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=",".join(BENCHES))
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--ddm-sweep", action="store_true", help="bench ddm, every transport and N")
+    ap.add_argument("--out", help="where the sweep's JSON goes (default docs/perf/ddm)")
     ap.add_argument("--peg-campaigns", action="store_true", help="bench peg, every transport")
     a = ap.parse_args(argv)
     if a.ddm_sweep:
-        return ddm_sweep(a.runs, Path("docs/perf/ddm"))
+        return ddm_sweep(a.runs, Path(a.out or "docs/perf/ddm"))
     if a.peg_campaigns:
         return peg_campaigns(Path("docs/perf/peg"))
     names = [n for n in a.only.split(",") if n]
