@@ -4,7 +4,7 @@ peg figure) from fresh runs on this machine.
     python tools/perf_runs.py [--runs 3] [--prefix after] [--out docs/perf/group]
                               [--only main-socket,main-reflective,main-zenoh,1khz,selfcal-1khz]
                               [--figure]
-    python tools/perf_runs.py --ddm-sweep [--runs 3] [--out DIR]  # docs/perf/ddm: bench ddm, N = 1..16
+    python tools/perf_runs.py --ddm-sweep [--runs 3] [--out DIR]  # bench ddm, N = 1..16
     python tools/perf_runs.py --peg-campaigns            # docs/perf/peg: 20 trials per transport
 
 Each benchmark is ``redistro bench group`` with the command docs/PERFORMANCE.md
