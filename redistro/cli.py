@@ -139,7 +139,8 @@ def _parser() -> argparse.ArgumentParser:
     dd.add_argument(
         "--floor",
         action="store_true",
-        help="then the socket floor: bare receives and replies, the same robots and rate, 3 s",
+        help="then the socket floor (bare receives and replies; over zenoh, the zenoh floor "
+        "too: bare zenoh-python puts and replies), the same robots and rate, 3 s",
     )
     dd.add_argument("--json", dest="json_path", default=None, help="write the figures here")
 

@@ -275,6 +275,18 @@ def _bench_ddm(args: argparse.Namespace, cfg: Any) -> int:
             cfg.scheduling.cpu_latency_us,
             robots=args.robots,
         )
+        if args.transport == "zenoh":
+            # ... and what zenoh-python alone gives the same command/reply
+            # (redistro.bench.zenoh_floor)
+            from redistro.bench import zenoh_floor
+
+            out["zenoh_floor"] = zenoh_floor.measure(
+                args.rate,
+                3.0,
+                cfg.scheduling.priorities.get("ddm", 19),
+                cfg.scheduling.cpu_latency_us,
+                robots=args.robots,
+            )
     ddm.print_figures(out)
     if args.json_path:
         write_json(Path(args.json_path), out)

@@ -526,6 +526,16 @@ def print_figures(out: dict[str, Any]) -> None:
             f"  socket floor (receive + reply alone) CPU us p50 {fl['p50']} p99 {fl['p99']}; "
             f"latency p50 {lat.get('p50')} p99 {lat.get('p99')} (the worst robot's)"
         )
+    zf = out.get("zenoh_floor") or {}
+    if zf.get("latency_us"):
+        lat, cpu = zf["latency_us"], zf.get("reply_cpu_us") or {}
+        print(
+            f"  zenoh floor (bare zenoh-python puts and replies) latency us p50 {lat['p50']} "
+            f"p99 {lat['p99']}; reply CPU p50 {cpu.get('p50')}; "
+            f"{zf.get('replies')}/{zf.get('commands')} replies"
+        )
+    elif zf:
+        print(f"  zenoh floor: {zf.get('error')}")
 
 
 if __name__ == "__main__":
