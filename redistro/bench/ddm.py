@@ -451,6 +451,9 @@ def _ssc_loop(
     while time.monotonic() < stop and not ddm.lost:
         now = time.monotonic_ns()
         if now >= due:
+            # the last period's feedback, timed by its admission: read here,
+            # before the commands, the reads stay out of the burst they time
+            take(True)
             seq += 1
             for i, w in enumerate(writers):
                 cmd["seq_src"] = seq
@@ -469,7 +472,6 @@ def _ssc_loop(
         ddm.step(cycle)
         steps.add(time.thread_time_ns() - c0)
         poll.refresh()
-        take(True)
     wall = max(1e-9, time.monotonic() - t0)
     # the last command says the session finished (as a session's last does):
     # an ESC ends on it, where no closed link tells it (reflective memory)
