@@ -116,15 +116,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="tools/perf_runs.py", description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--prefix", default="after")
-    ap.add_argument("--out", type=Path, default=Path("docs/perf/group"))
+    ap.add_argument("--out", type=Path, default=None, help="(docs/perf/group; a sweep: .../ddm)")
     ap.add_argument("--only", default=",".join(BENCHES))
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--ddm-sweep", action="store_true", help="bench ddm, every transport and N")
-    ap.add_argument("--out", help="where the sweep's JSON goes (default docs/perf/ddm)")
     ap.add_argument("--peg-campaigns", action="store_true", help="bench peg, every transport")
     a = ap.parse_args(argv)
     if a.ddm_sweep:
-        return ddm_sweep(a.runs, Path(a.out or "docs/perf/ddm"))
+        return ddm_sweep(a.runs, a.out or Path("docs/perf/ddm"))
     if a.peg_campaigns:
         return peg_campaigns(Path("docs/perf/peg"))
     names = [n for n in a.only.split(",") if n]
@@ -133,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tools/perf_runs.py: --only {','.join(unknown)}: known {', '.join(BENCHES)}; "
               f"--runs {a.runs}: at least 1", file=sys.stderr)  # fmt: skip
         return 2
+    a.out = a.out or Path("docs/perf/group")
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     scratch = Path(tempfile.mkdtemp(prefix="redistro-perf-"))
