@@ -483,6 +483,9 @@ def _ssc_loop(
         w.publish(cmd.bytes)
         sent[i] += 1
     ddm.ready_fds = []
+    cycle += 1
+    ddm.step(cycle)  # sent now (waiting first made its latency the wait's, 20 ms)
+    poll.refresh()
     # the last replies
     tail = time.monotonic() + 0.2
     while time.monotonic() < tail and not ddm.lost:
