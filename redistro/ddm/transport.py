@@ -96,17 +96,16 @@ class Transport(ABC):
     rx: Any = None  # the receive buffer of reply_fd's socket
 
     def answer_with(self, answer: Callable[[bytes], int]) -> bool:
-        """A replying side (an ESC) whose records arrive on a thread of the
-        transport's own (zenoh's): hand each record there, as it arrives, to
-        ``answer(raw)``, which makes the ddm's usual step whole (admitted,
-        the newest feedback sent back) without waking the ddm. It returns
-        ``NOT_TAKEN`` (the record is queued for the ddm's ``receive`` as
-        usual), ``ANSWERED``, or ``OWED`` (taken; the ddm is woken for the
-        rest of its step). False: this transport cannot."""
+        """A transport whose records arrive on a thread of its own (zenoh's):
+        hand each record there, as it arrives, to ``answer(raw)``, which
+        makes the ddm's usual step for it whole without waking the ddm
+        (admitted; an ESC's reply sent back). It returns ``NOT_TAKEN`` (the
+        record is queued for the ddm's ``receive`` as usual, and wakes it),
+        ``ANSWERED``, or ``OWED`` (taken; the ddm is woken for the rest of
+        its step). While records wait in the queue, the later ones queue
+        behind them (the ddm admits them in order). False: this transport
+        cannot."""
         return False
-
-    def wake(self) -> None:  # noqa: B027 - optional, a no-op by default
-        """Make ``fds()`` readable: the ddm steps at its next poll."""
 
     def reply_fd(self, ready: Collection[int] | None) -> int:
         """A replying side (an ESC) on a stream socket: the peer's socket
