@@ -265,27 +265,22 @@ def _bench_ddm(args: argparse.Namespace, cfg: Any) -> int:
     if args.floor:
         # what the host alone gives a ddm's exchange now: bare receives and
         # replies on TCP loopback, one per robot sent to in turn, at the same
-        # rate and priority (redistro.bench.floor)
+        # rate and priority (redistro.bench.floor); over zenoh, also what
+        # zenoh-python alone gives the same command/reply (.zenoh_floor)
         from redistro.bench import floor
 
-        out["socket_floor"] = floor.measure(
-            args.rate,
-            3.0,
-            cfg.scheduling.priorities.get("ddm", 19),
-            cfg.scheduling.cpu_latency_us,
-            robots=args.robots,
-        )
-        if args.transport == "zenoh":
-            # ... and what zenoh-python alone gives the same command/reply
-            # (redistro.bench.zenoh_floor)
-            from redistro.bench import zenoh_floor
-
-            out["zenoh_floor"] = zenoh_floor.measure(
+        floors = {"socket_floor": ("redistro.bench.floor", 30.0)}
+        if args.transport == "zenoh":  # (its sessions take a few seconds to meet)
+            floors["zenoh_floor"] = ("redistro.bench.zenoh_floor", 60.0)
+        for key, (module, start_s) in floors.items():
+            out[key] = floor.measure(
                 args.rate,
                 3.0,
                 cfg.scheduling.priorities.get("ddm", 19),
                 cfg.scheduling.cpu_latency_us,
                 robots=args.robots,
+                module=module,
+                start_s=start_s,
             )
     ddm.print_figures(out)
     if args.json_path:

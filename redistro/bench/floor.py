@@ -137,19 +137,24 @@ def measure(
     priority: int,
     cpu_latency_us: int | None = None,
     robots: int = 1,
+    module: str = "redistro.bench.floor",
+    start_s: float = 30.0,
 ) -> dict[str, Any]:
-    """The floor at ``rate_hz`` for ``seconds`` (run in a fresh interpreter),
+    """The floor at ``rate_hz`` for ``seconds`` (run in a fresh interpreter,
+    ``python -m module``: this one, or :mod:`redistro.bench.zenoh_floor`),
     with the CPUs' wake-up latency held at ``cpu_latency_us`` as the nodes
-    hold it (None: left alone), for ``robots`` repliers."""
+    hold it (None: left alone), for ``robots`` repliers; ``start_s`` more
+    for its start-up and end."""
     latency = [] if cpu_latency_us is None else ["--cpu-latency", str(cpu_latency_us)]
     out = subprocess.run(
-        _module(
+        [
+            *(sys.executable, "-m", module),
             *("--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority)),
             *("--robots", str(robots), *latency),
-        ),
+        ],
         capture_output=True,
         text=True,
-        timeout=seconds + 30,
+        timeout=seconds + start_s,
         check=False,
     )
     try:

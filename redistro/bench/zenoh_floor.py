@@ -22,7 +22,8 @@ copied into Local Data, and no user or access rule is checked.
 both the worst replier's percentiles. ``replies`` counts what came back.
 
 Run as ``python -m redistro.bench.zenoh_floor --rate HZ --seconds S
---robots N``; prints one JSON line. Every process blocks the runtime
+--robots N`` (``redistro.bench.floor.measure(..., module=...)`` from
+code); prints one JSON line. Every process blocks the runtime
 signals before zenoh is imported, and is started with fork+exec.
 """
 
@@ -35,7 +36,6 @@ if __name__ == "__main__":
     block_runtime_signals()
 
 import argparse
-import contextlib
 import json
 import socket
 import subprocess
@@ -43,6 +43,7 @@ import threading
 import time
 from typing import Any
 
+from redistro.bench import floor
 from redistro.bench.floor import COMMAND_BYTES, REPLY_BYTES, _percentiles, _worst
 from redistro.ipc import sched
 
@@ -64,17 +65,12 @@ def _session(listen: list[str], connect: list[str], mode: str) -> Any:
     )
 
 
-def _real_time(priority: int) -> None:
-    with contextlib.suppress(OSError):  # refused: measured at the default policy
-        os.sched_setscheduler(0, os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
-
-
 def _replier(port: int, robot: int, count: int, priority: int) -> int:
     import zenoh
 
     from redistro.ddm.zenoh_transport import _keep_thread_state
 
-    _real_time(priority)
+    floor._real_time(priority)
     s = _session([], [f"tcp/127.0.0.1:{port}"], "client")
     pub = s.declare_publisher(
         f"floor/{robot}/reply", congestion_control=zenoh.CongestionControl.DROP, express=True
@@ -117,7 +113,7 @@ def _commander(
 ) -> int:
     import zenoh
 
-    _real_time(priority)
+    floor._real_time(priority)
     s = _session([f"tcp/127.0.0.1:{port}"], [], "peer")
     express = {"congestion_control": zenoh.CongestionControl.DROP, "express": True}
     pubs = [s.declare_publisher(f"floor/{r}/command", **express) for r in range(robots)]
@@ -155,33 +151,6 @@ def _commander(
 
 def _module(*args: str) -> list[str]:
     return [sys.executable, "-m", "redistro.bench.zenoh_floor", *args]
-
-
-def measure(
-    rate_hz: float,
-    seconds: float,
-    priority: int,
-    cpu_latency_us: int | None = None,
-    robots: int = 1,
-) -> dict[str, Any]:
-    """The zenoh floor at ``rate_hz`` for ``seconds`` (a fresh interpreter),
-    with the CPUs' wake-up latency held at ``cpu_latency_us`` (None: left
-    alone), for ``robots`` repliers."""
-    latency = [] if cpu_latency_us is None else ["--cpu-latency", str(cpu_latency_us)]
-    out = subprocess.run(
-        _module(
-            *("--rate", str(rate_hz), "--seconds", str(seconds), "--priority", str(priority)),
-            *("--robots", str(robots), *latency),
-        ),
-        capture_output=True,
-        text=True,
-        timeout=seconds + 60,
-        check=False,
-    )
-    try:
-        return dict(json.loads(out.stdout.strip().splitlines()[-1]))
-    except (ValueError, IndexError):
-        return {"error": (out.stderr.strip().splitlines() or ["no output"])[-1]}
 
 
 def _free_port() -> int:

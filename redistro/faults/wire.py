@@ -153,12 +153,13 @@ class InjectedTransport(Transport):
 
     def _flush_delayed(self) -> None:
         now = time.monotonic_ns()
-        if not self.delayed or self.delayed[0][0] > now:
-            return
+        sent = False
         while self.delayed and self.delayed[0][0] <= now:
             _, record, robot = self.delayed.popleft()
             self.inner.send(record, robot)
-        self.inner.flush()  # (sent outside a step of the ddm's)
+            sent = True
+        if sent:
+            self.inner.flush()  # (sent outside a step of the ddm's)
 
     def flush(self) -> None:
         if not self.closed:

@@ -168,6 +168,19 @@ def test_the_socket_floor_sends_to_every_robot_in_turn() -> None:
     assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < 1e6, got
 
 
+def test_the_zenoh_floor_answers_every_command_of_every_robot() -> None:
+    """Bare zenoh-python: the commander puts each robot's command at the
+    rate, each replier answers in zenoh's thread; every command timed and
+    answered."""
+    from redistro.bench import floor
+
+    got = floor.measure(200.0, 0.5, 19, robots=2, module="redistro.bench.zenoh_floor")
+    assert got["commands"] == 2 * 100 and got["replies"] == got["commands"], got
+    cpu, latency = got["reply_cpu_us"], got["latency_us"]
+    assert cpu["samples"] == latency["samples"] == got["commands"], got
+    assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < 1e6, got
+
+
 def test_the_kernels_bench_times_each_kernel_and_its_reference() -> None:
     from pathlib import Path
 
