@@ -76,7 +76,11 @@ def test_bench_ddm_moves_every_record_over_each_transport(transport: str, tmp_pa
     for robot, f in r["per_robot"].items():
         assert f["commands_sent"] >= 300, (robot, f)  # 2 s at 200 Hz
         assert f["commands_taken"] == f["commands_sent"], (robot, f)
-        assert f["feedback_taken"] >= f["commands_taken"] - 1, (robot, f)
+        # one reply per receive: commands that a stall of the host brings
+        # within one receive of the ESC's (a command latency past the 5 ms
+        # period) get one reply between them
+        stalled = f["command_latency_us"]["max"] > 5000
+        assert f["feedback_taken"] >= f["commands_taken"] - (8 if stalled else 1), (robot, f)
         c = f["command_latency_us"]
         assert 0 < c["p50"] <= c["p99"] <= c["max"], (robot, c)
         # each ESC side ends on the SSC's last command (which says the session
