@@ -271,10 +271,17 @@ def session_config(
     return out
 
 
-# zenoh's runtime, unless the user set it (``ZENOH_RUNTIME``): one RX
-# thread. A node's process has one link (an ESC's) or a few, records of a
-# few hundred bytes, and two vCPUs; with two, both woke for every record
-RUNTIME = "(rx: (worker_threads: 1))"
+# zenoh's runtime, unless the user set it (``ZENOH_RUNTIME``): one thread,
+# zenoh's RX runtime's, that the others hand their work to. A node's
+# process has one link (an ESC's) or a few, records of a few hundred bytes,
+# and two vCPUs. With a thread per runtime, an ESC's answer woke three (RX
+# read the command, TX wrote the reply, and the application runtime's timer
+# turned): now the reply is written by the thread that read the command,
+# after its callback, and an ESC's process wakes once per command
+RUNTIME = (
+    "(rx: (worker_threads: 1), tx: (handover: rx), app: (handover: rx),"
+    " acc: (handover: rx), net: (handover: rx))"
+)
 
 
 def open_session(settings: dict[str, Any]) -> Any:
@@ -511,8 +518,9 @@ class ZenohTransport(Transport):
                     f"{self.why_not}"
                 )
             return []
-        with contextlib.suppress(BlockingIOError):
-            os.eventfd_read(self.efd)
+        if ready is None or self.efd in ready:  # (a system call: only when it rang)
+            with contextlib.suppress(BlockingIOError):
+                os.eventfd_read(self.efd)
         if self.new_threads:  # from this (the ddm's) thread, which has the priority
             from redistro.ipc import sched
 
