@@ -353,10 +353,15 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
         steps.add(time.thread_time_ns() - c0)
 
     while time.monotonic() < end_by and not ddm.lost:
-        events = poll.wait(0.05)
+        # an answering ddm, once commanded, sleeps as a node's does (wait_s:
+        # its heartbeat's pace, out of the commands' burst); else 50 ms
+        answering = ddm.answering and ddm.commanded
+        events = poll.wait(ddm.wait_s() if answering else 0.05)
         ddm.ready_fds = [fd for fd, _ in events] or None
         now = time.monotonic()
-        if ddm.replying or (commands.seq == first_cmd and now >= next_datum):
+        # (an answering ddm's sample is made beside each command, in the
+        # transport's thread, even for one it leaves to this step)
+        if (ddm.replying and not answering) or (commands.seq == first_cmd and now >= next_datum):
             # (and the start-up datum, on its own, every 50 ms until a
             # command comes: on reflective memory the other robots' data
             # wake this process too, so silence cannot be waited for)

@@ -426,8 +426,6 @@ class _Runner:
         mine = Record(PROC_STATUS)
         row.read_into(mine.bytes)
         tick = Record(MANAGER)
-        wait_s = worker.wait_s()
-        wait_ns = int(wait_s * 1e9)
         wake_fd = self.wake_fd
         last_ns = time.monotonic_ns()
         cycle = 0
@@ -444,6 +442,8 @@ class _Runner:
                     for fd in fds:
                         poller.register(fd, select.EPOLLIN)
                     watched = list(fds)
+                wait_s = worker.wait_s()  # (asked each time: a ddm's changes)
+                wait_ns = int(wait_s * 1e9)
                 events = poller.poll(wait_s)
                 wake_ns = time.monotonic_ns()
                 ready = [fd for fd, _ev in events]

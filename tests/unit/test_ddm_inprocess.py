@@ -320,3 +320,32 @@ def test_over_sockets_the_kernels_receive_admit_and_send(
     assert esc.ddm.ex[0]["forged"] == 1 and esc.ddm.ex[0]["duplicate"] == 1
     assert float(esc.ld.block("command", 0).read()["tau_nm"][0]) == pytest.approx(2.0)
     assert esc.ddm.ex[0]["updates"] == 10
+
+
+def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A ddm that answers its commands in its transport's thread (zenoh's)
+    has nothing to step for on a deadline but its heartbeat: it sleeps a
+    third of its heartbeat limit and wakes half a period away from the
+    commands' arrival. Any other ddm (or one not yet answering) sleeps a
+    period."""
+    from redistro.ddm import worker as ddm_worker
+    from redistro.localdata.layout import EXCHANGE
+
+    period = 5_000_000
+    d = Ddm.__new__(Ddm)  # (only what wait_s reads)
+    d.period_ns, d.heartbeat_cycles = period, 25
+    d.answering, d.commanded, d.answered = True, True, 0
+    d.ex = [Record(EXCHANGE)]
+    assert d.wait_s() == pytest.approx(0.005)  # nothing answered yet
+    d.answered = 1
+    now = 10_000 * period + 1_300_000
+    monkeypatch.setattr(ddm_worker.time, "monotonic_ns", lambda: now)
+    for last in (now - 1_000_000, now - 4_900_000, now - 3 * period - 200_000):
+        d.ex[0]["last_update_ns"] = last
+        wake = now + round(d.wait_s() * 1e9)
+        assert (wake - last) % period == period // 2  # half a period after a command
+        assert 7 * period < wake - now <= 9 * period  # 25 // 3 periods, about
+    d.answering = False  # (a socket ESC, the SSC)
+    assert d.wait_s() == pytest.approx(0.005)
