@@ -4,7 +4,8 @@ peg figure) from fresh runs on this machine.
     python tools/perf_runs.py [--runs 3] [--prefix after] [--out docs/perf/group]
                               [--only main-socket,main-reflective,main-zenoh,1khz,selfcal-1khz]
                               [--figure]
-    python tools/perf_runs.py --ddm-sweep [--runs 3] [--out DIR]  # bench ddm, N = 1..16
+    python tools/perf_runs.py --ddm-sweep [--runs 3] [--out DIR] [--transports zenoh]
+                                                         # bench ddm, N = 1..16
     python tools/perf_runs.py --peg-campaigns            # docs/perf/peg: 20 trials per transport
 
 Each benchmark is ``redistro bench group`` with the command docs/PERFORMANCE.md
@@ -40,14 +41,14 @@ SWEEP = (1, 2, 4, 8, 16)
 TRANSPORTS = ("socket", "reflective", "zenoh")
 
 
-def ddm_sweep(runs: int, out: Path) -> int:
-    """``redistro bench ddm`` for every transport and N in SWEEP, 200 Hz, 10 s."""
+def ddm_sweep(runs: int, out: Path, transports: tuple[str, ...] = TRANSPORTS) -> int:
+    """``redistro bench ddm`` for each transport and N in SWEEP, 200 Hz, 10 s."""
     out.mkdir(parents=True, exist_ok=True)
     print("| transport | N | run | command p50/p99/max µs | feedback p50/p99/max µs "
           "| commands/s | lost | SSC ddm CPU % | ESC ddm CPU % (max) |")  # fmt: skip
     print("| --- | ---: | ---: | --- | --- | ---: | ---: | ---: | ---: |")
     for k in range(1, runs + 1):
-        for t in TRANSPORTS:
+        for t in transports:
             for n in SWEEP:
                 path = out / f"{t}-n{n}-run{k}.json"
                 subprocess.run(
@@ -120,10 +121,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=",".join(BENCHES))
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--ddm-sweep", action="store_true", help="bench ddm, every transport and N")
+    ap.add_argument("--transports", default=",".join(TRANSPORTS), help="(a sweep's)")
     ap.add_argument("--peg-campaigns", action="store_true", help="bench peg, every transport")
     a = ap.parse_args(argv)
     if a.ddm_sweep:
-        return ddm_sweep(a.runs, a.out or Path("docs/perf/ddm"))
+        chosen = tuple(t for t in a.transports.split(",") if t)
+        if not chosen or any(t not in TRANSPORTS for t in chosen):
+            print(f"tools/perf_runs.py: --transports {a.transports}: "
+                  f"one or more of {', '.join(TRANSPORTS)}", file=sys.stderr)  # fmt: skip
+            return 2
+        return ddm_sweep(a.runs, a.out or Path("docs/perf/ddm"), chosen)
     if a.peg_campaigns:
         return peg_campaigns(Path("docs/perf/peg"))
     names = [n for n in a.only.split(",") if n]

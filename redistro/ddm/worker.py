@@ -243,7 +243,9 @@ class Ddm(Worker):
             return period / 1e9
         quiet = max(1, self.heartbeat_cycles // 3)
         phase = (time.monotonic_ns() - int(self.ex[0]["last_update_ns"])) % period
-        return (quiet * period + period // 2 - phase) / 1e9
+        # in whole milliseconds, as epoll waits (it rounds up: the wake's
+        # lateness would read that rounding)
+        return max(1, (quiet * period + period // 2 - phase) // 1_000_000) / 1e3
 
     def step(self, cycle: int) -> None:
         if self.answering:

@@ -344,8 +344,11 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
     monkeypatch.setattr(ddm_worker.time, "monotonic_ns", lambda: now)
     for last in (now - 1_000_000, now - 4_900_000, now - 3 * period - 200_000):
         d.ex[0]["last_update_ns"] = last
-        wake = now + round(d.wait_s() * 1e9)
-        assert (wake - last) % period == period // 2  # half a period after a command
+        wait_ns = round(d.wait_s() * 1e9)
+        assert wait_ns % 1_000_000 == 0  # whole milliseconds, as epoll waits
+        wake = now + wait_ns
+        # about half a period after a command (1 ms early at most)
+        assert period // 2 - 1_000_000 < (wake - last) % period <= period // 2
         assert 7 * period < wake - now <= 9 * period  # 25 // 3 periods, about
     d.answering = False  # (a socket ESC, the SSC)
     assert d.wait_s() == pytest.approx(0.005)
