@@ -234,14 +234,15 @@ class Ddm(Worker):
         a node period, except in an ESC that answers in its transport's
         thread. There nothing is left for its own step to do on a deadline
         but sign its heartbeat (a lost link, an e-stop, a record it could
-        not take each wake it at once), so it sleeps a third of its
-        heartbeat limit, and wakes half a period away from the commands'
-        arrival: out of the group's burst, where its step (150-200 µs of a
-        vCPU, woken cold) held back the answers of every ESC on the host."""
+        not take each wake it at once), so it sleeps a quarter of its
+        heartbeat limit (the rest is the margin for a stalled host), and
+        wakes half a period away from the commands' arrival: out of the
+        group's burst, where its step (150-200 µs of a vCPU, woken cold)
+        held back the answers of every ESC on the host."""
         period = self.period_ns
         if not (self.answering and self.commanded and self.answered):
             return period / 1e9
-        quiet = max(1, self.heartbeat_cycles // 3)
+        quiet = max(1, self.heartbeat_cycles // 4)
         phase = (time.monotonic_ns() - int(self.ex[0]["last_update_ns"])) % period
         # in whole milliseconds, as epoll waits (it rounds up: the wake's
         # lateness would read that rounding)
