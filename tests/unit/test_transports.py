@@ -17,6 +17,7 @@ from redistro.ddm.transport import Transport, transport_class
 from redistro.errors import TransportError
 from redistro.ipc.names import new_session_id
 from redistro.localdata.layout import COMMAND, FEEDBACK
+from tests.helpers import wait_for
 
 Pair = tuple[Transport, Transport]  # (SSC side, ESC side)
 
@@ -540,17 +541,13 @@ def test_a_zenoh_esc_answers_in_zenohs_thread_and_queues_what_it_leaves() -> Non
 
         for c in cmds[:4]:  # one at a time (a burst may be dropped: express, DROP)
             ssc.send(c, 0)
-            deadline = time.monotonic() + 5
-            while not arrived(c) and time.monotonic() < deadline:
-                time.sleep(0.002)  # polling zenoh's thread's deliveries, to a deadline
+            wait_for(lambda c=c: arrived(c), 5, "zenoh's thread to deliver a command")
         assert select.select(esc.fds(), [], [], 0)[0] == esc.fds()  # woken
         assert esc.receive() == cmds[1:4]  # the left one, then those behind it
         assert [raw for _, raw in seen] == cmds[:2]
         assert threading.get_ident() not in {t for t, _ in seen}
         ssc.send(cmds[4], 0)  # the inbox is empty again: offered, and answered
-        deadline = time.monotonic() + 5
-        while len(seen) < 3 and time.monotonic() < deadline:
-            time.sleep(0.005)  # polling zenoh's thread's answers, to a deadline
+        wait_for(lambda: len(seen) >= 3, 5, "zenoh's thread to answer the last command")
         assert [raw for _, raw in seen] == cmds[:2] + cmds[4:]
         assert esc.receive() == []
     finally:
