@@ -1962,6 +1962,267 @@ static PyObject *ddm_reply(PyObject *mod, PyObject *const *args, Py_ssize_t narg
     return PyLong_FromLong(result);
 }
 
+/* -- an ESC ddm's answer, whole, in the transport's thread -- */
+
+/* Answerer(admit_plan, emit_plan, publish_plan, gate, estop_at, lock, put,
+ * inbox, fallback, wake, before): the callable a transport that delivers
+ * records on a thread of its own (zenoh's) hands each command to, in that
+ * thread, instead of the ddm's Python answer (Ddm._answer, which it does
+ * the same as, and which stays the reference). Called with a record (a
+ * bytes-like object) or a sample (its ``payload.to_bytes()``), it makes an
+ * ESC ddm's usual step whole: the command admitted (ddm_admit's common
+ * case), the node's newest feedback emitted (ddm_emit) and handed to
+ * ``put`` as the reply; every 64th answer the exchange records published
+ * (publish_plan, seq_write's). It takes a record only when gate[AG_OPEN]
+ * says the ddm answers, the manager's e-stop byte (ld byte estop_at of the
+ * admit plan) is clear, ``inbox`` is empty (records queued before it go
+ * first), and ``lock`` (the ddm's step lock) is free; anything else goes to
+ * ``fallback(raw)`` untouched (the transport's Python path: the ddm's own
+ * step). A torn read of the feedback, or a put that raised, leaves the
+ * reply to the ddm: gate[AG_OWED] set and ``wake()`` called. gate[AG_ANSWERED]
+ * counts the records taken. ``before`` (None, or a callable run first on
+ * every call: a bench's stand-in for the acquisition). The first call in
+ * each thread keeps that thread's Python thread state (one PyGILState_Ensure
+ * never released), as zenoh's threads otherwise make and free one around
+ * every record. */
+enum { AG_OPEN, AG_ANSWERED, AG_OWED, AG_NGATE };
+#define KEPT_THREADS 8
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *admit, *emit, *publish, *gate_obj, *acquire, *release, *put, *inbox, *fallback,
+        *wake, *before;
+    Py_buffer gate;
+    Py_ssize_t estop_at;
+    int closed;
+    int nkept;
+    unsigned long kept[KEPT_THREADS];
+} AnswererObject;
+
+static PyObject *STR_PAYLOAD, *STR_TO_BYTES;
+
+static int Answerer_traverse(AnswererObject *self, visitproc visit, void *arg) {
+    Py_VISIT(self->admit);
+    Py_VISIT(self->emit);
+    Py_VISIT(self->publish);
+    Py_VISIT(self->gate_obj);
+    Py_VISIT(self->acquire);
+    Py_VISIT(self->release);
+    Py_VISIT(self->put);
+    Py_VISIT(self->inbox);
+    Py_VISIT(self->fallback);
+    Py_VISIT(self->wake);
+    Py_VISIT(self->before);
+    return 0;
+}
+
+static int Answerer_clear(AnswererObject *self) {
+    if (self->gate_obj != NULL && self->gate.obj != NULL)
+        PyBuffer_Release(&self->gate);
+    Py_CLEAR(self->admit);
+    Py_CLEAR(self->emit);
+    Py_CLEAR(self->publish);
+    Py_CLEAR(self->gate_obj);
+    Py_CLEAR(self->acquire);
+    Py_CLEAR(self->release);
+    Py_CLEAR(self->put);
+    Py_CLEAR(self->inbox);
+    Py_CLEAR(self->fallback);
+    Py_CLEAR(self->wake);
+    Py_CLEAR(self->before);
+    return 0;
+}
+
+static void Answerer_dealloc(AnswererObject *self) {
+    PyObject_GC_UnTrack(self);
+    Answerer_clear(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int Answerer_init(AnswererObject *self, PyObject *args, PyObject *kwds) {
+    PyObject *admit, *emit, *publish, *gate, *lock, *put, *inbox, *fallback, *wake, *before;
+    Py_ssize_t estop_at;
+    if (!PyArg_ParseTuple(args, "O!O!O!OnOOOOOO", &PlanType, &admit, &PlanType, &emit, &PlanType,
+                          &publish, &gate, &estop_at, &lock, &put, &inbox, &fallback, &wake,
+                          &before))
+        return -1;
+    PlanObject *ap = (PlanObject *)admit, *ep = (PlanObject *)emit, *pp = (PlanObject *)publish;
+    if (strcmp(SIGNATURES[ap->kernel].name, "ddm_admit") != 0 ||
+        strcmp(SIGNATURES[ep->kernel].name, "ddm_emit") != 0 ||
+        strcmp(SIGNATURES[pp->kernel].name, "seq_write") != 0) {
+        PyErr_SetString(PyExc_ValueError, "Answerer: plans of ddm_admit, ddm_emit, seq_write");
+        return -1;
+    }
+    if (!admit_plan_ok(ap) || !emit_plan_ok(ep))
+        return -1;
+    if (estop_at < 0 || estop_at >= ap->n[DA_LD]) {
+        PyErr_SetString(PyExc_ValueError, "Answerer: the e-stop byte is outside Local Data");
+        return -1;
+    }
+    Answerer_clear(self);
+    if (PyObject_GetBuffer(gate, &self->gate, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
+        return -1;
+    if (self->gate.len < AG_NGATE * 8 || (uintptr_t)self->gate.buf % 8) {
+        PyBuffer_Release(&self->gate);
+        PyErr_SetString(PyExc_ValueError, "Answerer: the gate is 3 aligned int64");
+        return -1;
+    }
+    self->gate_obj = Py_NewRef(gate);
+    self->acquire = PyObject_GetAttrString(lock, "acquire");
+    self->release = PyObject_GetAttrString(lock, "release");
+    if (self->acquire == NULL || self->release == NULL) {
+        Answerer_clear(self);
+        return -1;
+    }
+    self->admit = Py_NewRef(admit);
+    self->emit = Py_NewRef(emit);
+    self->publish = Py_NewRef(publish);
+    self->put = Py_NewRef(put);
+    self->inbox = Py_NewRef(inbox);
+    self->fallback = Py_NewRef(fallback);
+    self->wake = Py_NewRef(wake);
+    self->before = before == Py_None ? NULL : Py_NewRef(before);
+    self->estop_at = estop_at;
+    self->closed = 0;
+    self->nkept = 0;
+    return 0;
+}
+
+/* The step's lock, not waited for: 1 taken, 0 busy, -1 an error. */
+static int answer_try_lock(AnswererObject *self) {
+    PyObject *r = PyObject_CallOneArg(self->acquire, Py_False);
+    if (r == NULL)
+        return -1;
+    int taken = r == Py_True;
+    Py_DECREF(r);
+    return taken;
+}
+
+/* The usual record taken whole (1), or left to the fallback (0), -1 an error. */
+static int answer_record(AnswererObject *self, const uint8_t *raw, Py_ssize_t len) {
+    int64_t *gate = (int64_t *)self->gate.buf;
+    PlanObject *ap = (PlanObject *)self->admit, *ep = (PlanObject *)self->emit;
+    if (self->closed || !gate[AG_OPEN] || U8(ap, DA_LD)[self->estop_at] ||
+        PyObject_Size(self->inbox) != 0)
+        return 0;
+    int taken = answer_try_lock(self);
+    if (taken <= 0)
+        return taken;
+    int done = 0, owed = 0;
+    /* (under the lock: the ddm may have closed the gate meanwhile) */
+    if (gate[AG_OPEN] && !U8(ap, DA_LD)[self->estop_at] && admit_record(ap, raw, len) >= 0) {
+        done = 1;
+        gate[AG_ANSWERED] += 1;
+        long mask = emit_rows(ep);
+        if (mask > 0) {
+            Py_ssize_t wsize = ((const Codec *)U8(ep, DE_CODEC))->body + 32;
+            PyObject *out = PyBytes_FromStringAndSize((const char *)U8(ep, DE_WIRE), wsize);
+            PyObject *r = out == NULL ? NULL : PyObject_CallOneArg(self->put, out);
+            Py_XDECREF(out);
+            if (r == NULL) {
+                PyErr_Clear(); /* (a closing session): the ddm's step sends, or learns why */
+                owed = 1;
+            }
+            Py_XDECREF(r);
+        } else if (mask < 0)
+            owed = 1; /* a torn read of the feedback: the ddm reads it again */
+        if (!(gate[AG_ANSWERED] & 63)) {
+            PyObject *r = seq_write(NULL, self->publish);
+            Py_XDECREF(r);
+        }
+        if (owed)
+            gate[AG_OWED] = 1;
+    }
+    PyObject *r = PyObject_CallNoArgs(self->release);
+    if (r == NULL)
+        return -1;
+    Py_DECREF(r);
+    if (owed) {
+        r = PyObject_CallNoArgs(self->wake);
+        if (r == NULL)
+            return -1;
+        Py_DECREF(r);
+    }
+    return done;
+}
+
+static PyObject *Answerer_call(AnswererObject *self, PyObject *args, PyObject *kwds) {
+    PyObject *arg;
+    if (!PyArg_UnpackTuple(args, "Answerer", 1, 1, &arg))
+        return NULL;
+    unsigned long me = PyThread_get_thread_ident();
+    int known = 0;
+    for (int k = 0; k < self->nkept && !known; k++)
+        known = self->kept[k] == me;
+    if (!known && self->nkept < KEPT_THREADS) {
+        self->kept[self->nkept++] = me;
+        (void)PyGILState_Ensure(); /* never released: the thread keeps its state */
+    }
+    PyObject *raw;
+    if (PyObject_CheckBuffer(arg))
+        raw = Py_NewRef(arg);
+    else {
+        PyObject *payload = PyObject_GetAttr(arg, STR_PAYLOAD);
+        if (payload == NULL)
+            return NULL;
+        raw = PyObject_CallMethodNoArgs(payload, STR_TO_BYTES);
+        Py_DECREF(payload);
+        if (raw == NULL)
+            return NULL;
+    }
+    if (self->before != NULL) {
+        PyObject *r = PyObject_CallNoArgs(self->before);
+        if (r == NULL) {
+            Py_DECREF(raw);
+            return NULL;
+        }
+        Py_DECREF(r);
+    }
+    Py_buffer b;
+    if (PyObject_GetBuffer(raw, &b, PyBUF_SIMPLE) < 0) {
+        Py_DECREF(raw);
+        return NULL;
+    }
+    int done = answer_record(self, b.buf, b.len);
+    PyBuffer_Release(&b);
+    if (done < 0) {
+        Py_DECREF(raw);
+        return NULL;
+    }
+    if (done) {
+        Py_DECREF(raw);
+        Py_RETURN_NONE;
+    }
+    PyObject *r = PyObject_CallOneArg(self->fallback, raw);
+    Py_DECREF(raw);
+    return r;
+}
+
+static PyObject *Answerer_close(AnswererObject *self, PyObject *unused) {
+    self->closed = 1;
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef ANSWERER_METHODS[] = {
+    {"close", (PyCFunction)Answerer_close, METH_NOARGS,
+     "Take no more records (each goes to the fallback)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject AnswererType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "redistro._kernels.Answerer",
+    .tp_basicsize = sizeof(AnswererObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Answerer_init,
+    .tp_dealloc = (destructor)Answerer_dealloc,
+    .tp_traverse = (traverseproc)Answerer_traverse,
+    .tp_clear = (inquiry)Answerer_clear,
+    .tp_call = (ternaryfunc)Answerer_call,
+    .tp_methods = ANSWERER_METHODS,
+    .tp_doc = "An ESC ddm's answer in the transport's thread (see the C source).",
+};
+
 /* -- introspection -- */
 
 static PyObject *signature(PyObject *mod, PyObject *arg) {
@@ -2032,7 +2293,11 @@ static struct PyModuleDef MODULE = {
 PyMODINIT_FUNC PyInit__kernels(void) {
     crc_init();
     sha_init_backend();
-    if (PyType_Ready(&PlanType) < 0)
+    if (PyType_Ready(&PlanType) < 0 || PyType_Ready(&AnswererType) < 0)
+        return NULL;
+    STR_PAYLOAD = PyUnicode_InternFromString("payload");
+    STR_TO_BYTES = PyUnicode_InternFromString("to_bytes");
+    if (STR_PAYLOAD == NULL || STR_TO_BYTES == NULL)
         return NULL;
     PyObject *m = PyModule_Create(&MODULE);
     if (m == NULL)
@@ -2040,6 +2305,12 @@ PyMODINIT_FUNC PyInit__kernels(void) {
     Py_INCREF(&PlanType);
     if (PyModule_AddObject(m, "Plan", (PyObject *)&PlanType) < 0) {
         Py_DECREF(&PlanType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&AnswererType);
+    if (PyModule_AddObject(m, "Answerer", (PyObject *)&AnswererType) < 0) {
+        Py_DECREF(&AnswererType);
         Py_DECREF(m);
         return NULL;
     }

@@ -5,6 +5,25 @@ from typing import Any
 class Plan:
     def __init__(self, kernel: str, buffers: dict[str, Any], /) -> None: ...
 
+class Answerer:
+    def __init__(
+        self,
+        admit: Plan,
+        emit: Plan,
+        publish: Plan,
+        gate: Any,
+        estop_at: int,
+        lock: Any,
+        put: Any,
+        inbox: Any,
+        fallback: Any,
+        wake: Any,
+        before: Any,
+        /,
+    ) -> None: ...
+    def __call__(self, record_or_sample: Any, /) -> None: ...
+    def close(self) -> None: ...
+
 def copy(plan: Plan, /) -> None: ...
 def seq_read(plan: Plan, /) -> int: ...
 def seq_write(plan: Plan, /) -> None: ...

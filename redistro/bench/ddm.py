@@ -329,9 +329,12 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
             fb["step"] = seq
             writer.publish(fb.bytes)
 
-    if ddm.answering:
+    if ddm.answering and ddm.gate is not None:
         # a ddm that answers each command in its transport's thread: the
-        # fresh sample goes first there, as it does before a step here
+        # fresh sample goes first there, as it does before a step here (the
+        # compiled answer runs it first on every record)
+        ddm.before_answer = sample
+    elif ddm.answering:
         answer = ddm.transport.answer
 
         def answered(raw: bytes) -> int:

@@ -23,6 +23,9 @@ if TYPE_CHECKING:
 
 # what an answer (``Transport.answer_with``) did with a record
 NOT_TAKEN, ANSWERED, OWED = 0, 1, 2
+# a compiled answer's gate (an int64 array the ddm and the kernel share;
+# AG_* in the C source): open, records taken, a reply owed
+AG_OPEN, AG_ANSWERED, AG_OWED = 0, 1, 2
 
 
 class Transport(ABC):
@@ -95,7 +98,11 @@ class Transport(ABC):
 
     rx: Any = None  # the receive buffer of reply_fd's socket
 
-    def answer_with(self, answer: Callable[[bytes], int]) -> bool:
+    def answer_with(
+        self,
+        answer: Callable[[bytes], int],
+        compiled: Callable[[Any, Any, Any, Any], Callable[[Any], None]] | None = None,
+    ) -> bool:
         """A transport whose records arrive on a thread of its own (zenoh's):
         hand each record there, as it arrives, to ``answer(raw)``, which
         makes the ddm's usual step for it whole without waking the ddm
@@ -103,8 +110,12 @@ class Transport(ABC):
         record is queued for the ddm's ``receive`` as usual, and wakes it),
         ``ANSWERED``, or ``OWED`` (taken; the ddm is woken for the rest of
         its step). While records wait in the queue, the later ones queue
-        behind them (the ddm admits them in order). False: this transport
-        cannot."""
+        behind them (the ddm admits them in order). ``compiled``: an ESC's
+        same answer in one compiled call, made for the transport by
+        ``compiled(put, inbox, fallback, wake)`` (``put(reply)`` sends the
+        reply to the record's sender; ``fallback(raw)``, the transport's
+        own path for a record it does not take; ``wake()`` wakes the ddm),
+        which the transport may use instead. False: this transport cannot."""
         return False
 
     def reply_fd(self, ready: Collection[int] | None) -> int:

@@ -45,6 +45,9 @@ from redistro.config import Config
 from redistro.ddm import record as wire
 from redistro.ddm.fast import FastPath
 from redistro.ddm.transport import (
+    AG_ANSWERED,
+    AG_OPEN,
+    AG_OWED,
     ANSWERED,
     NOT_TAKEN,
     OWED,
@@ -107,7 +110,12 @@ class Ddm(Worker):
         self.step_lock = threading.Lock()
         self.answering = False
         self.owed = False  # an answer's feedback the ddm's own step is to send
-        self.answered = 0  # records taken whole in the transport's thread
+        self.answered_here = 0  # records the Python answer took whole
+        # an ESC's compiled answer (``_compiled_answer``): its gate and counts
+        # (AG_* in the C source), and what runs before each (a bench's stand-in
+        # for the acquisition; None in a node)
+        self.gate: Any = None
+        self.before_answer: Any = None
 
     def initialize(self) -> None:
         self.cfg = self.spec.cfg()
@@ -222,7 +230,48 @@ class Ddm(Worker):
         self.publish_call = fast.publish_call
         self.publish_plan = fast.publish_plan
         if not self.socket_kernels:
-            self.answering = self.transport.answer_with(self._answer)
+            compiled = None
+            if self.kind == "esc" and hasattr(KERNELS, "Answerer"):
+                self.gate = np.zeros(3, dtype=np.int64)
+                _, manager_at, _ = ld.block_offsets("manager")
+                self.estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
+                compiled = self._compiled_answer
+            self.answering = self.transport.answer_with(self._answer, compiled)
+            self._open_gate()
+
+    @property
+    def answered(self) -> int:
+        """Records taken whole in the transport's thread (by either answer)."""
+        return self.answered_here + (0 if self.gate is None else int(self.gate[AG_ANSWERED]))
+
+    def _open_gate(self) -> None:
+        """The compiled answer's gate: open while this ddm answers, was
+        commanded and has its link (the e-stop it reads itself)."""
+        if self.gate is not None:
+            self.gate[AG_OPEN] = int(self.answering and self.commanded and not self.lost)
+
+    def _compiled_answer(self, put: Any, inbox: Any, fallback: Any, wake: Any) -> Any:
+        """An ESC's answer in one compiled call (``_kernels.Answerer``), for
+        the transport to hand each command to in its thread: what
+        :meth:`_answer` does, over the same kernels, state and step lock,
+        without the interpreter between them. ``put`` sends the reply; a
+        record it does not take goes to ``fallback(raw)`` (the transport's
+        Python path); ``wake()`` when the ddm's own step owes the reply."""
+        fast = self.fast
+        assert fast is not None and KERNELS is not None
+        return KERNELS.Answerer(
+            fast.admit_plan,
+            fast.emit_plan,
+            fast.publish_plan,
+            self.gate,
+            self.estop_at,
+            self.step_lock,
+            put,
+            inbox,
+            fallback,
+            wake,
+            self.before_answer,
+        )
 
     # -- one tick --
 
@@ -269,6 +318,8 @@ class Ddm(Worker):
                 fresh = self._receive()
                 new_estop = estop and not self.estop_sent
                 owed, self.owed = self.owed, False
+                if self.gate is not None and self.gate[AG_OWED]:
+                    owed, self.gate[AG_OWED] = True, 0
                 if owed or not (self.replying and self.commanded and not fresh and not new_estop):
                     self._send(estop)  # (replying, feedback goes out with a command only)
             else:
@@ -281,6 +332,7 @@ class Ddm(Worker):
             # no retry: a lost link is a fault; the data stop and the
             # managers' starving checks end the session within their limits
             self.lost = True
+            self._open_gate()
             for ex in self.ex:
                 ex["link_lost"] = 1
                 ex["fresh"] = 0
@@ -297,9 +349,10 @@ class Ddm(Worker):
         if self.dirty and (self.kind != "esc" or self.urgent or not self.steps & 63):
             self._publish()
         every = self.transport.status_every
-        if every and self.steps - self.status_at >= every:
+        steps = self.steps if self.gate is None else self.steps + int(self.gate[AG_ANSWERED])
+        if every and steps - self.status_at >= every:
             # (by count: answers in the transport's thread step the count too)
-            self.status_at = self.steps
+            self.status_at = steps
             self._status(estop)
 
     def _reply(self) -> bool:
@@ -348,7 +401,7 @@ class Ddm(Worker):
             if fast.admit_call(fast.admit_plan, raw) < 0:
                 return NOT_TAKEN
             self.dirty = True
-            self.answered += 1
+            self.answered_here += 1
             if not esc:
                 self._publish()
                 return ANSWERED
@@ -508,6 +561,7 @@ class Ddm(Worker):
                 self.urgent = True
             if not self.commanded:
                 self.commanded = True
+                self._open_gate()
                 if self.replying:  # ... feedback goes out as the replies to commands
                     ex["feedback_wanted"] = 0
             ex["updates"] += 1
@@ -595,6 +649,7 @@ class Ddm(Worker):
     def cleanup(self) -> None:
         with self.step_lock:
             self.answering = False  # the transport's thread answers no more
+            self._open_gate()
         with contextlib.suppress(Exception):
             self.manager_block.read_into(self.mgr.bytes)
             if self.mgr["estop"] and not self.lost:

@@ -349,6 +349,8 @@ class ZenohTransport(Transport):
         )
         self.pubs: dict[int, Any] = {}
         self.answer: Callable[[bytes], int] | None = None  # (answer_with)
+        self.compiled: Callable[..., Any] | None = None  # ... an ESC's, compiled
+        self.answerer: Any = None  # the compiled answer, once made
         self.kept: set[int] = set()  # zenoh's threads that keep a Python thread state
         self.session: Any = None
         self.why_not = ""
@@ -394,10 +396,16 @@ class ZenohTransport(Transport):
             self.pubs = {gids[r]: s.declare_publisher(feedback_key(group, r), **express)}
             # an ESC that answers in zenoh's thread: the command is taken
             # and answered in the RX thread that read it, without the hand-off
-            # to zenoh-python's callback thread and the ddm's wake
+            # to zenoh-python's callback thread and the ddm's wake; by the
+            # ddm's compiled answer when it has one (this path its fallback)
             take: Any = self._take
+            if self.compiled is not None:
+                self.answerer = self.compiled(
+                    self.pubs[gids[r]].put, self.inbox, self._take_raw, self._wake
+                )
+                take = self.answerer
             if self.answer is not None:
-                take = zenoh.handlers.Callback(self._take, indirect=False)
+                take = zenoh.handlers.Callback(take, indirect=False)
             self.subs = [s.declare_subscriber(command_key(group, r), take)]
         self.status_pub = s.declare_publisher(status_key(group, self.node))
         self.status_every = STATUS_EVERY
@@ -453,7 +461,9 @@ class ZenohTransport(Transport):
         ident = threading.get_ident()
         if ident not in self.kept:
             _keep_thread_state(ident, self.kept)
-        raw = sample.payload.to_bytes()
+        self._take_raw(sample.payload.to_bytes())
+
+    def _take_raw(self, raw: bytes) -> None:
         answer = self.answer
         inbox = self.inbox
         if answer is not None and not inbox and not self.closed:
@@ -473,10 +483,15 @@ class ZenohTransport(Transport):
             # not yet finished taking it and takes this one too
             self._wake()
 
-    def answer_with(self, answer: Callable[[bytes], int]) -> bool:
+    def answer_with(
+        self,
+        answer: Callable[[bytes], int],
+        compiled: Callable[[Any, Any, Any, Any], Callable[[Any], None]] | None = None,
+    ) -> bool:
         if self.session is not None:
             return False  # (the subscriber is declared at the opening)
         self.answer = answer
+        self.compiled = compiled if self.kind == "esc" else None
         return True
 
     def _wake(self) -> None:
@@ -565,6 +580,8 @@ class ZenohTransport(Transport):
         if self.closed:
             return
         self.closed = True
+        if self.answerer is not None:
+            self.answerer.close()  # (zenoh's thread may still be in a callback)
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import zlib
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -335,3 +336,111 @@ def test_reply_receives_admits_and_sends_back_in_one_call(ld: LocalData) -> None
     finally:
         a.close()
         b.close()
+
+
+def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: LocalData) -> None:
+    """_kernels.Answerer, an ESC's answer in the transport's thread: a sound
+    command admitted and the new feedback handed to put as the reply (a
+    sample's payload, or bytes); with no new feedback, admitted and nothing
+    put. Everything else goes to the fallback untouched: the gate closed,
+    the e-stop up, records queued before it, the step's lock held, a record
+    the kernel refuses, an answerer closed. A put that raises leaves the
+    reply owed and wakes the ddm; every 64th answer publishes the exchange."""
+    import collections
+    import threading
+
+    from redistro.ddm.transport import AG_ANSWERED, AG_OPEN, AG_OWED
+    from redistro.localdata.layout import EXCHANGE, MANAGER
+
+    assert KERNELS is not None
+    fast = _esc_fast(ld, Samples(8))
+    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    fast.ex[0]["fresh"] = 1
+    feedback = ld.writer("feedback", 0, role="acquisition")
+    rec = Record(FEEDBACK)
+    gate = np.zeros(3, dtype=np.int64)
+    _, manager_at, _ = ld.block_offsets("manager")
+    estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
+    lock = threading.Lock()
+    put: list[bytes] = []
+    inbox: collections.deque[bytes] = collections.deque()
+    fallen: list[bytes] = []
+    woken: list[int] = []
+    before: list[int] = []
+
+    class Payload:
+        def __init__(self, raw: bytes) -> None:
+            self.raw = raw
+
+        def to_bytes(self) -> bytes:
+            return self.raw
+
+    class Sample:  # (zenoh's: the record is its payload's bytes)
+        def __init__(self, raw: bytes) -> None:
+            self.payload = Payload(raw)
+
+    def failing_put(reply: bytes) -> None:
+        raise RuntimeError("the session is closing")
+
+    def answerer(put_call: object) -> Any:
+        return KERNELS.Answerer(
+            fast.admit_plan,
+            fast.emit_plan,
+            fast.publish_plan,
+            gate,
+            estop_at,
+            lock,
+            put_call,
+            inbox,
+            fallen.append,
+            lambda: woken.append(1),
+            lambda: before.append(1),
+        )
+
+    answer = answerer(put.append)
+    first = _command(2, 200, mark=1.5)
+    answer(Sample(first))  # the gate closed (not yet commanded): the Python path's
+    assert fallen == [first] and not put and int(fast.ex[0]["updates"]) == 0
+    assert before == [1]
+
+    gate[AG_OPEN] = 1
+    rec["seq_src"] = 7
+    feedback.publish(rec.bytes)
+    answer(Sample(_command(3, 300, mark=2.5)))
+    assert float(ld.block("command", 0).read()["tau_nm"][0]) == 2.5
+    assert len(put) == 1 and int(wire.decode(put[0], KEY).payload["seq_src"]) == 7
+    assert int(gate[AG_ANSWERED]) == 1 and int(fast.ex[0]["updates"]) == 1
+    answer(_command(4, 400))  # bytes; no new feedback: admitted, nothing put
+    assert len(put) == 1 and int(gate[AG_ANSWERED]) == 2
+
+    refused = [_command(5, 500, key=LONG_KEY), _command(4, 450)]  # forged; a duplicate
+    for raw in refused:
+        answer(raw)
+    assert fallen[1:] == refused and int(gate[AG_ANSWERED]) == 2
+    left = [_command(5, 500), _command(6, 600), _command(7, 700)]
+    inbox.append(b"queued first")
+    answer(left[0])
+    inbox.clear()
+    with lock:  # the ddm stepping
+        answer(left[1])
+    ld.raw[estop_at] = 1
+    answer(left[2])
+    ld.raw[estop_at] = 0
+    assert fallen[3:] == left and int(gate[AG_ANSWERED]) == 2
+
+    rec["seq_src"] = 8
+    feedback.publish(rec.bytes)
+    answerer(failing_put)(_command(8, 800))  # admitted, the reply owed to the ddm
+    assert int(gate[AG_OWED]) == 1 and woken == [1] and int(gate[AG_ANSWERED]) == 3
+    assert not lock.locked()
+
+    exchange = ld.block("exchange", 0)
+    for k in range(9, 9 + 61):  # the 64th answer publishes the exchange
+        answer(_command(k, 100 * k))
+    assert int(gate[AG_ANSWERED]) == 64
+    assert int(np.frombuffer(exchange.read().tobytes(), EXCHANGE)[0]["updates"]) == 64
+
+    answer.close()
+    answer(_command(70, 7000))
+    assert fallen[-1] == _command(70, 7000) and int(gate[AG_ANSWERED]) == 64
+    assert len(before) == 1 + 1 + 1 + 2 + 3 + 1 + 61 + 1  # run first on every record

@@ -336,10 +336,10 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
     period = 5_000_000
     d = Ddm.__new__(Ddm)  # (only what wait_s reads)
     d.period_ns, d.heartbeat_cycles = period, 25
-    d.answering, d.commanded, d.answered = True, True, 0
+    d.answering, d.commanded, d.answered_here, d.gate = True, True, 0, None
     d.ex = [Record(EXCHANGE)]
     assert d.wait_s() == pytest.approx(0.005)  # nothing answered yet
-    d.answered = 1
+    d.answered_here = 1
     now = 10_000 * period + 1_300_000
     monkeypatch.setattr(ddm_worker.time, "monotonic_ns", lambda: now)
     for last in (now - 1_000_000, now - 4_900_000, now - 3 * period - 200_000):
