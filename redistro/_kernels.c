@@ -1969,11 +1969,13 @@ static PyObject *ddm_reply(PyObject *mod, PyObject *const *args, Py_ssize_t narg
  * records on a thread of its own (zenoh's) hands each command to, in that
  * thread, instead of the ddm's Python answer (Ddm._answer, which it does
  * the same as, and which stays the reference). Called with a record (a
- * bytes-like object) or a sample (its ``payload.to_bytes()``), it makes an
- * ESC ddm's usual step whole: the command admitted (ddm_admit's common
- * case), the node's newest feedback emitted (ddm_emit) and handed to
- * ``put`` as the reply; every 64th answer the exchange records published
- * (publish_plan, seq_write's). It takes a record only when gate[AG_OPEN]
+ * bytes-like object) or a sample (its ``payload.to_bytes()``), it makes a
+ * ddm's usual step for it whole. An ESC's: the command admitted (ddm_admit's
+ * common case), the node's newest feedback emitted (ddm_emit) and handed to
+ * ``put`` as the reply, and every 64th answer the exchange records
+ * published (publish_plan, seq_write's). The SSC's (``put`` None): the
+ * feedback admitted and the exchange published (its manager watches every
+ * robot's updates). It takes a record only when gate[AG_OPEN]
  * says the ddm answers, the manager's e-stop byte (ld byte estop_at of the
  * admit plan) is clear, ``inbox`` is empty (records queued before it go
  * first), and ``lock`` (the ddm's step lock) is free; anything else goes to
@@ -2077,7 +2079,7 @@ static int Answerer_init(AnswererObject *self, PyObject *args, PyObject *kwds) {
     self->admit = Py_NewRef(admit);
     self->emit = Py_NewRef(emit);
     self->publish = Py_NewRef(publish);
-    self->put = Py_NewRef(put);
+    self->put = put == Py_None ? NULL : Py_NewRef(put);
     self->inbox = Py_NewRef(inbox);
     self->fallback = Py_NewRef(fallback);
     self->wake = Py_NewRef(wake);
@@ -2113,7 +2115,7 @@ static int answer_record(AnswererObject *self, const uint8_t *raw, Py_ssize_t le
     if (gate[AG_OPEN] && !U8(ap, DA_LD)[self->estop_at] && admit_record(ap, raw, len) >= 0) {
         done = 1;
         gate[AG_ANSWERED] += 1;
-        long mask = emit_rows(ep);
+        long mask = self->put == NULL ? 0 : emit_rows(ep);
         if (mask > 0) {
             Py_ssize_t wsize = ((const Codec *)U8(ep, DE_CODEC))->body + 32;
             PyObject *out = PyBytes_FromStringAndSize((const char *)U8(ep, DE_WIRE), wsize);
@@ -2126,7 +2128,7 @@ static int answer_record(AnswererObject *self, const uint8_t *raw, Py_ssize_t le
             Py_XDECREF(r);
         } else if (mask < 0)
             owed = 1; /* a torn read of the feedback: the ddm reads it again */
-        if (!(gate[AG_ANSWERED] & 63)) {
+        if (self->put == NULL || !(gate[AG_ANSWERED] & 63)) {
             PyObject *r = seq_write(NULL, self->publish);
             Py_XDECREF(r);
         }

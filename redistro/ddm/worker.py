@@ -231,7 +231,7 @@ class Ddm(Worker):
         self.publish_plan = fast.publish_plan
         if not self.socket_kernels:
             compiled = None
-            if self.kind == "esc" and hasattr(KERNELS, "Answerer"):
+            if hasattr(KERNELS, "Answerer"):
                 self.gate = np.zeros(3, dtype=np.int64)
                 _, manager_at, _ = ld.block_offsets("manager")
                 self.estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
@@ -248,15 +248,17 @@ class Ddm(Worker):
         """The compiled answer's gate: open while this ddm answers, was
         commanded and has its link (the e-stop it reads itself)."""
         if self.gate is not None:
-            self.gate[AG_OPEN] = int(self.answering and self.commanded and not self.lost)
+            commanded = self.commanded or self.kind != "esc"
+            self.gate[AG_OPEN] = int(self.answering and commanded and not self.lost)
 
     def _compiled_answer(self, put: Any, inbox: Any, fallback: Any, wake: Any) -> Any:
-        """An ESC's answer in one compiled call (``_kernels.Answerer``), for
-        the transport to hand each command to in its thread: what
-        :meth:`_answer` does, over the same kernels, state and step lock,
-        without the interpreter between them. ``put`` sends the reply; a
-        record it does not take goes to ``fallback(raw)`` (the transport's
-        Python path); ``wake()`` when the ddm's own step owes the reply."""
+        """The answer in one compiled call (``_kernels.Answerer``), for the
+        transport to hand each record to in its thread: what :meth:`_answer`
+        does, over the same kernels, state and step lock, without the
+        interpreter between them. ``put`` sends an ESC's reply (None: the
+        SSC's side, which replies with nothing); a record it does not take
+        goes to ``fallback(raw)`` (the transport's Python path); ``wake()``
+        when the ddm's own step owes the reply."""
         fast = self.fast
         assert fast is not None and KERNELS is not None
         return KERNELS.Answerer(
@@ -289,7 +291,7 @@ class Ddm(Worker):
         group's burst, where its step (150-200 µs of a vCPU, woken cold)
         held back the answers of every ESC on the host."""
         period = self.period_ns
-        if not (self.answering and self.commanded and self.answered):
+        if not (self.kind == "esc" and self.answering and self.commanded and self.answered):
             return period / 1e9
         quiet = max(1, self.heartbeat_cycles // 4)
         phase = (time.monotonic_ns() - int(self.ex[0]["last_update_ns"])) % period

@@ -390,7 +390,11 @@ class ZenohTransport(Transport):
             # (its callback stays in zenoh-python's own thread: in the RX
             # thread it would hold the group's network while the ddm, sending
             # the commands, holds the interpreter)
-            self.subs = [s.declare_subscriber(feedback_key(group, "*"), self._take)]
+            take: Any = self._take
+            if self.compiled is not None:  # (the SSC's: put None, no reply)
+                self.answerer = self.compiled(None, self.inbox, self._take_raw, self._wake)
+                take = self.answerer
+            self.subs = [s.declare_subscriber(feedback_key(group, "*"), take)]
         else:
             r = robots[0]
             self.pubs = {gids[r]: s.declare_publisher(feedback_key(group, r), **express)}
@@ -398,7 +402,7 @@ class ZenohTransport(Transport):
             # and answered in the RX thread that read it, without the hand-off
             # to zenoh-python's callback thread and the ddm's wake; by the
             # ddm's compiled answer when it has one (this path its fallback)
-            take: Any = self._take
+            take = self._take
             if self.compiled is not None:
                 self.answerer = self.compiled(
                     self.pubs[gids[r]].put, self.inbox, self._take_raw, self._wake
@@ -491,7 +495,7 @@ class ZenohTransport(Transport):
         if self.session is not None:
             return False  # (the subscriber is declared at the opening)
         self.answer = answer
-        self.compiled = compiled if self.kind == "esc" else None
+        self.compiled = compiled
         return True
 
     def _wake(self) -> None:

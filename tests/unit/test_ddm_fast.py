@@ -444,3 +444,78 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     answer(_command(70, 7000))
     assert fallen[-1] == _command(70, 7000) and int(gate[AG_ANSWERED]) == 64
     assert len(before) == 1 + 1 + 1 + 2 + 3 + 1 + 61 + 1  # run first on every record
+
+
+def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -> None:
+    """The SSC's side of _kernels.Answerer (put None): each sound feedback
+    admitted into its robot's block and the exchange published at once (the
+    manager watches every robot's updates); nothing is put."""
+    import collections
+    import threading
+
+    from redistro.ddm.transport import AG_ANSWERED, AG_OPEN
+    from redistro.localdata.layout import EXCHANGE, MANAGER
+
+    assert KERNELS is not None
+    from redistro.ipc.names import new_session_id
+
+    seg = LocalData.create(
+        new_session_id(),
+        "ssc",
+        node_kind="ssc",
+        proc_names=["worker", "ddm"],
+        proc_roles=["worker", "ddm"],
+        proc_stages=[0, -1],
+        robot_names=["r1", "r2"],
+        rate_hz=200.0,
+        period_ns=5_000_000,
+        heartbeat_limit_cycles=5,
+        manifest=None,
+        memory=True,
+    )
+    try:
+        fast = FastPath(
+            seg,
+            [0, 1],
+            [("feedback", 0), ("feedback", 1)],
+            [("command", 0), ("command", 1)],
+            wire.KIND_FEEDBACK,
+            wire.KIND_COMMAND,
+            "ssc",
+            KEY,
+            starving=False,
+            latency=Samples(8),
+        )
+        for i, name in enumerate(("esc.r1", "esc.r2")):
+            source = name.encode().ljust(16, b"\0")
+            fast.refuse(wire.Admission(), i, source, wire.KIND_FEEDBACK, i, 1, 100)
+            fast.ex[i]["fresh"] = 1
+        gate = np.zeros(3, dtype=np.int64)
+        gate[AG_OPEN] = 1
+        _, manager_at, _ = seg.block_offsets("manager")
+        fallen: list[bytes] = []
+        answer = KERNELS.Answerer(
+            fast.admit_plan,
+            fast.emit_plan,
+            fast.publish_plan,
+            gate,
+            manager_at + int(MANAGER.fields["estop"][1]),  # type: ignore[index]
+            threading.Lock(),
+            None,
+            collections.deque(),
+            fallen.append,
+            lambda: None,
+            None,
+        )
+        payload = np.zeros((), FEEDBACK)
+        payload["seq_src"] = 5
+        answer(wire.encode(wire.KIND_FEEDBACK, 1, "esc.r2", 2, 200, payload, key=KEY))
+        assert int(seg.block("feedback", 1).read()["seq_src"]) == 5
+        published = np.frombuffer(seg.block("exchange", 1).read().tobytes(), EXCHANGE)[0]
+        assert int(published["updates"]) == 1 and int(gate[AG_ANSWERED]) == 1
+        other = wire.encode(wire.KIND_FEEDBACK, 0, "esc.r2", 3, 300, payload, key=KEY)
+        answer(other)  # robot r1's feedback from r2's ESC: the Python path refuses it
+        assert fallen == [other] and int(gate[AG_ANSWERED]) == 1
+    finally:
+        seg.close()
+        seg.unlink()

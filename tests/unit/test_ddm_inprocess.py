@@ -336,7 +336,7 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
     period = 5_000_000
     d = Ddm.__new__(Ddm)  # (only what wait_s reads)
     d.period_ns, d.heartbeat_cycles = period, 25
-    d.answering, d.commanded, d.answered_here, d.gate = True, True, 0, None
+    d.kind, d.answering, d.commanded, d.answered_here, d.gate = "esc", True, True, 0, None
     d.ex = [Record(EXCHANGE)]
     assert d.wait_s() == pytest.approx(0.005)  # nothing answered yet
     d.answered_here = 1
@@ -350,5 +350,7 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
         # about half a period after a command (1 ms early at most)
         assert period // 2 - 1_000_000 < (wake - last) % period <= period // 2
         assert 5 * period < wake - now <= 7 * period  # 25 // 4 periods, about
-    d.answering = False  # (a socket ESC, the SSC)
+    d.kind = "ssc"  # (answering in zenoh's thread too, but woken by its worker)
+    assert d.wait_s() == pytest.approx(0.005)
+    d.kind, d.answering = "esc", False  # (a socket ESC)
     assert d.wait_s() == pytest.approx(0.005)
