@@ -319,15 +319,18 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
     cpu0, t0 = _cpu_s(), time.monotonic()
 
     sampling = threading.Lock()
+    # (the stand-in's own cost kept small: it runs in the answering thread,
+    # on the way of every command it times)
+    seq_word, stamp_word, step_word = fb.word("seq_src"), fb.word("stamp_ns"), fb.word("step")
+    publish, record, stamp = writer.publish, fb.bytes, time.monotonic_ns
 
     def sample() -> None:
         nonlocal seq
         with sampling:  # (the ddm's step, or zenoh's thread answering)
             seq += 1
-            fb["seq_src"] = seq
-            fb["stamp_ns"] = time.monotonic_ns()
-            fb["step"] = seq
-            writer.publish(fb.bytes)
+            seq_word[0] = step_word[0] = seq
+            stamp_word[0] = stamp()
+            publish(record)
 
     if ddm.answering and ddm.gate is not None:
         # a ddm that answers each command in its transport's thread: the

@@ -68,6 +68,11 @@ class Record:
     def __setitem__(self, name: str, value: int | float) -> None:
         self._words[name][0] = value
 
+    def word(self, name: str) -> Any:
+        """The one-element memoryview of a scalar field (``word[0]``), for a
+        loop that sets the field without the lookup."""
+        return self._words[name]
+
     def release(self) -> None:
         """Drop the memoryviews (before the record is discarded with a mapping)."""
         for word in self._words.values():
