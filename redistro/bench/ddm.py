@@ -459,6 +459,9 @@ def _ssc_loop(
     due = time.monotonic_ns()
     seq = 0
     steps = samples()  # the CPU of each of the ddm's steps
+    # (the worker's stand-in kept small: its commands are timed from their stamps)
+    seq_word, stamp_word, record = cmd.word("seq_src"), cmd.word("stamp_ns"), cmd.bytes
+    publishes, clock = [w.publish for w in writers], time.monotonic_ns
     while time.monotonic() < stop and not ddm.lost:
         now = time.monotonic_ns()
         if now >= due:
@@ -466,10 +469,11 @@ def _ssc_loop(
             # before the commands, the reads stay out of the burst they time
             take(True)
             seq += 1
-            for i, w in enumerate(writers):
-                cmd["seq_src"] = seq
-                cmd["stamp_ns"] = time.monotonic_ns()
-                w.publish(cmd.bytes)
+            seq_word[0] = seq
+            for publish in publishes:  # (each stamped as it goes)
+                stamp_word[0] = clock()
+                publish(record)
+            for i in range(len(sent)):
                 sent[i] += 1
             due += period_ns
             ddm.ready_fds = []  # woken by its worker's command (as by a node's wake event)
