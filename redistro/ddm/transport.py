@@ -110,12 +110,13 @@ class Transport(ABC):
         record is queued for the ddm's ``receive`` as usual, and wakes it),
         ``ANSWERED``, or ``OWED`` (taken; the ddm is woken for the rest of
         its step). While records wait in the queue, the later ones queue
-        behind them (the ddm admits them in order). ``compiled``: an ESC's
-        same answer in one compiled call, made for the transport by
-        ``compiled(put, inbox, fallback, wake)`` (``put(reply)`` sends the
-        reply to the record's sender; ``fallback(raw)``, the transport's
-        own path for a record it does not take; ``wake()`` wakes the ddm),
-        which the transport may use instead. False: this transport cannot."""
+        behind them (the ddm admits them in order). ``compiled``: the same
+        answer in one compiled call, made for the transport by
+        ``compiled(put, inbox, fallback, wake)`` (``put(reply)`` sends an
+        ESC's reply to the record's sender, None on the SSC's side;
+        ``fallback(raw)``, the transport's own path for a record it does
+        not take; ``wake()`` wakes the ddm), which the transport may hand
+        each record or sample to instead. False: this transport cannot."""
         return False
 
     def reply_fd(self, ready: Collection[int] | None) -> int:

@@ -20,9 +20,11 @@ sends what this node produced since:
 
 Over a transport that delivers records on a thread of its own (zenoh),
 the usual record is taken there, as it arrives, without waking the ddm
-(``_answer``: admitted by the kernel; an ESC's reply emitted and sent):
-the step's state is shared under ``step_lock``, and whatever the answer
-does not take whole goes to the ddm's own step.
+(admitted by the kernel; an ESC's reply emitted and sent): in one compiled
+call (``_compiled_answer``, the C ``_kernels.Answerer``), else by
+``_answer``, its Python reference. The step's state is shared under
+``step_lock``, and whatever the answer does not take whole goes to the
+ddm's own step.
 
 Every record carries the node's e-stop: a manager that ended on a fault has
 its ddm say so in every record from then on, and once more at Cleanup. A
@@ -111,9 +113,9 @@ class Ddm(Worker):
         self.answering = False
         self.owed = False  # an answer's feedback the ddm's own step is to send
         self.answered_here = 0  # records the Python answer took whole
-        # an ESC's compiled answer (``_compiled_answer``): its gate and counts
-        # (AG_* in the C source), and what runs before each (a bench's stand-in
-        # for the acquisition; None in a node)
+        # the compiled answer (``_compiled_answer``): its gate and counts
+        # (AG_* in the C source), and what runs before each record (a bench's
+        # stand-in for the acquisition; None in a node)
         self.gate: Any = None
         self.before_answer: Any = None
 

@@ -349,7 +349,7 @@ class ZenohTransport(Transport):
         )
         self.pubs: dict[int, Any] = {}
         self.answer: Callable[[bytes], int] | None = None  # (answer_with)
-        self.compiled: Callable[..., Any] | None = None  # ... an ESC's, compiled
+        self.compiled: Callable[..., Any] | None = None  # ... made compiled
         self.answerer: Any = None  # the compiled answer, once made
         self.kept: set[int] = set()  # zenoh's threads that keep a Python thread state
         self.session: Any = None
