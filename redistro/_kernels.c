@@ -1962,11 +1962,11 @@ static PyObject *ddm_reply(PyObject *mod, PyObject *const *args, Py_ssize_t narg
     return PyLong_FromLong(result);
 }
 
-/* -- an ESC ddm's answer, whole, in the transport's thread -- */
+/* -- a ddm's answer, whole, in the transport's thread -- */
 
 /* Answerer(admit_plan, emit_plan, publish_plan, gate, estop_at, lock, put,
  * inbox, fallback, wake, before): the callable a transport that delivers
- * records on a thread of its own (zenoh's) hands each command to, in that
+ * records on a thread of its own (zenoh's) hands each record to, in that
  * thread, instead of the ddm's Python answer (Ddm._answer, which it does
  * the same as, and which stays the reference). Called with a record (a
  * bytes-like object) or a sample (its ``payload.to_bytes()``), it makes a
@@ -2152,6 +2152,10 @@ static PyObject *Answerer_call(AnswererObject *self, PyObject *args, PyObject *k
     PyObject *arg;
     if (!PyArg_UnpackTuple(args, "Answerer", 1, 1, &arg))
         return NULL;
+    if (self->admit == NULL) {
+        PyErr_SetString(PyExc_ValueError, "Answerer: not initialized");
+        return NULL;
+    }
     unsigned long me = PyThread_get_thread_ident();
     int known = 0;
     for (int k = 0; k < self->nkept && !known; k++)

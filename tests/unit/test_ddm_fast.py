@@ -440,6 +440,9 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     assert int(gate[AG_ANSWERED]) == 64
     assert int(np.frombuffer(exchange.read().tobytes(), EXCHANGE)[0]["updates"]) == 64
 
+    with pytest.raises(ValueError, match="not initialized"):
+        KERNELS.Answerer.__new__(KERNELS.Answerer)(_command(70, 7000))
+
     answer.close()
     answer(_command(70, 7000))
     assert fallen[-1] == _command(70, 7000) and int(gate[AG_ANSWERED]) == 64
