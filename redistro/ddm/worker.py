@@ -353,9 +353,12 @@ class Ddm(Worker):
         if self.dirty and (self.kind != "esc" or self.urgent or not self.steps & 63):
             self._publish()
         every = self.transport.status_every
-        steps = self.steps if self.gate is None else self.steps + int(self.gate[AG_ANSWERED])
+        steps = self.steps
+        if self.gate is not None and self.kind == "esc":
+            steps += int(self.gate[AG_ANSWERED])
         if every and steps - self.status_at >= every:
-            # (by count: answers in the transport's thread step the count too)
+            # (by count: an ESC's answers in the transport's thread step the
+            # count too, as the Python answer's do; the SSC's do not)
             self.status_at = steps
             self._status(estop)
 

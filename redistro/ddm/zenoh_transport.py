@@ -390,10 +390,7 @@ class ZenohTransport(Transport):
             # (its callback stays in zenoh-python's own thread: in the RX
             # thread it would hold the group's network while the ddm, sending
             # the commands, holds the interpreter)
-            take: Any = self._take
-            if self.compiled is not None:  # (the SSC's: put None, no reply)
-                self.answerer = self.compiled(None, self.inbox, self._take_raw, self._wake)
-                take = self.answerer
+            take = self._taker(None)  # (the SSC's answer puts no reply)
             self.subs = [s.declare_subscriber(feedback_key(group, "*"), take)]
         else:
             r = robots[0]
@@ -402,12 +399,7 @@ class ZenohTransport(Transport):
             # and answered in the RX thread that read it, without the hand-off
             # to zenoh-python's callback thread and the ddm's wake; by the
             # ddm's compiled answer when it has one (this path its fallback)
-            take = self._take
-            if self.compiled is not None:
-                self.answerer = self.compiled(
-                    self.pubs[gids[r]].put, self.inbox, self._take_raw, self._wake
-                )
-                take = self.answerer
+            take = self._taker(self.pubs[gids[r]].put)
             if self.answer is not None:
                 take = zenoh.handlers.Callback(take, indirect=False)
             self.subs = [s.declare_subscriber(command_key(group, r), take)]
@@ -460,6 +452,14 @@ class ZenohTransport(Transport):
         )
 
     # -- zenoh's threads --
+
+    def _taker(self, put: Any) -> Any:
+        """What the subscriber hands each sample to: the ddm's compiled
+        answer, made now (``put`` sends its reply), else :meth:`_take`."""
+        if self.compiled is None:
+            return self._take
+        self.answerer = self.compiled(put, self.inbox, self._take_raw, self._wake)
+        return self.answerer
 
     def _take(self, sample: Any) -> None:
         ident = threading.get_ident()
