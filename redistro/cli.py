@@ -258,17 +258,17 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(config, overrides)
         return _dispatch(args, cfg)
     except ConfigError as exc:
-        print(f"redistro: error: {one_line(str(exc))}", file=sys.stderr)
+        print(one_line(f"redistro: error: {exc}"), file=sys.stderr)
         return 2
     except RedistroError as exc:
-        print(f"redistro: {one_line(str(exc))}", file=sys.stderr)
+        print(one_line(f"redistro: {exc}"), file=sys.stderr)
         return 1
 
 
 def one_line(text: str, limit: int = 400) -> str:
     """A message as one printable line: control characters (line breaks among
     them, which include \x1c-\x1e and \x85 for str.splitlines) escaped, cut
-    to ``limit`` characters."""
+    to ``limit`` characters in all (its prefix included)."""
     if not text.isprintable():
         text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
     return text if len(text) <= limit else text[: limit - 3] + "..."
@@ -278,16 +278,16 @@ def _check_outputs(args: argparse.Namespace) -> None:
     """Every output named on the command line is writable, before anything runs."""
     import math
 
-    from redistro.config.inputs import check_out_dir, check_out_file
+    from redistro.files import check_out_dir, check_out_file
 
     for attr, option in (("out", "--out"), ("csv", "--csv")):
         value = getattr(args, attr, None)
         if value:
             check_out_dir(value, option)
-    for attr in ("json_path", "json_out"):
+    for attr, option in (("json_path", "--json"), ("json_out", "--json"), ("plot", "--plot")):
         value = getattr(args, attr, None)
         if isinstance(value, str) and value:
-            check_out_file(value, "--json")
+            check_out_file(value, option)
     interval = getattr(args, "interval", None)
     if interval is not None and not (math.isfinite(interval) and 0.05 <= interval <= 3600):
         raise ConfigError(f"--interval: expected a number of seconds in 0.05..3600, got {interval}")
@@ -354,8 +354,13 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
 def _log(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
+    from redistro.files import check_out_dir
     from redistro.log import inspect
 
+    if args.log_command == "plot" and not args.out:
+        # the default folder, inside the run: tested as --out is, before any work
+        run_dir, _ = inspect.resolve_run(args.run, cfg.session.runs_dir)
+        check_out_dir(str(run_dir / "plots"), "--out")
     run, sl, summary = inspect.load(args.run, cfg.session.runs_dir)
     if args.log_command == "summary":
         rows = inspect.summary_rows(run, sl, summary)
@@ -366,7 +371,13 @@ def _log(args: argparse.Namespace, cfg: Any) -> int:
         return 0
     if args.log_command == "plot":
         out = Path(args.out) if args.out else run / "plots"
-        for path in inspect.plot_run(sl, out):
+        try:
+            written = inspect.plot_run(sl, out)
+        except ConfigError:
+            raise
+        except (KeyError, ValueError, IndexError) as exc:  # a log whose channels do not fit
+            raise ConfigError(f"{args.run}: cannot be plotted ({exc!r:.120})") from None
+        for path in written:
             print(f"wrote {path}")
         return 0
     for path in inspect.export_csv(sl, Path(args.csv)):

@@ -54,3 +54,25 @@ class WireError(RedistroError, ValueError):
 
 class TransportError(RedistroError, ConnectionError):
     """A DDM link is lost (peer closed, reset or unreachable)."""
+
+
+def shown(value: object, n: int = 60) -> str:
+    """A value as an error message shows it: its repr, cut to ``n``
+    characters, without walking more of a large or deep value than that
+    needs (a message never expands a whole document)."""
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxlevel, r.maxstring, r.maxother, r.maxlong = 3, n, n, n
+    r.maxlist = r.maxtuple = r.maxdict = r.maxset = 8
+    try:
+        text = r.repr(value)
+    except (ValueError, RecursionError):  # an int too long to print, a cycle
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def clipped(text: str, n: int = 60) -> str:
+    """A piece of text as an error message quotes it: cut to ``n`` characters
+    (control characters are escaped where the message is printed)."""
+    return text if len(text) <= n else text[: n - 3] + "..."

@@ -9,7 +9,6 @@ starts), run the benchmark and print or write its figures.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from typing import Any
 
@@ -110,12 +109,10 @@ def _bench_group(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> in
 
 
 def _writable(flag: str, path: str | None) -> None:
-    from pathlib import Path
+    from redistro.files import check_out_file
 
     if path:
-        parent = Path(path).resolve().parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK):
-            raise ConfigError(f"{flag} {path}: {parent} is not a writable folder")
+        check_out_file(path, flag)
 
 
 def _bench_peg(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:

@@ -220,5 +220,8 @@ def plot_campaign(out: dict[str, Any], path: str) -> None:
     )
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    from redistro import files
+
+    with files.writing(path, text=False) as f:
+        fig.savefig(f, dpi=110, format="png")
     plt.close(fig)

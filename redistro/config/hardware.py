@@ -156,7 +156,7 @@ def _channel(
     used: dict[tuple[int, str, int], str],
 ) -> Channel:
     board, sep, idx = text.partition(".")
-    if not sep or not idx.isdigit():
+    if not sep or not (idx.isascii() and idx.isdigit()):
         raise ConfigError(
             f"{origin}: {where}: expected board.channel (e.g. {kind}.0), got {text!r}"
         )

@@ -23,10 +23,12 @@ from typing import Any
 
 import yaml
 
-from redistro.errors import ConfigError
+from redistro.errors import ConfigError, clipped, shown
 
 MAX_BYTES = 1 << 20  # a config, task or positions file is a few kB
 MAX_DEPTH = 64
+MAX_DIGITS = 30  # an integer longer than this is refused before it is converted
+MAX_SET_BYTES = 1 << 16  # one --set value
 
 
 def read_text(path: Path | str, what: str = "file", limit: int = MAX_BYTES) -> str:
@@ -66,11 +68,32 @@ class _Refused(Exception):
         self.problem_mark = mark
 
 
+_INT_TAG = "tag:yaml.org,2002:int"
+_RESOLVER = yaml.resolver.Resolver()
+
+
+def _is_int(text: str) -> bool:
+    """Whether YAML reads this plain scalar as an integer."""
+    tag: str = _RESOLVER.resolve(yaml.ScalarNode, text, (True, False))  # type: ignore[no-untyped-call]
+    return tag == _INT_TAG
+
+
 def _scan_events(text: str) -> None:
-    """Aliases, anchors and deep nesting, from the event stream (iterative:
-    nothing recurses before the depth is known)."""
+    """Aliases, anchors, deep nesting and integers too long to convert, from
+    the event stream (iterative: nothing recurses before the depth is known,
+    nothing is converted before its size is)."""
     depth = 0
     for ev in yaml.parse(text, Loader=_LOADER):
+        if (
+            isinstance(ev, yaml.ScalarEvent)
+            and ev.implicit[0]
+            and len(ev.value) > MAX_DIGITS
+            and _is_int(ev.value)
+        ):
+            raise _Refused(
+                f"an integer of {len(ev.value)} characters (at most {MAX_DIGITS})",
+                ev.start_mark,
+            )
         if isinstance(ev, yaml.AliasEvent):
             raise _Refused("aliases (*name) are not allowed", ev.start_mark)
         if getattr(ev, "anchor", None) is not None:
@@ -102,8 +125,7 @@ def _check_keys(node: Any) -> None:
 
 
 def _cut(value: Any, n: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= n else text[: n - 3] + "..."
+    return shown(value, n)
 
 
 def load_yaml(text: str, path: Path | str) -> Any:
@@ -127,6 +149,8 @@ def load_yaml(text: str, path: Path | str) -> Any:
         raise ConfigError(f"{where}: invalid YAML ({problem})") from None
     except RecursionError:
         raise ConfigError(f"{path}: invalid YAML (nested too deep)") from None
+    except (ValueError, OverflowError) as exc:  # a value its constructor cannot make
+        raise ConfigError(f"{path}: invalid YAML ({clipped(str(exc), 120)})") from None
 
 
 def load_json(text: str) -> Any:
@@ -150,53 +174,3 @@ def load_json(text: str) -> Any:
         elif ch in "]}":
             depth -= 1
     return json.loads(text)
-
-
-def _cut_text(text: str, n: int = 60) -> str:
-    return text if len(text) <= n else text[: n - 3] + "..."
-
-
-def _existing_ancestor(p: Path) -> Path:
-    p = p.absolute()
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    return p
-
-
-def check_out_dir(path: str, option: str) -> None:
-    """A folder the command will write into: an existing writable folder, or
-    one that can be created (its nearest existing ancestor a writable folder)."""
-    p = Path(path)
-    shown = _cut_text(path)
-    if p.exists() or p.is_symlink():
-        if not p.is_dir():
-            raise ConfigError(f"{option} {shown}: exists and is not a folder")
-        if not os.access(p, os.W_OK | os.X_OK):
-            raise ConfigError(f"{option} {shown}: the folder is not writable")
-        return
-    up = _existing_ancestor(p)
-    if not up.is_dir():
-        raise ConfigError(f"{option} {shown}: cannot be created ({up} is not a folder)")
-    # the first missing folder, made and removed again: what the OS says
-    # (os.access answers yes to root everywhere, /proc included)
-    first = p.absolute()
-    while first.parent != up:
-        first = first.parent
-    try:
-        os.mkdir(first, 0o700)
-    except OSError as exc:
-        raise ConfigError(f"{option} {shown}: cannot be created ({exc.strerror})") from None
-    os.rmdir(first)
-
-
-def check_out_file(path: str, option: str) -> None:
-    """A file the command will write: not a folder, its folder writable or creatable."""
-    p = Path(path)
-    shown = _cut_text(path)
-    if p.is_dir():
-        raise ConfigError(f"{option} {shown}: is a folder, expected a file name")
-    if p.exists() and not p.is_file():
-        raise ConfigError(f"{option} {shown}: exists and is not a regular file")
-    if p.exists() and not os.access(p, os.W_OK):
-        raise ConfigError(f"{option} {shown}: the file is not writable")
-    check_out_dir(str(p.absolute().parent), option)

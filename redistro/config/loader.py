@@ -9,24 +9,31 @@ from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
 from redistro.config.model import Config
 from redistro.config.validate import build
-from redistro.errors import ConfigError
+from redistro.errors import ConfigError, clipped, shown
 
 DEFAULT_CONFIG_PATH = Path("config/redistro.yaml")
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
-    """``a.b.c=value`` -> (["a", "b", "c"], value parsed as YAML)."""
-    import yaml  # here: a node's processes read their config as JSON
+    """``a.b.c=value`` -> (["a", "b", "c"], value parsed as YAML), through the
+    same loader as the files (:func:`redistro.config.inputs.load_yaml`:
+    no aliases or anchors, nesting and integers bounded) and at most
+    ``MAX_SET_BYTES`` long."""
+    from redistro.config.inputs import MAX_SET_BYTES, load_yaml
 
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not key or any(not part for part in key.split(".")):
-        raise ConfigError(f"--set {text}: expected dotted.key=value")
+        raise ConfigError(f"--set {clipped(text)}: expected dotted.key=value")
+    if len(raw) > MAX_SET_BYTES:
+        raise ConfigError(
+            f"--set {clipped(key)}: a value of {len(raw)} characters (at most {MAX_SET_BYTES})"
+        )
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as exc:
-        first = str(exc).splitlines()[0]
-        raise ConfigError(f"--set {key}: value is not valid YAML ({first})") from None
+        value = load_yaml(raw, "<value>") if raw.strip() else ""
+    except ConfigError as exc:
+        why = str(exc).partition("invalid YAML ")[2] or str(exc)
+        raise ConfigError(f"--set {clipped(key)}: value is not valid YAML {why}") from None
     return key.split("."), value
 
 
@@ -44,8 +51,7 @@ def read_yaml(path: Path, what: str = "config") -> dict[str, Any]:
 
 
 def _cut(value: Any, n: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= n else text[: n - 3] + "..."
+    return shown(value, n)
 
 
 def _known_path(cls: type, parts: list[str]) -> bool:
@@ -85,7 +91,7 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
         parts, value = parse_override(text)
         dotted = ".".join(parts)
         if not _known_path(Config, parts):
-            raise ConfigError(f"--set {dotted}: no such config key")
+            raise ConfigError(f"--set {clipped(dotted)}: no such config key")
         node = data
         default: Any = defaults
         for i, part in enumerate(parts[:-1]):
@@ -96,7 +102,7 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
                 child = node[part] = copy.deepcopy(default) if isinstance(default, dict) else {}
             if not isinstance(child, dict):
                 where = ".".join(parts[: i + 1])
-                raise ConfigError(f"{origin}: {where}: expected a mapping, got {child!r}")
+                raise ConfigError(f"{origin}: {where}: expected a mapping, got {_cut(child)}")
             node = child
         node[parts[-1]] = value
         origins[dotted] = "--set"

@@ -498,19 +498,26 @@ class PlantConfig:
     # 100 ms: 20 cycles at 200 Hz; a sender is seen held off up to ~35 ms
     output_watchdog_ms: float = field(default=100.0, metadata={"ge": 0, "le": 10000})
     hole: HoleTruth = field(default_factory=HoleTruth)
+    # within the self-calibration's reach (its sweep finds a home switch up
+    # to 12 degrees away): an arm moved further while powered off is a
+    # rebuild, not a disturbance
     encoder_disturbance_rad: dict[str, list[float]] = field(
         default_factory=lambda: {
             "r1": [0.031, -0.022, 0.045, -0.013, 0.027, -0.038, 0.019],
             "r2": [-0.024, 0.036, -0.017, 0.041, -0.029, 0.012, -0.033],
         },
-        metadata={"len": 7},
+        metadata={"len": 7, "ge": -0.2, "le": 0.2},
     )
-    ft_noise_n: float = field(default=0.05, metadata={"ge": 0})
-    ft_noise_nm: float = field(default=0.005, metadata={"ge": 0})
+    # bounded well inside the guard's wrist limits: noise that alone trips
+    # the guard is a broken sensor, not one to control with
+    ft_noise_n: float = field(default=0.05, metadata={"ge": 0, "le": 10})
+    ft_noise_nm: float = field(default=0.005, metadata={"ge": 0, "le": 1})
     # 100 Hz: an impact the rigid physics resolves in one 1 ms step is read
     # at about half its height; the force loop's 200 Hz sees 1.6 ms of lag
     ft_bandwidth_hz: float = field(default=100.0, metadata={"ge": 0, "le": 100000})
-    ft_bias: dict[str, list[float]] = field(default_factory=dict, metadata={"len": 6})
+    ft_bias: dict[str, list[float]] = field(
+        default_factory=dict, metadata={"len": 6, "ge": -100, "le": 100}
+    )
     seed: int = field(default=0, metadata={"ge": 0, "le": 2**32 - 1})
     # The arms' pose kept while powered off (JSON, per robot, rad): read at
     # power-on, written at power-off. Empty: start at initial_q_rad each time.

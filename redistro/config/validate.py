@@ -14,9 +14,10 @@ import typing
 from collections.abc import Callable, Mapping
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
-from redistro.errors import ConfigError
+from redistro.errors import ConfigError, shown
 
 T = TypeVar("T")
+_INT_LIMIT = 2**63  # larger integers are refused before any conversion
 
 # Maps a dotted field path to where its value came from (file name or "--set").
 Origins = Mapping[str, str]
@@ -32,8 +33,7 @@ def _origin(origins: Origins, path: str, default: str) -> str:
 
 
 def _show(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
+    return shown(value)
 
 
 class _Ctx:
@@ -176,6 +176,9 @@ def _convert(tp: Any, value: Any, path: str, ctx: _Ctx, meta: dict[str, Any]) ->
         if not isinstance(value, bool):
             raise ctx.fail(path, "true or false", value)
         return value
+    if isinstance(value, int) and not -_INT_LIMIT <= value <= _INT_LIMIT:
+        what = "an integer" if tp is int else "a number" if tp is float else "a value"
+        raise ctx.fail(path, f"{what} within +-2^63", value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ctx.fail(path, "an integer" + _suffix(meta), value)

@@ -58,8 +58,10 @@ def write(path: Path | str, session: str, q_rad: dict[str, Any], clean: bool) ->
     }
     doc = {**body, "sha256": _digest(body)}
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
+    from redistro import files
+
+    tmp = files.temp_name(path)
+    with files.open_new(tmp) as f:
         json.dump(doc, f, indent=2)
         f.write("\n")
         f.flush()

@@ -352,7 +352,9 @@ class Sender(Worker):
             "tau_cmd_nm": rows[:, 23:30].tolist(),
         }
         try:
-            with open(self.trace_path, "w", encoding="utf-8") as f:
+            from redistro import files
+
+            with files.writing(self.trace_path) as f:
                 json.dump({"robot": self.robot, "cycles": n, **doc}, f)
             self.post(f"the last {n} cycles before the trip: {self.trace_path}")
         except OSError as exc:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import random
 import signal
 from pathlib import Path
@@ -71,7 +70,9 @@ def run_faults(
         doc: dict[str, Any] = {"scenarios": rows}
         if stopped:
             doc["stopped_by"] = name
-        Path(json_path).write_text(json.dumps(doc, indent=1) + "\n")
+        from redistro.process.owner import write_json
+
+        write_json(Path(json_path), doc)
         print(f"wrote {json_path}")
     if stopped:
         return 128 + stopped

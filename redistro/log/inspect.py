@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from redistro import files
 from redistro.errors import ConfigError
 from redistro.log.mcapfile import SESSION_LOG, SessionLog, read_log
 
@@ -68,11 +69,25 @@ def load(arg: str, runs_dir: str) -> tuple[Path, SessionLog, dict[str, Any]]:
             raise ConfigError(f"{sp}: not valid JSON ({exc})") from None
         if not isinstance(summary, dict):
             raise ConfigError(f"{sp}: expected a JSON object, got a {type(summary).__name__}")
+        from redistro.log.shapes import SUMMARY, check
+
+        check(summary, SUMMARY, str(sp))
     return run, sl, summary
 
 
 def robot_names(sl: SessionLog) -> list[str]:
-    return sorted(t.split("/")[1] for t in sl.arrays if t.endswith("/feedback"))
+    """Robots with a feedback topic (``/<robot>/feedback``)."""
+    return sorted(
+        parts[1]
+        for parts in (t.split("/") for t in sl.arrays)
+        if len(parts) == 3 and not parts[0] and parts[1] and parts[2] == "feedback"
+    )
+
+
+def _node_of(topic: str) -> str:
+    """The node (or robot) a topic ``/<node>/...`` belongs to."""
+    parts = topic.split("/")
+    return parts[1] if len(parts) > 2 else topic
 
 
 def board_time(sl: SessionLog, robot: str) -> np.ndarray[Any, Any]:
@@ -107,7 +122,7 @@ def summary_rows(run: Path, sl: SessionLog, summary: dict[str, Any]) -> dict[str
         )
     faults = []
     for topic, evs in sorted(sl.events.items()):
-        node = topic.split("/")[1]
+        node = _node_of(topic)
         for e in evs:
             if topic.endswith("/events") and e.get("event") in ("fault", "estop", "guard trip"):
                 faults.append(
@@ -154,17 +169,28 @@ def summary_rows(run: Path, sl: SessionLog, summary: dict[str, Any]) -> dict[str
 
 
 def print_summary(rows: dict[str, Any]) -> None:
+    """The summary as tables; every name and text from the run is printed as
+    it is (escaped: a task named ``[/x]`` is not rich markup)."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
+    def e(value: Any) -> str:
+        return escape(str(value))
+
     con = Console()
-    head = f"[bold]{rows['task']}[/bold] ({rows['kind']}): result [bold]{rows['result']}[/bold]"
+    head = (
+        f"[bold]{e(rows['task'])}[/bold] ({e(rows['kind'])}): "
+        f"result [bold]{e(rows['result'])}[/bold]"
+    )
     if rows["reason"]:
-        head += f" - {rows['reason']}"
+        head += f" - {e(rows['reason'])}"
     con.print(head)
-    con.print(f"run {rows['run']}, {rows['started']} to {rows['ended']}")
+    con.print(e(f"run {rows['run']}, {rows['started']} to {rows['ended']}"))
     if rows.get("inserted") is not None:
-        con.print(f"inserted: {rows['inserted']}, depth {rows['insertion_depth_m'] * 1e3:.2f} mm")
+        depth = rows.get("insertion_depth_m")
+        shown = "-" if depth is None else f"{depth * 1e3:.2f} mm"
+        con.print(f"inserted: {e(rows['inserted'])}, depth {shown}")
     if rows["segments"]:
         t = Table(title="segments")
         keys = [
@@ -176,20 +202,21 @@ def print_summary(rows: dict[str, Any]) -> None:
             t.add_column(k)
         for s in rows["segments"]:
             fe = s.get("final_pose_error") or {}
-            err = f"{fe['position_m'] * 1e3:.2f} mm / {fe['orientation_rad']:.4f} rad" if fe else ""
-            t.add_row(*[str(s.get(k, "")) for k in keys], err)
+            pos, rot = fe.get("position_m"), fe.get("orientation_rad")
+            err = "" if pos is None or rot is None else f"{pos * 1e3:.2f} mm / {rot:.4f} rad"
+            t.add_row(*[e(s.get(k, "")) for k in keys], err)
         con.print(t)
     t = Table(title="nodes")
     for k in NODE_COLUMNS:
         t.add_column(k)
     for n in rows["nodes"]:
-        t.add_row(*["-" if n.get(k) is None else str(n[k]) for k in NODE_COLUMNS])
+        t.add_row(*["-" if n.get(k) is None else e(n[k]) for k in NODE_COLUMNS])
     con.print(t)
     t = Table(title="faults")
     for k in ("node", "cycle", "what", "text"):
         t.add_column(k)
     for f in rows["faults"]:
-        t.add_row(str(f["node"]), str(f["cycle"]), str(f["what"]), str(f["text"]))
+        t.add_row(e(f["node"]), e(f["cycle"]), e(f["what"]), e(f["text"]))
     if not rows["faults"]:
         t.add_row("-", "-", "none", "")
     con.print(t)
@@ -197,7 +224,7 @@ def print_summary(rows: dict[str, Any]) -> None:
     t.add_column("topic")
     t.add_column("messages", justify="right")
     for topic, n in rows["topics"].items():
-        t.add_row(topic, str(n))
+        t.add_row(e(topic), str(n))
     con.print(t)
 
 
@@ -207,8 +234,9 @@ def print_summary(rows: dict[str, Any]) -> None:
 def export_csv(sl: SessionLog, out: Path) -> list[Path]:
     """One CSV per topic: binary channels flattened (arrays as name_1..name_n),
     JSON channels with the union of their keys. Every row starts with the log
-    time [ns]."""
-    out.mkdir(parents=True, exist_ok=True)
+    time [ns]. Each file is written whole under a fresh name, then renamed
+    (:mod:`redistro.files`), in a folder checked safe."""
+    files.make_folder(out, "--csv")
     written: list[Path] = []
     for topic, arr in sorted(sl.arrays.items()):
         path = out / (topic.strip("/").replace("/", "_") + ".csv")
@@ -229,7 +257,7 @@ def export_csv(sl: SessionLog, out: Path) -> list[Path]:
             else:
                 for k in range(v.shape[1]):
                     cols.append((f"{name}_{k + 1}", v[:, k]))
-        with open(path, "w", newline="", encoding="utf-8") as f:
+        with files.writing(path) as f:
             w = csv.writer(f)
             w.writerow([c[0] for c in cols])
             for i in range(len(arr)):
@@ -240,7 +268,7 @@ def export_csv(sl: SessionLog, out: Path) -> list[Path]:
         keys: list[str] = ["log_time_ns"]
         for e in evs:
             keys += [k for k in e if k not in keys]
-        with open(path, "w", newline="", encoding="utf-8") as f:
+        with files.writing(path) as f:
             dw = csv.DictWriter(f, fieldnames=keys)
             dw.writeheader()
             for e in evs:
@@ -287,13 +315,14 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out.mkdir(parents=True, exist_ok=True)
+    files.make_folder(out, "--out")
     written: list[Path] = []
 
     def save(fig: Any, name: str) -> None:
         fig.tight_layout()
         path = out / name
-        fig.savefig(path, dpi=90)
+        with files.writing(path, text=False) as f:
+            fig.savefig(f, dpi=90, format="png")
         plt.close(fig)
         written.append(path)
 
@@ -400,7 +429,7 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
     for topic, tm in sorted(sl.arrays.items()):
         if not topic.endswith("/timing") or len(tm) == 0:
             continue
-        node = topic.split("/")[1]
+        node = _node_of(topic)
         procs = list(nodes.get(node, {}).get("processes", []))
         n = tm["late_us"].shape[1]
         procs += [f"p{j}" for j in range(len(procs), n)]

@@ -65,11 +65,13 @@ def _merge(parts: list[Path], out: Path) -> None:
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
+    from redistro import files as safe
+
     files = [open(p, "rb") for p in parts]  # noqa: SIM115
-    tmp = out.with_name(out.name + ".tmp")
+    tmp = safe.temp_name(out)
     try:
         readers = [make_reader(f) for f in files]
-        with open(tmp, "wb") as sink:
+        with safe.open_new(tmp, text=False) as sink:
             w = Writer(sink, chunk_size=1 << 20, compression=CompressionType.ZSTD)
             w.start(profile="", library="redistro")
             schemas: dict[tuple[int, int], int] = {}
@@ -139,8 +141,10 @@ def read_log(path: Path) -> SessionLog:
     """Read a session log; raises ValueError naming the file if it is not one."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
+    from zstandard import ZstdError  # a chunk that does not decompress
 
     from redistro.config.inputs import load_json
+    from redistro.log.shapes import META, check
 
     out = SessionLog(path)
     chunks: dict[str, list[bytes]] = {}
@@ -148,7 +152,8 @@ def read_log(path: Path) -> SessionLog:
     dtypes: dict[str, np.dtype[Any]] = {}
     try:
         with open(path, "rb") as f:
-            reader = make_reader(f)
+            # every chunk's CRC checked: a flipped byte is a refusal, not changed data
+            reader = make_reader(f, validate_crcs=True)
             for schema, channel, msg in reader.iter_messages(log_time_order=True):
                 topic = channel.topic
                 out.counts[topic] = out.counts.get(topic, 0) + 1
@@ -168,10 +173,11 @@ def read_log(path: Path) -> SessionLog:
                     doc["log_time_ns"] = msg.log_time
                     out.events.setdefault(topic, []).append(doc)
             for meta in reader.iter_metadata():
-                out.metadata.setdefault(meta.name, []).append(
-                    {k: _loads(v) for k, v in meta.metadata.items()}
-                )
-    except (McapError, OSError, ValueError, KeyError, RecursionError) as exc:
+                doc = {k: _loads(v) for k, v in meta.metadata.items()}
+                if meta.name in META:
+                    check(doc, META[meta.name], "metadata " + meta.name)
+                out.metadata.setdefault(meta.name, []).append(doc)
+    except (McapError, OSError, ValueError, KeyError, RecursionError, EOFError, ZstdError) as exc:
         text = str(exc) if len(str(exc)) <= 120 else str(exc)[:117] + "..."
         raise ValueError(f"{path}: not a readable session log ({text})") from exc
     for topic, parts in chunks.items():

@@ -72,8 +72,10 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
         os.close(ready_fd)
 
     src = io.BufferedReader(PacedPipe(fd), 1 << 16)
-    tmp = out + ".tmp"
-    sink = open(tmp, "wb", buffering=1 << 20)  # noqa: SIM115
+    from redistro import files
+
+    tmp = files.temp_name(out)
+    sink = os.fdopen(files.create(tmp), "wb", buffering=1 << 20)
     writer = Writer(sink, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
     writer.start(profile="", library="redistro")
     cuts: list[tuple[int, int, int]] = []  # channel id, offset, size
@@ -149,9 +151,7 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
     src.close()
     os.replace(tmp, out)
     side = out[: -len(".mcap")] + ".log.json" if out.endswith(".mcap") else out + ".json"
-    with open(side + ".tmp", "w", encoding="utf-8") as f:
-        json.dump(stats, f, indent=1)
-    os.replace(side + ".tmp", side)
+    files.replace(side, json.dumps(stats, indent=1))
     return 0
 
 

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from redistro import files
 from redistro.config.loader import resolved
 from redistro.config.model import Config
 from redistro.drivers.io.bank import PlantState, RegisterBank
@@ -44,10 +45,10 @@ class PlantProcess:
         """cfg: the plant's config, loaded and checked by the caller; handed
         down resolved (``plant.config.json`` in ``run_dir``), never re-read
         from YAML."""
-        run_dir.mkdir(parents=True, exist_ok=True)
+        files.make_folder(run_dir, "run folder")
         result = run_dir / "plant.json"
         resolved_path = run_dir / "plant.config.json"
-        resolved_path.write_text(json.dumps(resolved(cfg)))
+        files.replace(resolved_path, json.dumps(resolved(cfg)))
         args = ["plant", "--session", session.id, "--result", str(result)]
         args += ["--resolved", str(resolved_path)]
         if gui:

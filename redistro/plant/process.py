@@ -142,7 +142,9 @@ def run_plant(
         if world is not None:
             world.close()
         if result_path:
-            Path(result_path).write_text(json.dumps(result, indent=2) + "\n")
+            from redistro import files
+
+            files.replace(result_path, json.dumps(result, indent=2) + "\n")
 
 
 def _signed(counts: np.ndarray) -> np.ndarray:
@@ -164,11 +166,11 @@ def read_pose(path: str, robots: list[str]) -> dict[str, list[float]]:
 
 
 def write_pose(path: str, q_rad: dict[str, list[float]]) -> None:
+    from redistro import files
+
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({"q_rad": q_rad}, indent=1) + "\n")
-    os.replace(tmp, p)
+    files.replace(p, json.dumps({"q_rad": q_rad}, indent=1) + "\n")
 
 
 def _loop(

@@ -85,3 +85,34 @@ def hole_pose(cfg: Config) -> HolePose:
         tilt_xy_deg=(float(t.tilt_xy_deg[0]), float(t.tilt_xy_deg[1])),
         offset_xyz_m=(dx, dy, dz),
     )
+
+
+FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
+TABLE_HALF_XY_M = (0.3, 0.6)  # the table's half extents; centred at (hole x, 0)
+BASE_RADIUS_M = 0.12  # an arm's base link, as a cylinder about its axis
+
+
+def placement_problem(cfg: Config) -> str:
+    """Why the plant cannot build the work-cell of ``cfg`` ('' when it can):
+    the hole (where its truth puts it) needs a table under its fixture, and
+    no arm's base may stand in the table."""
+    hole = cfg.workcell.hole
+    x, _, top = hole_pose(cfg).xyz_m
+    table_top = top - hole.depth_m - FIXTURE_FLOOR_M
+    if table_top <= 0.01:
+        return (
+            f"workcell.hole.xyz_m: the hole's mouth at z={top:.3f} m (plant.hole included) leaves "
+            f"no room for the table under a {hole.depth_m} m deep fixture"
+        )
+    hx, hy = TABLE_HALF_XY_M
+    for name, rc in cfg.robots.items():
+        bx, by, bz = rc.base_xyz_m
+        dx = max(abs(bx - x) - hx, 0.0)
+        dy = max(abs(by) - hy, 0.0)
+        if (dx * dx + dy * dy) ** 0.5 < BASE_RADIUS_M and bz < table_top:
+            return (
+                f"robots.{name}.base_xyz_m: the base at {[round(v, 3) for v in rc.base_xyz_m]} "
+                f"stands in the table under the hole (x {x - hx:.2f}..{x + hx:.2f} m, "
+                f"y {-hy:.2f}..{hy:.2f} m)"
+            )
+    return ""

@@ -21,7 +21,6 @@ from redistro.config.model import Config
 from redistro.robotmodel import JOINT_NAMES, SENSOR_JOINT, TOOL_LINK, Peg, write_arm_urdf
 
 GRAVITY = 9.81
-FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
 
 
 class JointInfo(NamedTuple):
@@ -175,6 +174,35 @@ class World:
                 braked=np.zeros(7, dtype=bool),
                 brake_torque_nm=np.zeros(7),
             )
+        overlap = self.overlap()
+        if overlap:
+            from redistro.errors import ConfigError
+
+            self.close()
+            raise ConfigError(
+                f"{cfg.source}: the plant refuses a world whose bodies overlap: {overlap}"
+            )
+
+    def overlap(self, tolerance_m: float = 0.002) -> str:
+        """Where a robot's base stands in another body (another arm, the
+        table, the fixture) by more than ``tolerance_m`` ('' when none)."""
+        pb, cid = self.pb, self.client
+        pb.performCollisionDetection(physicsClientId=cid)
+        names = list(self.arms)
+        for name in names:
+            arm = self.arms[name]
+            others = [(f"robot {n}", self.arms[n].body) for n in names if n != name]
+            others += [
+                ("the table" if k == 0 else "the fixture", b) for k, b in enumerate(self.fixture)
+            ]
+            for what, body in others:
+                points = pb.getClosestPoints(
+                    arm.body, body, 0.0, linkIndexA=-1, physicsClientId=cid
+                )
+                deepest = min((p[8] for p in points), default=0.0)
+                if deepest < -tolerance_m:
+                    return f"robot {name}'s base is {-deepest * 1e3:.0f} mm inside {what}"
+        return ""
 
     # -- scene --
 
@@ -204,7 +232,12 @@ class World:
     def _build_table_and_fixture(self) -> list[int]:
         """The table, and on it the fixture as drawn (``workcell.hole``) but
         where the plant's truth puts it (``plant.hole``: offset, yaw, tilt)."""
-        from redistro.plant.truth import hole_pose
+        from redistro.plant.truth import (
+            FIXTURE_FLOOR_M,
+            TABLE_HALF_XY_M,
+            hole_pose,
+            placement_problem,
+        )
 
         hole = self.cfg.workcell.hole
         peg = self.cfg.workcell.peg
@@ -213,15 +246,14 @@ class World:
         side = peg.side_m + hole.clearance_m
         depth, wall = hole.depth_m, hole.wall_m
         table_top = top - depth - FIXTURE_FLOOR_M
-        if table_top <= 0.01:
+        problem = placement_problem(self.cfg)
+        if problem:
             from redistro.errors import ConfigError
 
-            raise ConfigError(
-                f"{self.cfg.source}: workcell.hole.xyz_m: the hole's mouth at z={top} m leaves "
-                f"no room for the table under a {depth} m deep fixture"
-            )
+            raise ConfigError(f"{self.cfg.source}: {problem}")
         grey, steel = [0.6, 0.45, 0.3, 1], [0.5, 0.55, 0.6, 1]
-        bodies = [self._box([0.3, 0.6, table_top / 2], [x, y * 0.0, table_top / 2], grey)]
+        hx, hy = TABLE_HALF_XY_M
+        bodies = [self._box([hx, hy, table_top / 2], [x, 0.0, table_top / 2], grey)]
         # the fixture: a floor plate and four walls around a square hole, in
         # the fixture's frame (origin at the mouth's centre), then placed
         orn = truth.quaternion()

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from redistro import files
 from redistro.errors import NodeFault, TornReadTimeout
 from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
@@ -162,7 +163,7 @@ class Manager:
         if self.spec.owner_pid and os.getppid() != self.spec.owner_pid:
             return 3
         if self.spec.messages_path:
-            self.books.msg_file = open(self.spec.messages_path, "a", buffering=1)  # noqa: SIM115
+            self.books.msg_file = files.open_append(self.spec.messages_path)
         try:
             self._initialization()
             # a developer's profile of the manager (tools/profile.py NODE/manager)
@@ -586,10 +587,7 @@ class Manager:
     def _write_result(self) -> None:
         if not self.spec.result_path:
             return
-        path = Path(self.spec.result_path)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.result.as_dict(), indent=1))
-        os.replace(tmp, path)
+        files.replace(self.spec.result_path, json.dumps(self.result.as_dict(), indent=1))
 
 
 def run_manager(spec_path: str) -> int:

@@ -435,7 +435,10 @@ def reap_descendants(timeout_s: float, keep: frozenset[int] = frozenset()) -> li
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
+    """``path`` written whole (a fresh temporary name, then renamed over it),
+    in its folder (a run folder, made safe by the session)."""
+    from redistro import files
+
+    if not path.parent.is_dir():
+        files.make_folder(path.parent, "folder")
+    files.replace(path, json.dumps(data, indent=1) + "\n")

@@ -11,7 +11,6 @@ leave an arm anywhere, its positions unclean or a file broken on purpose.
 from __future__ import annotations
 
 import contextlib
-import os
 from pathlib import Path
 
 
@@ -29,8 +28,8 @@ class Baseline:
         for p in (self.runs / "positions").glob("*.json"):
             if p not in self.files:
                 p.unlink()
+        from redistro import files
+
         for p, data in self.files.items():
             p.parent.mkdir(parents=True, exist_ok=True)
-            tmp = p.with_name(f".{p.name}.restore")
-            tmp.write_bytes(data)
-            os.replace(tmp, p)
+            files.replace(p, data)

@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from redistro import files
 from redistro.config.hardware import load_hardware
 from redistro.config.model import Config
 from redistro.config.task import load_task
@@ -66,6 +67,11 @@ def run_node(
     hardware = load_hardware(cfg)
     if not link:
         raise ConfigError("--link: expected a non-empty id")
+    from redistro.config.checks import ZENOH_GROUP
+
+    if not ZENOH_GROUP.match(link):
+        # it names the group's zenoh keys and derives its ports
+        raise ConfigError(f"--link: expected 1-64 letters, digits, _ or -, got {link!r:.60}")
     if kind == "esc":
         if robot not in task.robots:
             raise ConfigError(
@@ -85,7 +91,7 @@ def run_node(
     started = time.time()
     with ipc_session.Session.create() as s:
         run_dir = Path(out_dir) if out_dir else Path(cfg.session.runs_dir) / s.id
-        run_dir.mkdir(parents=True, exist_ok=True)
+        files.make_folder(run_dir, "run folder")
         messages = str(run_dir / "messages.log")
         if kind == "esc":
             spec = esc_spec(
@@ -141,7 +147,7 @@ def run_node(
             summary.pop(key, None)  # the SSC's figures
         src = positions_file(cfg, robot)
         if src.exists():
-            (run_dir / f"positions.{robot}.json").write_bytes(src.read_bytes())
+            files.replace(run_dir / f"positions.{robot}.json", src.read_bytes())
     write_json(run_dir / "summary.json", summary)
     for r in results:
         say(f"{r.node}: {r.result} {r.reason}".rstrip())

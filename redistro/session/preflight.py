@@ -65,6 +65,24 @@ def check_motion(cfg: Config, task: Task) -> None:
         raise ConfigError(problem)
 
 
+def check_runs_dir(cfg: Config) -> None:
+    """``session.runs_dir``: a safe folder that exists or can be made (not on
+    a pseudo-filesystem, nobody else may write there: :mod:`redistro.files`)."""
+    from redistro.files import check_out_dir
+
+    check_out_dir(cfg.session.runs_dir, f"{cfg.origin('session.runs_dir')}: session.runs_dir")
+
+
+def check_workcell(cfg: Config) -> None:
+    """The plant can build the work-cell (the hole where its truth puts it, on
+    a table clear of the robots' bases)."""
+    from redistro.plant.truth import placement_problem
+
+    problem = placement_problem(cfg)
+    if problem:
+        raise ConfigError(f"{cfg.source}: {problem}")
+
+
 def check_key(cfg: Config, needed: bool = False) -> None:
     """``ddm.key_file`` readable and private (needed: nodes started alone
     share no session folder, so they need it)."""
@@ -121,6 +139,8 @@ def preflight(cfg: Config, task_path: str) -> Task:
     the Cartesian goals' reach. ConfigError (one line) on the first problem."""
     task = load_task(task_path, cfg)
     load_hardware(cfg)
+    check_runs_dir(cfg)
+    check_workcell(cfg)
     check_key(cfg)
     check_zenoh_users(cfg, ["ssc", *(f"esc.{r}" for r in task.robots)], None)
     check_positions(cfg, task)

@@ -12,13 +12,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import shutil
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from redistro import files
 from redistro.config.hardware import load_hardware
 from redistro.config.model import Config
 from redistro.config.task import Task
@@ -136,7 +136,7 @@ def _run_task(
             nodes = ["ssc", *(f"esc.{r}" for r in task.robots)]
             zt.new_users_file(s.directory / zt.SESSION_USERS, zt.group_of(cfg, s.id), nodes)
         run_dir = Path(out_dir) if out_dir else runs / s.id
-        run_dir.mkdir(parents=True, exist_ok=True)
+        files.make_folder(run_dir, "run folder")
         messages = str(run_dir / "messages.log")
         say(f"session {s.id}")
         say(f"task {task.task} ({task.kind}) on {', '.join(task.robots)}; run folder {run_dir}")
@@ -209,7 +209,7 @@ def _run_task(
     for robot in task.robots:
         src = positions_file(cfg, robot)
         if src.exists():
-            shutil.copyfile(src, run_dir / f"positions.{robot}.json")
+            files.replace(run_dir / f"positions.{robot}.json", src.read_bytes())
     write_json(run_dir / "summary.json", summary)
     say(f"result: {summary['result']}" + (f" ({summary['reason']})" if summary["reason"] else ""))
     if "calibration" in summary:

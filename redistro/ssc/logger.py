@@ -259,7 +259,6 @@ class SscLogger(Worker):
             "hole_depth_m": self.hole_depth,
             "search": self._search_figures(),
         }
-        tmp = self.out_path + ".tmp"
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(doc, f, indent=1)
-        os.replace(tmp, self.out_path)
+        from redistro import files
+
+        files.replace(self.out_path, json.dumps(doc, indent=1))

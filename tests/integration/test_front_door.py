@@ -27,8 +27,53 @@ def _mcap_with_event(path: Path, body: bytes) -> None:
         w.finish()
 
 
+def _corrupt_mcap(path: Path, compressed: bool = True) -> None:
+    """A session log of chunks (compressed or not) with one byte flipped
+    inside the first chunk's records."""
+    from mcap.writer import CompressionType, Writer
+
+    kind = CompressionType.ZSTD if compressed else CompressionType.NONE
+    with open(path, "wb") as f:
+        w = Writer(f, chunk_size=4096, compression=kind)
+        w.start()
+        sid = w.register_schema("redistro/Event", "jsonschema", b"{}")
+        cid = w.register_channel("/ssc/events", "json", sid)
+        for i in range(200):
+            w.add_message(cid, i, b'{"event": "tick", "n": %d}' % i, i)
+        w.finish()
+    data = bytearray(path.read_bytes())
+    if compressed:
+        at = data.index(b"\x28\xb5\x2f\xfd") + 40  # inside the first zstd frame
+    else:
+        at = data.index(b'"n": 7}') + 5  # a digit of a message inside the first chunk
+    data[at] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+def _run_with_summary(
+    tmp: Path, name: str, summary: str, meta: dict[str, str] | None = None
+) -> Path:
+    """A run folder: a small session log (with metadata) and a summary.json."""
+    from mcap.writer import Writer
+
+    run = tmp / name
+    run.mkdir()
+    with open(run / "session.mcap", "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("redistro/Event", "jsonschema", b"{}")
+        cid = w.register_channel("/ssc/events", "json", sid)
+        w.add_message(cid, 1, b'{"event": "segment"}', 1)
+        if meta is not None:
+            w.add_metadata("redistro.meta", meta)
+        w.finish()
+    (run / "summary.json").write_text(summary)
+    return run
+
+
 def _inputs(tmp: Path) -> dict[str, Path]:
     """The bad files, by name."""
+    big = "9" * 5000
     files = {
         "empty": b"",
         "no_duration": b"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
@@ -51,6 +96,10 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         ).encode(),
         "deep_yaml": b"task: " + b"[" * 100_000 + b"]" * 100_000 + b"\n",
         "a_file": b"x",
+        "big_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
+        f"  - {{name: a, duration_s: {big}, q_rad: {{r1: {PARK}}}}}\n".encode(),
+        "big_float_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
+        f"  - {{name: a, duration_s: {10**25}, q_rad: {{r1: {PARK}}}}}\n".encode(),
     }
     out = {}
     for name, body in files.items():
@@ -65,6 +114,20 @@ def _inputs(tmp: Path) -> dict[str, Path]:
     _mcap_with_event(tmp / "deep_event" / "session.mcap", b"[" * 100_000 + b"]" * 100_000)
     out["list_event"] = tmp / "list_event"
     out["deep_event"] = tmp / "deep_event"
+    (tmp / "corrupt").mkdir()
+    _corrupt_mcap(tmp / "corrupt" / "session.mcap")
+    out["corrupt"] = tmp / "corrupt"
+    (tmp / "corrupt_plain").mkdir()
+    _corrupt_mcap(tmp / "corrupt_plain" / "session.mcap", compressed=False)
+    out["corrupt_plain"] = tmp / "corrupt_plain"
+    out["typed_summary"] = _run_with_summary(
+        tmp, "typed_summary", '{"task": "t", "nodes": {"ssc": {"cycles": "many"}}}'
+    )
+    out["list_segments"] = _run_with_summary(tmp, "list_segments", '{"segments": {"a": 1}}')
+    out["typed_meta"] = _run_with_summary(tmp, "typed_meta", "{}", {"physics_hz": '"fast"'})
+    out["short_base"] = _run_with_summary(
+        tmp, "short_base", "{}", {"robots": '{"r1": {"base_xyz_m": [0, 1]}}'}
+    )
     return out
 
 
@@ -87,7 +150,7 @@ CASES = [
     (
         "--out unwritable",
         ["session", "tasks/park.yaml", "--out", "/proc/redistro/run"],
-        "--out /proc/redistro/run: cannot be created",
+        "--out /proc/redistro/run: /proc is on a proc pseudo-filesystem",
     ),
     ("duplicate keys", ["session", "{dup_keys}"], "dup_keys.yaml:2: invalid YAML (key 'task'"),
     ("alias bomb", ["session", "{alias_bomb}"], "invalid YAML (anchors (&name) are not allowed)"),
@@ -121,6 +184,107 @@ CASES = [
     ),
     ("an MCAP event that is a list", ["log", "summary", "{list_event}"], "is not a JSON object"),
     ("an MCAP event nested deep", ["log", "summary", "{deep_event}"], "nested deeper than 64"),
+    # numbers too big to convert, in files and in --set
+    ("an integer of 5000 digits", ["session", "{big_int}"], "an integer of 5000 characters"),
+    ("an integer of 26 digits", ["session", "{big_float_int}"], "duration_s: expected a number"),
+    (
+        "--set an integer of 5000 digits",
+        ["--set", "esc.rate_hz=" + "9" * 5000, "session", "tasks/park.yaml"],
+        "--set esc.rate_hz: value is not valid YAML (an integer of 5000 characters",
+    ),
+    (
+        "--set an integer beyond 2^63",
+        ["--set", f"plant.seed={2**64}", "session", "tasks/park.yaml"],
+        "plant.seed: expected an integer within +-2^63",
+    ),
+    # --set goes through the files' loader
+    (
+        "--set nested 3000 deep",
+        ["--set", "esc.rate_hz=" + "[" * 3000, "session", "tasks/park.yaml"],
+        "--set esc.rate_hz: value is not valid YAML (nested deeper than 64 levels)",
+    ),
+    (
+        "--set an alias bomb",
+        ["--set", "esc.cpus=[&a [1, 1, 1, 1], [*a, *a, *a, *a]]", "session", "tasks/park.yaml"],
+        "anchors (&name) are not allowed",
+    ),
+    (
+        "--set a value of 70 000 characters",
+        ["--set", "session.runs_dir=" + "x" * 70_000, "session", "tasks/park.yaml"],
+        "--set session.runs_dir: a value of 70000 characters (at most 65536)",
+    ),
+    (
+        "a peer's port in unicode digits",
+        ["--set", "ddm.peers=[127.0.0.1:\uff14\uff10\uff10\uff10]", "session", "tasks/park.yaml"],
+        "ddm.peers[0]: expected host:port",
+    ),
+    # the log tools' other inputs
+    ("summary.json with a wrong type", ["log", "summary", "{typed_summary}"], "nodes.ssc.cycles"),
+    (
+        "summary.json segments a mapping",
+        ["log", "summary", "{list_segments}"],
+        "segments: expected a list",
+    ),
+    ("metadata of the wrong type", ["log", "plot", "{typed_meta}"], "redistro.meta: physics_hz"),
+    ("a base of two numbers", ["log", "plot", "{short_base}"], "robots.r1.base_xyz_m"),
+    ("a flipped byte in a chunk", ["log", "summary", "{corrupt}"], "not a readable session log"),
+    (
+        "a flipped byte in an uncompressed chunk",
+        ["log", "summary", "{corrupt_plain}"],
+        "not a readable session log",
+    ),
+    # output targets that can never be written
+    (
+        "--csv into /sys",
+        ["log", "export", "--csv", "/sys/redistro", "{list_event}"],
+        "/sys is on a sysfs",
+    ),
+    (
+        "--json into /proc",
+        ["bench", "kernels", "--json", "/proc/redistro.json"],
+        "--json /proc/redistro.json: /proc is on a proc pseudo-filesystem",
+    ),
+    # what check refuses that would fail only once running
+    (
+        "a zenoh listen endpoint without a port",
+        ["--set", "ddm.zenoh.listen=[tcp/127.0.0.1]", "session", "tasks/park.yaml"],
+        "ddm.zenoh.listen[0]: expected tcp|udp|tls|quic/host:port",
+    ),
+    (
+        "a zenoh listen endpoint on port 0",
+        ["--set", "ddm.zenoh.listen=[tcp/127.0.0.1:0]", "session", "tasks/park.yaml"],
+        "ddm.zenoh.listen[0]: expected a port 1-65535",
+    ),
+    (
+        "a zenoh group that is a wildcard",
+        ["--set", "ddm.zenoh.group=lab/**", "session", "tasks/park.yaml"],
+        "ddm.zenoh.group: expected 1-64 letters, digits, _ or - (no key-expression wildcards)",
+    ),
+    (
+        "a hole the plant cannot place",
+        ["--set", "workcell.hole.xyz_m=[0.55, -0.35, 0.04]", "session", "tasks/park.yaml"],
+        "leaves no room for the table",
+    ),
+    (
+        "both bases at one point",
+        ["--set", "robots.r1.base_xyz_m=[0, -0.45, 0]", "session", "tasks/park.yaml"],
+        "--set: robots.r2.base_xyz_m: 0.000 m from r1's base",
+    ),
+    (
+        "a base in the table",
+        ["--set", "robots.r1.base_xyz_m=[0.5, 0.2, 0]", "session", "tasks/park.yaml"],
+        "stands in the table",
+    ),
+    (
+        "runs folder under /proc",
+        ["--set", "session.runs_dir=/proc/redistro-runs", "check", "tasks/park.yaml"],
+        "session.runs_dir /proc/redistro-runs: /proc is on a proc pseudo-filesystem",
+    ),
+    (
+        "absurd sensor noise",
+        ["--set", "plant.ft_noise_n=1e6", "session", "tasks/park.yaml"],
+        "plant.ft_noise_n: expected a number >= 0 and <= 10",
+    ),
 ]
 
 
@@ -134,16 +298,41 @@ def test_bad_input_is_one_line_exit_2_nothing_left(
     shm_before = {e for e in os.listdir("/dev/shm") if "redistro" in e}
     listing = sorted(p.name for p in tmp_path.iterdir())
     runs = tmp_path / "runs"
-    done = run_cli("--set", f"session.runs_dir={runs}", *args, timeout=60)
+    if "session.runs_dir=/proc/redistro-runs" not in args:
+        args = ["--set", f"session.runs_dir={runs}", *args]
+    done = run_cli(*args, timeout=60)
     assert done.returncode == 2, (name, done.stdout[-2000:], done.stderr[-2000:])
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("redistro: error: "), done.stderr[-2000:]
-    assert len(lines[0]) < 400, lines[0]
+    assert len(lines[0]) <= 400, lines[0]
     assert expect in lines[0], lines[0]
     assert "Traceback" not in done.stderr and done.stdout == ""
     assert {e for e in os.listdir("/dev/shm") if "redistro" in e} == shm_before
     assert sorted(p.name for p in tmp_path.iterdir()) == listing
     assert not Path("/proc/redistro").exists()
+
+
+def test_an_error_line_is_400_characters_prefix_included() -> None:
+    done = run_cli("--set", "k" * 1000 + "=1", "check", "tasks/park.yaml", timeout=60)
+    assert done.returncode == 2
+    line = done.stderr.strip()
+    assert line.startswith("redistro: error: --set kkk") and len(line) <= 400, line
+
+
+def test_names_with_markup_are_printed_as_they_are(tmp_path: Path) -> None:
+    """A task and a segment named like rich markup: log summary prints them."""
+    summary = {
+        "task": "[/x] peg [bold]",
+        "kind": "strategy",
+        "result": "ok",
+        "segments": [{"name": "[/]", "robot": "r2", "scheme": "force", "duration_s": 1.0}],
+    }
+    import json
+
+    run = _run_with_summary(tmp_path, "markup", json.dumps(summary))
+    done = run_cli("log", "summary", str(run), timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "[/x] peg [bold]" in done.stdout and "[/]" in done.stdout, done.stdout
 
 
 def test_a_positions_file_nested_deep_is_corrupt_not_a_crash(tmp_path: Path) -> None:
