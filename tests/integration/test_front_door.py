@@ -42,10 +42,8 @@ def _corrupt_mcap(path: Path, compressed: bool = True) -> None:
             w.add_message(cid, i, b'{"event": "tick", "n": %d}' % i, i)
         w.finish()
     data = bytearray(path.read_bytes())
-    if compressed:
-        at = data.index(b"\x28\xb5\x2f\xfd") + 40  # inside the first zstd frame
-    else:
-        at = data.index(b'"n": 7}') + 5  # a digit of a message inside the first chunk
+    # inside the first zstd frame, or a digit of a message in the first chunk
+    at = data.index(b"\x28\xb5\x2f\xfd") + 40 if compressed else data.index(b'"n": 7}') + 5
     data[at] ^= 0x01
     path.write_bytes(bytes(data))
 

@@ -129,7 +129,30 @@ def _known_keys() -> list[str]:
 
 
 KEYS = _known_keys()
+# what a hostile --set value carries: deep nesting, anchors and aliases, huge
+# numbers, unicode digits and markup
+hostile_values = st.one_of(
+    st.integers(min_value=1, max_value=4000).map(lambda n: "[" * n + "]" * (n // 2)),
+    st.integers(min_value=1, max_value=3000).map(lambda n: "{a: " * n + "1" + "}" * n),
+    st.sampled_from(
+        [
+            "&a [1, 2]",
+            "[&a [1, 2], *a]",
+            "[&a [x, x], &b [*a, *a], [*b, *b]]",
+            "*a",
+            "!!python/object:os.system ls",
+            "!!binary AAAA",
+            "1:2:3:4:5:6:7:8:9:10:11:12:13:14:15:16:17:18:19:20",
+        ]
+    ),
+    st.integers(min_value=20, max_value=6000).map(lambda n: "9" * n),
+    st.integers(min_value=20, max_value=6000).map(lambda n: "-0x" + "f" * n),
+    st.integers(min_value=20, max_value=6000).map(lambda n: "1" + "0" * n + ".5e3"),
+    st.text(alphabet="٠١٢٣٤٥٦٧٨٩０１２３４５６７８９²³¹", min_size=1, max_size=12),
+    st.text(alphabet="[]/bold red:", min_size=1, max_size=20),
+)
 set_lines = st.one_of(
+    st.builds(lambda k, v: f"{k}={v}", st.sampled_from(KEYS), hostile_values),
     st.builds(
         lambda k, v: f"{k}={v}",
         st.one_of(st.sampled_from(KEYS), st.text(max_size=30)),
@@ -223,6 +246,88 @@ def test_random_set_lines(workdir: Path) -> None:
         argv += ["--set", "session.runs_dir=runs", "check", "tasks/peg_insertion_short.yaml"]
         rc, _, err = _run(argv, workdir)
         _one_line_or_ok(rc, err, f"--set {lines!r}")
+
+    run()
+
+
+SUMMARY = {
+    "task": "peg_insertion",
+    "kind": "strategy",
+    "result": "ok",
+    "reason": "",
+    "started": "2026-11-26T10:00:00",
+    "ended": "2026-11-26T10:01:00",
+    "inserted": True,
+    "insertion_depth_m": 0.035,
+    "segments": [
+        {
+            "name": "approach",
+            "robot": "r2",
+            "scheme": "position",
+            "duration_s": 4.0,
+            "final_pose_error": {"position_m": 0.0002, "orientation_rad": 0.001},
+        }
+    ],
+    "nodes": {"ssc": {"result": "ok", "cycles": 100, "rate_hz": 200.0, "overruns": 0}},
+    "log": {"nodes": {"ssc": {"recorded": 100, "dropped": 0}}},
+}
+META = {
+    "task": "peg_insertion",
+    "physics_hz": 1000.0,
+    "hole_xyz_m": [0.55, -0.35, 0.15],
+    "robots": {"r2": {"base_xyz_m": [0.0, -0.45, 0.0], "peg": [0.02, 0.1, 0.1]}},
+}
+markup = st.text(alphabet="[]/bold red:x ", max_size=16)
+
+
+@st.composite
+def mutated_doc(draw: st.DrawFn, doc: dict[str, Any]) -> Any:
+    out = copy.deepcopy(doc)
+    for _ in range(draw(st.integers(min_value=1, max_value=3))):
+        path = draw(st.sampled_from(_paths(out)))
+        op = draw(st.sampled_from(["set", "set", "delete", "add"]))
+        out = _mutate(out, path, op, draw(st.one_of(values, markup)))
+    return out
+
+
+def _write_log(path: Path, meta: Any, names: list[str]) -> None:
+    """A small session log: a feedback-like JSON channel, segment events
+    named ``names``, and ``meta`` as its redistro.meta metadata."""
+    import json
+
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("redistro/Event", "jsonschema", b"{}")
+        cid = w.register_channel("/ssc/segments", "json", sid)
+        for i, name in enumerate(names):
+            w.add_message(cid, i + 1, json.dumps({"name": name, "cycle": i}).encode(), i + 1)
+        if isinstance(meta, dict):
+            w.add_metadata("redistro.meta", {str(k): json.dumps(v) for k, v in meta.items()})
+        w.finish()
+
+
+@pytest.mark.timeout(900)
+def test_mutated_summaries_metadata_and_markup_names(workdir: Path) -> None:
+    """log summary over a summary.json and a session log's metadata of the
+    shape a session writes, mutated, with names that look like markup."""
+    import json
+
+    run_dir = workdir / "runs" / "mutated"
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+    @FUZZ
+    @given(mutated_doc(SUMMARY), mutated_doc(META), st.lists(markup, max_size=3))
+    def run(summary: Any, meta: Any, names: list[str]) -> None:
+        (run_dir / "summary.json").write_text(json.dumps(summary))
+        _write_log(run_dir / "session.mcap", meta, names)
+        rc, out, err = _run(["log", "summary", str(run_dir)], workdir)
+        _one_line_or_ok(rc, err, f"log summary of {summary!r:.200} / {meta!r:.200}")
+        if rc == 0 and isinstance(summary, dict) and isinstance(summary.get("task"), str):
+            squeeze = "".join(summary["task"].split())
+            assert squeeze in "".join(out.split()), out
 
     run()
 
