@@ -27,7 +27,7 @@ from redistro.ddm.record import SIZE
 from redistro.ddm.transport import Transport
 from redistro.errors import IPCError, TransportError
 from redistro.ipc.session import Manifest
-from redistro.ipc.sysv import Card, card_key
+from redistro.ipc.sysv import Card
 from redistro.localdata.layout import MAX_ROBOTS
 
 if TYPE_CHECKING:
@@ -89,7 +89,7 @@ class ReflectiveTransport(Transport):
         self.source = node.encode()[:16].ljust(16, b"\0")
         self.group = (group, port or group_port(link or session_id))
         self.peers = list(peers or [])
-        self.card = Card.create(card_key(session_id, node), KINDS * MAX_ROBOTS * SLOT, manifest)
+        self.card = Card.create_new(KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
         self.pending: list[bytes] = []  # written this step, not yet sent (flush)
         try:

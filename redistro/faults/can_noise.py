@@ -1,4 +1,6 @@
-"""Corrupt frames on the CAN backplane's bus, sent by an outsider (the harness)."""
+"""Frames on the CAN backplane's bus sent by an outsider (the harness):
+corrupt ones, writes signed with another key, and genuine writes captured
+and sent again much later."""
 
 from __future__ import annotations
 
@@ -55,7 +57,7 @@ def _forged_write(bus: Any, types: Mapping[int, str], address: int, seq: int) ->
     tag made with a key that is not the plant's; the frames sent."""
     import numpy as np
 
-    from redistro.drivers.io.can import frames_for, write_tag
+    from redistro.drivers.io.can import frames_for, signed, write_tag
     from redistro.drivers.io.registers import BANKS, BoardType
 
     kind = {"dac": BoardType.DAC, "dio": BoardType.DIO}.get(types.get(address, ""))
@@ -68,10 +70,51 @@ def _forged_write(bus: Any, types: Mapping[int, str], address: int, seq: int) ->
         out["code"][:] = 2047
     bank = out.tobytes()
     n = 0
-    for frame in frames_for(seq, bank + write_tag(b"not the plant's key" * 2, address, seq, bank)):
+    seq = time.monotonic_ns()  # as fresh as the driver's: only the key is wrong
+    tag = write_tag(b"not the plant's key" * 2, address, seq, bank)
+    for frame in frames_for(seq, signed(seq, bank, tag)):
         bus.send(_message(WRITE | address, frame))
         n += 1
     return n
+
+
+def _listen(cfg: Config, session_id: str, seconds: float, into: list[Any]) -> None:
+    """The writes seen on the bus for ``seconds`` (an eavesdropper on loopback)."""
+    c = cfg.plant.can
+    bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only)
+    try:
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            msg = bus.recv(timeout=left)
+            if msg is not None and msg.arbitration_id & 0x700 == WRITE:
+                into.append(msg)
+    finally:
+        bus.shutdown()
+
+
+def _replay(cfg: Config, session_id: str, frames: list[Any], seconds: float) -> int:
+    """The captured frames sent again at the pace they were recorded, the
+    recording over and over, for ``seconds``; the writes replayed (banks)."""
+    c = cfg.plant.can
+    bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only)
+    writes = 0
+    try:
+        end = time.monotonic() + seconds
+        first = frames[0].timestamp
+        while time.monotonic() < end:
+            t0 = time.monotonic()
+            for msg in frames:
+                delay = t0 + (msg.timestamp - first) - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)  # the recording's own pace
+                bus.send(msg)
+                if msg.data[2] == msg.data[3] - 1:  # a bank's last segment
+                    writes += 1
+                if time.monotonic() >= end:
+                    break
+    finally:
+        bus.shutdown()
+    return writes
 
 
 def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str, Any]:
@@ -163,6 +206,119 @@ def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str,
         and worst_counts <= 2
         and next(iter(row["count"].values())) > 0
         and (not forged or row.get("moved_rad", 1.0) < 0.002)  # braked, DAC at 0: held
+        and not row["ipc_left"]
+    )
+    return row
+
+
+def run_can_replay(out_dir: Path, cfg: Config) -> dict[str, Any]:
+    """The plant on the CAN backplane and r2's driver at 200 Hz. For its
+    first 0.3 s the driver releases joint 1's brake and drives it with
+    4 N m while an eavesdropper records every write on the bus; then it
+    holds (brakes on, DAC at zero). Its sequence number is then moved on
+    by 70 000 writes (the minutes of running after which a 16-bit number
+    has wrapped), and for 1 s the recording is sent again and again, at
+    its own pace, beside the driver's writes.
+
+    Passed when no replayed write reached a register (the plant took no
+    more writes than the driver made; the replayed ones counted forged),
+    joint 1 did not move while they came, the amplifiers' watchdog never
+    tripped (the genuine writes were taken all along) and no read failed."""
+    import threading
+
+    import numpy as np
+
+    from redistro.config.hardware import load_hardware
+    from redistro.drivers.io.backplane import open_backplane
+    from redistro.drivers.robot import RobotDriver
+    from redistro.errors import IOFault
+    from redistro.ipc.session import Session
+    from redistro.plant.launch import PlantProcess
+
+    cfg = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, backplane="can"))
+    hw = load_hardware(cfg)["r2"]
+    row: dict[str, Any] = {}
+    fault = ""
+    with Session.create() as session:
+        plant = PlantProcess.start(session, out_dir / "run", cfg)
+        sid = session.id
+        try:
+            assert plant.bank is not None
+            bp = open_backplane(cfg.plant, sid)
+            d = RobotDriver(hw, bp, cfg.plant.physics_hz)
+            d.open()
+            truth = plant.bank.truth(plant.bank.robot_names.index("r2"))
+            d.preset_encoders(truth.read()["q_rad"])
+            captured: list[Any] = []
+            spy = threading.Thread(target=_listen, args=(cfg, sid, 0.3, captured))
+            replayed: list[int] = []
+            drive = np.zeros(7)
+            drive[0] = 4.0
+            try:
+                spy.start()
+                time.sleep(0.05)  # the eavesdropper joins the group (pacing, not a sync)
+                t0 = nxt = time.monotonic()
+                q_hold = q_end = None
+                replay: threading.Thread | None = None
+                while time.monotonic() - t0 < 2.5:
+                    d.read_feedback()
+                    t = time.monotonic() - t0
+                    if t < 0.3:
+                        d.release_brakes([0])
+                        d.send_torques(drive)
+                    else:
+                        d.freeze()
+                    if replay is None and t >= 0.8:
+                        spy.join()
+                        # whole banks only: from a first segment to a last one
+                        while captured and captured[0].data[2] != 0:
+                            captured.pop(0)
+                        while captured and captured[-1].data[2] != captured[-1].data[3] - 1:
+                            captured.pop()
+                        bp._seq += 70_000  # type: ignore[attr-defined]  # minutes of running
+                        q_hold = float(truth.read()["q_rad"][0])
+                        replay = threading.Thread(
+                            target=lambda: replayed.append(_replay(cfg, sid, captured, 1.0))
+                        )
+                        replay.start()
+                    if replay is not None and not replay.is_alive() and q_end is None:
+                        q_end = float(truth.read()["q_rad"][0])
+                    nxt += 0.005
+                    time.sleep(max(0.0, nxt - time.monotonic()))  # a 200 Hz loop
+                if replay is not None:
+                    replay.join()
+            except IOFault as exc:
+                fault = str(exc)
+            moved = abs((q_end if q_end is not None else float(truth.read()["q_rad"][0]))
+                        - (q_hold if q_hold is not None else 0.0))  # fmt: skip
+            row["captured_frames"] = len(captured)
+            row["replayed_writes"] = replayed[0] if replayed else 0
+            row["moved_while_replayed_rad"] = round(moved, 5)
+            d.freeze()
+            d.close()
+            row["driver_writes"] = int(bp.writes)  # type: ignore[attr-defined]
+        finally:
+            plant.stop()
+        result = plant.result()
+    row["plant_forged_writes"] = int(result.get("forged_writes", 0))
+    row["plant_taken_writes"] = int(result.get("taken_writes", 0))
+    row["watchdog_trips"] = [t.get("robot") for t in result.get("watchdog_trips") or []]
+    row["count"] = {"forged_writes": row["plant_forged_writes"]}
+    row["got"] = "abnormal" if fault else "ok"
+    row["cause"] = fault
+    row["processes_left"] = 0
+    row["ipc_left"] = sorted(e for e in os.listdir("/dev/shm") if sid in e)
+    row["passed"] = bool(
+        not fault
+        and row["captured_frames"] > 0
+        and row["replayed_writes"] > 0
+        # every replayed write refused: none taken beyond the driver's own
+        # (loopback UDP may lose a datagram: then a write is neither taken
+        # nor counted)
+        and row["plant_taken_writes"] <= row.get("driver_writes", 0)
+        and row["plant_forged_writes"] >= 0.9 * row["replayed_writes"]
+        and row["moved_while_replayed_rad"] < 0.002
+        and not row["watchdog_trips"]
         and not row["ipc_left"]
     )
     return row

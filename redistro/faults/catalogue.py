@@ -193,6 +193,10 @@ def _other_scenarios() -> list[Scenario]:
                  count="forged_writes",
                  what="1 s of well-formed CAN writes (DAC at full scale, every brake "
                       "released) signed with another key, r2's driver holding the arm"),
+        Scenario("can-replay-after-wrap", "can-noise", "plant", "", "replay", ("ok",), "", "",
+                 count="forged_writes",
+                 what="r2's joint-1 brake-release writes recorded on the CAN bus, sent again "
+                      "for 1 s once the driver's sequence moved on 70 000 writes"),
         Scenario("home-stuck-on", "calibration", "plant", "", "plant.home-stuck-on",
                  ("abnormal",), "no home switch", "",
                  what="r2's home switches stuck on during self-calibration"),

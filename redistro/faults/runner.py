@@ -141,19 +141,26 @@ def _pids_of(sid: str) -> list[int]:
     return out
 
 
+# the memory cards of this user before the harness began (their keys are
+# random: a card of a scenario's session is one that was not there then)
+_CARDS_BEFORE: set[int] | None = None
+
+
+def _cards_now() -> set[int]:
+    from redistro.ipc import sysv
+
+    return sysv.our_keys(os.getuid())
+
+
 def _ipc_left(sid: str) -> list[str]:
+    """The session's POSIX objects still in /dev/shm, and every memory card
+    of this user made since the harness began."""
+    global _CARDS_BEFORE
     left = [e for e in os.listdir("/dev/shm") if sid in e]
-    try:
-        import sysv_ipc
-
-        from redistro.ipc.sysv import card_key
-
-        for node in ("esc.r1", "esc.r2", "ssc"):
-            with contextlib.suppress(sysv_ipc.ExistentialError):
-                sysv_ipc.SharedMemory(card_key(sid, node))
-                left.append(f"sysv {card_key(sid, node):#010x} ({node})")
-    except ImportError:
-        pass
+    if _CARDS_BEFORE is None:
+        _CARDS_BEFORE = _cards_now()
+        return left
+    left += [f"sysv {key:#010x}" for key in sorted(_cards_now() - _CARDS_BEFORE)]
     return left
 
 
@@ -161,6 +168,9 @@ def run_scenario(
     sc: Scenario, runs: Path, cfg: Config, config_args: list[str], rng: random.Random
 ) -> dict[str, Any]:
     """Run ``sc`` once; the figures and verdicts as a dict (JSON-ready)."""
+    global _CARDS_BEFORE
+    if _CARDS_BEFORE is None:
+        _CARDS_BEFORE = _cards_now()
     out_dir = runs / "faults" / sc.name
     shutil.rmtree(out_dir, ignore_errors=True)  # no summary of an earlier run
     out_dir.mkdir(parents=True)
@@ -178,7 +188,12 @@ def run_scenario(
     if sc.kind == "can-noise":
         from redistro.faults.can_noise import run_can_noise
 
-        row.update(run_can_noise(out_dir, cfg, forged=sc.action == "forged"))
+        if sc.action == "replay":
+            from redistro.faults.can_noise import run_can_replay
+
+            row.update(run_can_replay(out_dir, cfg))
+        else:
+            row.update(run_can_noise(out_dir, cfg, forged=sc.action == "forged"))
         return row
     if sc.kind == "hogs":
         row.update(_hogs(sc, runs, out_dir, config_args))

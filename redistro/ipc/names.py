@@ -105,3 +105,22 @@ def checked_runtime_dir(create: bool = True) -> Path | None:
             "(chmod 700 it)"
         )
     return root
+
+
+def entry_path(kind: str, name: str) -> Path:
+    """Where a POSIX object (``shm`` or ``sem``) of ``name`` appears."""
+    return SHM_DIR / (("sem." if kind == "sem" else "") + name.lstrip("/"))
+
+
+def holder(kind: str, name: str) -> str:
+    """Who owns the POSIX object ``name`` (for a refusal that names them)."""
+    import pwd
+
+    try:
+        uid = os.lstat(entry_path(kind, name)).st_uid
+    except OSError:
+        return "gone since"
+    try:
+        return f"owned by uid {uid} ({pwd.getpwuid(uid).pw_name})"
+    except KeyError:
+        return f"owned by uid {uid}"

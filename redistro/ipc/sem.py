@@ -12,6 +12,7 @@ import time
 import posix_ipc
 
 from redistro.errors import IPCError
+from redistro.ipc import names
 from redistro.ipc.session import Manifest
 
 
@@ -28,7 +29,9 @@ class Semaphore:
         try:
             sem = posix_ipc.Semaphore(name, posix_ipc.O_CREX, mode=0o600, initial_value=initial)
         except posix_ipc.ExistentialError:
-            raise IPCError(f"semaphore {name} already exists") from None
+            raise IPCError(
+                f"semaphore {name} already exists ({names.holder('sem', name)})"
+            ) from None
         return cls(name, sem, owner=True)
 
     @classmethod

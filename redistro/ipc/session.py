@@ -145,13 +145,25 @@ class Session:
 
 
 def unlink(kind: str, name: str) -> bool:
-    """Unlink a named object; False if it was already gone, or may not be
-    removed by this user (reported, not raised)."""
+    """Unlink a named object this user owns; False if it was already gone,
+    is another user's (a squatter's: left alone and reported), or may not
+    be removed (reported, not raised). /dev/shm is sticky: an entry this
+    user owns when checked cannot be replaced by another user's before the
+    unlink."""
     try:
         if kind == "sysv":
             from redistro.ipc import sysv
 
             return sysv.remove_key(int(name, 16))
+        try:
+            uid = os.lstat(names.entry_path(kind, name)).st_uid
+        except FileNotFoundError:
+            return False
+        if uid != os.getuid():
+            log.warning(
+                "%s %s not removed: %s, not by this user", kind, name, names.holder(kind, name)
+            )
+            return False
         if kind == "sem":
             posix_ipc.unlink_semaphore(name)
         else:

@@ -9,6 +9,7 @@ from typing import ClassVar
 import posix_ipc
 
 from redistro.errors import IPCError
+from redistro.ipc import names
 from redistro.ipc.session import Manifest
 
 
@@ -33,7 +34,9 @@ class SharedMemory:
         try:
             shm = posix_ipc.SharedMemory(name, posix_ipc.O_CREX, mode=0o600, size=size)
         except posix_ipc.ExistentialError:
-            raise IPCError(f"shared memory {name} already exists") from None
+            raise IPCError(
+                f"shared memory {name} already exists ({names.holder('shm', name)})"
+            ) from None
         try:
             mapping = mmap.mmap(shm.fd, size)
         finally:

@@ -287,6 +287,7 @@ def _loop(
         "torn_outputs": int(getattr(port, "torn_outputs", 0)),
         "bad_frames": int(getattr(port, "bad_frames", 0)),
         "forged_writes": int(getattr(port, "forged", 0)),
+        "taken_writes": int(getattr(port, "taken", 0)),
         "physics_hz": physics_hz,
         "pid": os.getpid(),
         "kernels": chassis.kernels,

@@ -360,3 +360,57 @@ def test_the_shipped_inputs_pass_the_front_door() -> None:
     for task in sorted((ROOT / "tasks").glob("*.yaml")):
         assert load_task(task, cfg).segments is not None
     assert stat.S_ISREG(os.stat(ROOT / "config/redistro.yaml").st_mode)
+
+
+OTHER = 12345  # a uid that is not ours
+
+
+@pytest.mark.skipif(os.getuid() != 0, reason="makes a folder of another user (root only)")
+def test_an_out_folder_of_another_user_with_planted_links_is_refused(tmp_path: Path) -> None:
+    """Another user's folder holding links to our private files, named as a
+    run folder's files: the session refuses the folder before anything, and
+    our files stay as they were."""
+    victim = tmp_path / "victim"
+    victim.write_text("secret\n")
+    victim.chmod(0o600)
+    trap = tmp_path / "trap"
+    trap.mkdir(mode=0o777)
+    os.chmod(trap, 0o777)
+    for name in ("summary.json.tmp", "summary.json", "messages.log", "plant.json"):
+        (trap / name).symlink_to(victim)
+    os.chown(trap, OTHER, OTHER)
+    runs = tmp_path / "runs"
+    done = run_cli("--set", f"session.runs_dir={runs}", "session", "tasks/park.yaml", "--out",
+                   str(trap), timeout=60)  # fmt: skip
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert f"is owned by uid {OTHER}, not by you (0) or root" in done.stderr, done.stderr
+    assert victim.read_text() == "secret\n"
+    assert sorted(p.name for p in trap.iterdir()) == sorted(
+        ["summary.json.tmp", "summary.json", "messages.log", "plant.json"]
+    )
+    # a folder of ours that anyone may write into is refused the same way
+    open_dir = tmp_path / "open"
+    open_dir.mkdir()
+    os.chmod(open_dir, 0o777)
+    done = run_cli("session", "tasks/park.yaml", "--out", str(open_dir), timeout=60)
+    assert done.returncode == 2 and "is writable by others (mode 0777)" in done.stderr
+
+
+def test_an_export_replaces_a_planted_link_never_its_target(tmp_path: Path) -> None:
+    """A CSV name planted as a link to a private file: the export writes its
+    own file in the link's place; the file it pointed to is untouched."""
+    import json
+
+    victim = tmp_path / "victim"
+    victim.write_text("secret\n")
+    victim.chmod(0o600)
+    run = _run_with_summary(tmp_path, "run", json.dumps({"task": "t"}))
+    out = tmp_path / "csv"
+    out.mkdir()
+    (out / "ssc_events.csv").symlink_to(victim)
+    done = run_cli("log", "export", "--csv", str(out), str(run), timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert victim.read_text() == "secret\n"
+    csv_file = out / "ssc_events.csv"
+    assert not csv_file.is_symlink() and csv_file.read_text().startswith("log_time_ns")
+    assert sorted(p.name for p in out.iterdir()) == ["ssc_events.csv"]  # no temporary left

@@ -192,3 +192,117 @@ def test_a_can_write_without_the_plants_key_never_reaches_a_register() -> None:
     finally:
         for bus in (port.bus, good.bus, bad.bus, sniffer):
             bus.shutdown()
+
+
+def test_a_captured_can_write_is_refused_after_the_sequence_wrapped() -> None:
+    """A brake-release write captured early, replayed after the driver's
+    16-bit sequence would have wrapped: refused and counted; the genuine
+    writer is never locked out."""
+    import can
+
+    from redistro.drivers.io.can import CanBackplane, CanPort
+
+    channel = f"wrap-{time.monotonic_ns()}"
+    port = CanPort(BOARDS, can.Bus(interface="virtual", channel=channel), key=CAN_KEY)
+    good = CanBackplane(
+        "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
+    )
+    sniffer = can.Bus(interface="virtual", channel=channel)
+
+    def write(codes: list[int]) -> None:
+        out = np.zeros((), BANKS[BoardType.DAC][1])
+        out["code"][:3] = codes
+        good.write(32, out)
+        port.service(time.monotonic_ns() + 50_000_000)
+
+    try:
+        write([2047, 2047, 2047])  # the write an attacker captures
+        captured = []
+        while (msg := sniffer.recv(timeout=0.2)) is not None:
+            captured.append(msg)
+        write([0, 0, 0])
+        # 70 000 writes later (more than the old 16-bit window): the driver's
+        # sequence as it would stand then
+        good._seq += 70_000
+        write([1, 2, 3])
+        for _ in range(3):
+            for msg in captured:
+                sniffer.send(msg)
+            port.service(time.monotonic_ns() + 50_000_000)
+            assert list(port.outputs(32)["code"][:3]) == [1, 2, 3]
+        assert port.forged == 3
+        write([4, 5, 6])  # the genuine writer goes on
+        assert list(port.outputs(32)["code"][:3]) == [4, 5, 6]
+        assert port.forged == 3
+        # a write from an earlier driver beside the same plant: refused too
+        old = CanBackplane(
+            "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
+        )
+        try:
+            out = np.zeros((), BANKS[BoardType.DAC][1])
+            out["code"][:3] = [7, 7, 7]
+            old.next_seq = lambda: 5  # type: ignore[method-assign]  # an earlier run's number
+            old.write(32, out)
+            port.service(time.monotonic_ns() + 50_000_000)
+            assert list(port.outputs(32)["code"][:3]) == [4, 5, 6] and port.forged == 4
+        finally:
+            old.bus.shutdown()
+    finally:
+        for bus in (port.bus, good.bus, sniffer):
+            bus.shutdown()
+
+
+def test_a_forged_or_replayed_can_reply_is_not_taken() -> None:
+    """An old reply sent again as the answer to a new request (its header
+    renumbered to match): the driver refuses it and takes the board's own."""
+    import can
+
+    from redistro.drivers.io.can import HEAD, READ, REPLY, CanBackplane, CanPort, frames_for
+
+    channel = f"reply-{time.monotonic_ns()}"
+    port = CanPort(BOARDS, can.Bus(interface="virtual", channel=channel), key=CAN_KEY)
+    drv = CanBackplane(
+        "s", TIMEOUT_S * 10, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
+    )
+    sniffer = can.Bus(interface="virtual", channel=channel)
+    rec = np.zeros((), BANKS[BoardType.ENCODER][0])
+    try:
+        drv._types = dict(BOARDS)  # (the inventory, asked before)
+        rec["counter"] = [111, 0, 0, 0]
+        port.publish(16, rec)
+        got: dict[str, Any] = {}
+        t = threading.Thread(target=lambda: got.update(first=drv.read([16])[16]["counter"][0]))
+        t.start()
+        old_reply = []
+        deadline = time.monotonic() + 2
+        while t.is_alive() and time.monotonic() < deadline:
+            port.service(time.monotonic_ns() + 5_000_000)
+            while (msg := sniffer.recv(timeout=0)) is not None:
+                if msg.arbitration_id == REPLY | 16:
+                    old_reply.append(bytes(msg.data))
+        t.join()
+        assert got["first"] == 111 and old_reply
+        rec["counter"] = [222, 0, 0, 0]
+        port.publish(16, rec)
+        t = threading.Thread(target=lambda: got.update(second=drv.read([16])[16]["counter"][0]))
+        t.start()
+        request = None
+        while request is None:
+            msg = sniffer.recv(timeout=1.0)
+            assert msg is not None, "no request seen"
+            if msg.arbitration_id == READ | 16:
+                request = bytes(msg.data)
+        seq16 = HEAD.unpack_from(request)[0]
+        whole = b"".join(frame[HEAD.size :] for frame in old_reply)
+        replay = frames_for(seq16, whole[: drv._rx[16].size])
+        for frame in replay:  # the old reply, renumbered, before the board answers
+            sniffer.send(can.Message(arbitration_id=REPLY | 16, data=frame, is_fd=True))
+        deadline = time.monotonic() + 2
+        while t.is_alive() and time.monotonic() < deadline:
+            port.service(time.monotonic_ns() + 5_000_000)
+        t.join()
+        assert got["second"] == 222
+        assert drv.bad_frames == 1
+    finally:
+        for bus in (port.bus, drv.bus, sniffer):
+            bus.shutdown()

@@ -114,9 +114,16 @@ def test_the_reaper_reports_an_object_it_may_not_remove(
     def refuse(name: str) -> None:
         raise posix_ipc.PermissionsError("Permission denied")
 
+    name = "/redistro.20261126T000000-abcdef.test.refused"
+    shm = posix_ipc.SharedMemory(name, posix_ipc.O_CREX, mode=0o600, size=64)
+    shm.close_fd()
+    real_unlink = posix_ipc.unlink_shared_memory
     monkeypatch.setattr(posix_ipc, "unlink_shared_memory", refuse)
-    assert session.unlink("shm", "/redistro.someone-elses") is False
-    assert "not removed: Permission denied" in caplog.text
+    try:
+        assert session.unlink("shm", name) is False
+        assert "not removed: Permission denied" in caplog.text
+    finally:
+        real_unlink(name)
 
 
 def test_a_forged_estop_or_finished_flag_is_refused() -> None:

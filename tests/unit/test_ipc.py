@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -248,3 +250,81 @@ def test_a_signal_wait_that_returns_no_signal_waits_on(monkeypatch: pytest.Monke
     assert len(asked) == 2 and asked[1] <= asked[0] <= 1.0  # the same deadline
     returns[:] = [SimpleNamespace(si_signo=0), None]
     assert signals.wait(frozenset({signal.SIGTERM}), 0.0) is None
+
+
+SQUATTER = 12345  # a uid that is not ours (the tests run as root: chown and setuid work)
+
+
+def _as_squatter(make: Any) -> None:
+    """Call ``make()`` in a child process of another user (forked: the
+    interpreter's modules are already loaded)."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 1
+        try:
+            os.setgid(SQUATTER)
+            os.setuid(SQUATTER)
+            make()
+            code = 0
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+
+
+@pytest.mark.skipif(os.getuid() != 0, reason="makes objects of another user (root only)")
+def test_a_squatters_objects_are_named_at_creation_and_never_reaped(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Another user creates the names and keys a session will use first: the
+    session's creation refuses naming that user (a card takes another random
+    key), and no clean-up removes what that user made, though the session's
+    manifest lists it."""
+    import posix_ipc
+    import sysv_ipc
+
+    from redistro.errors import IPCError
+    from redistro.ipc import names, session, sysv
+    from redistro.ipc.sem import Semaphore
+    from redistro.ipc.shm import SharedMemory
+
+    shm_name = "/redistro.20261126T000000-abcdef.esc.r1.ld"
+    sem_name = "/redistro.20261126T000000-abcdef.esc.r1.go0"
+    squatted = sysv.KEY_BASE | 0x1234
+
+    def squat() -> None:
+        posix_ipc.SharedMemory(shm_name, posix_ipc.O_CREX, size=64).close_fd()
+        posix_ipc.Semaphore(sem_name, posix_ipc.O_CREX).close()
+        sysv_ipc.SharedMemory(squatted, sysv_ipc.IPC_CREX, size=64, mode=0o644)
+
+    _as_squatter(squat)
+    manifest = session.Manifest("20261126T000000-abcdef", tmp_path)
+    try:
+        with pytest.raises(IPCError, match=f"already exists \\(owned by uid {SQUATTER}"):
+            SharedMemory.create(shm_name, 128, manifest)
+        with pytest.raises(IPCError, match=f"already exists \\(owned by uid {SQUATTER}"):
+            Semaphore.create(sem_name, manifest)
+        with pytest.raises(IPCError, match=f"created by uid {SQUATTER}"):
+            sysv.Card.create(squatted, 128, manifest)
+        # a card draws another key when its first is taken
+        keys = iter([squatted, squatted + 1])
+        monkeypatch.setattr(sysv, "random_key", lambda: next(keys))
+        card = sysv.Card.create_new(128, manifest)
+        assert card.key == squatted + 1
+        card.close()
+        # the manifest lists the squatter's three; the clean-up leaves them
+        listed = {name for _, name in manifest.entries()}
+        assert {shm_name, sem_name, sysv.key_name(squatted)} <= listed
+        removed = session._remove_objects(manifest.entries())
+        assert removed == [sysv.key_name(squatted + 1)]
+        assert names.entry_path("shm", shm_name).exists()
+        assert names.entry_path("sem", sem_name).exists()
+        assert sysv_ipc.SharedMemory(squatted).cuid == SQUATTER
+        assert f"created by uid {SQUATTER}" in caplog.text
+        assert f"owned by uid {SQUATTER}" in caplog.text
+    finally:
+        posix_ipc.unlink_shared_memory(shm_name)
+        posix_ipc.unlink_semaphore(sem_name)
+        sysv_ipc.SharedMemory(squatted).remove()
+        with contextlib.suppress(sysv_ipc.ExistentialError):
+            sysv_ipc.SharedMemory(squatted + 1).remove()

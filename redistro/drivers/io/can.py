@@ -13,12 +13,26 @@ index or an unknown sequence is counted and dropped, never trusted. Every send
 and receive has a timeout; a bus error or a board that does not answer in time
 is an :class:`~redistro.errors.IOFault`.
 
-A write carries, after the bank, a 32-byte HMAC-SHA256 over its address,
-sequence number and bank with the plant's CAN key (``can.key`` in the plant
-session's runtime folder, made by the plant at start, read by the drivers):
-a write that fails it, or repeats an old sequence number, never reaches a
-register (counted in ``forged``). The ``udp_multicast`` bus joins its group
-and sends on loopback only (``plant.can.loopback_only``).
+Every write and every reply is signed: its payload is a 64-bit sequence
+number, the bank, and a 32-byte HMAC-SHA256 over the frame's function,
+address, sequence number and bank with the plant's CAN key (``can.key`` in
+the plant session's runtime folder, made fresh by each plant at start,
+read by the drivers). The header's 16-bit number only matches segments.
+
+- A write's sequence number is the driver's: strictly growing, never below
+  the monotonic clock in ns when written (``next_seq``), so it never wraps
+  and a later driver beside the same plant starts above every earlier one.
+  The chassis takes a write only when its tag holds and its number is above
+  the last one it took for that board: a write captured at any time and
+  sent again (whatever the sequence did since), or one from another run
+  (another key), never reaches a register (counted in ``forged``), and
+  never moves what the chassis expects of the genuine writer.
+- A read request carries the driver's next number; the reply echoes it
+  under the tag, so a reply that is forged, or captured and sent again,
+  is not taken (``bad_frames``).
+
+The ``udp_multicast`` bus joins its group and sends on loopback only
+(``plant.can.loopback_only``).
 
 One file past the house's ~400 lines: the frame format, the signed write and
 the checked read are one protocol, and split they would each need the others.
@@ -51,13 +65,28 @@ WRITE, READ, REPLY = 0x100, 0x200, 0x300
 LATE_BATCH = 64  # frames a late plant still takes before its next step
 INVENTORY = 0x7F0  # controller -> chassis: who is there?
 INVENTORY_REPLY = 0x7F1  # chassis -> controller: (address u8, type u8) pairs
-TAG = 32  # a write's HMAC-SHA256
+TAG = 32  # a write's or a reply's HMAC-SHA256
+SEQ = struct.Struct("<Q")  # the 64-bit sequence number that starts a signed payload
 KEY_FILE = "can.key"  # in the plant session's runtime folder
-_WRITE_HEAD = struct.Struct("<BH")  # what the tag covers before the bank: address, seq
+_SIGNED = struct.Struct("<HBQ")  # what the tag covers before the bank: function, address, seq
 
 
 def write_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
-    return hmac.digest(key, _WRITE_HEAD.pack(address, seq & 0xFFFF) + bank, "sha256")
+    return hmac.digest(key, _SIGNED.pack(WRITE, address, seq) + bank, "sha256")
+
+
+def reply_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
+    return hmac.digest(key, _SIGNED.pack(REPLY, address, seq) + bank, "sha256")
+
+
+def signed(seq: int, bank: bytes, tag: bytes) -> bytes:
+    """A signed payload: sequence number, bank, tag."""
+    return SEQ.pack(seq) + bank + tag
+
+
+def unsigned(whole: bytes) -> tuple[int, bytes, bytes]:
+    """(sequence number, bank, tag) of a signed payload."""
+    return SEQ.unpack_from(whole)[0], whole[SEQ.size : -TAG], whole[-TAG:]
 
 
 def key_path(session_id: str) -> Path:
@@ -228,8 +257,16 @@ class CanBackplane(Backplane):
         self._rx: dict[int, Reassembly] = {}
         self._recs: dict[int, np.ndarray[Any, Any]] = {}
         self._seq = 0
-        self.bad_frames = 0
+        self.bad_frames = 0  # frames refused: malformed, or a reply whose tag failed
         self.resent = 0  # read requests sent a second time
+        self.writes = 0  # banks written
+
+    def next_seq(self) -> int:
+        """The next sequence number: above the last, and never below the
+        monotonic clock [ns] (so it never wraps, and a driver started later
+        beside the same plant begins above every number of this one)."""
+        self._seq = max(self._seq + 1, time.monotonic_ns())
+        return self._seq
 
     def _send(self, arbitration_id: int, data: bytes) -> None:
         import can
@@ -268,16 +305,16 @@ class CanBackplane(Backplane):
 
     def read(self, addresses: list[int]) -> dict[int, np.ndarray[Any, Any]]:
         types = self.inventory()
-        self._seq = (self._seq + 1) & 0xFFFF
-        seq = self._seq
+        seq = self.next_seq()
+        request = (HEAD.pack(seq & 0xFFFF, 0, 1, 0) + SEQ.pack(seq)).ljust(FRAME, b"\0")
         for a in addresses:
             if a not in types:
                 raise IOFault(f"no board at address {a} in the chassis")
             if a not in self._rx:
                 din = BANKS[types[a]][0]
-                self._rx[a] = Reassembly(din.itemsize)
+                self._rx[a] = Reassembly(SEQ.size + din.itemsize + TAG)
                 self._recs[a] = np.zeros((), din)
-            self._send(READ | a, HEAD.pack(seq, 0, 1, 0).ljust(FRAME, b"\0"))
+            self._send(READ | a, request)
         pending = set(addresses)
         out: dict[int, np.ndarray[Any, Any]] = {}
         start = time.monotonic()
@@ -289,7 +326,7 @@ class CanBackplane(Backplane):
                 # a lost datagram or a late step: ask once more within the budget
                 self.resent += len(pending)
                 for a in pending:
-                    self._send(READ | a, HEAD.pack(seq, 0, 1, 0).ljust(FRAME, b"\0"))
+                    self._send(READ | a, request)
                 resend_at = None
                 continue
             if msg is None:
@@ -305,17 +342,22 @@ class CanBackplane(Backplane):
             whole = rx.add(msg.data, want_seq=seq)
             self.bad_frames += rx.bad - before
             if whole is not None:
+                echo, bank, tag = unsigned(whole)
+                if echo != seq or not hmac.compare_digest(tag, reply_tag(self.key, a, seq, bank)):
+                    self.bad_frames += 1  # forged, or an old reply sent again: not taken
+                    continue
                 rec = self._recs[a]
-                rec.reshape(1).view(np.uint8)[:] = np.frombuffer(whole, np.uint8)
+                rec.reshape(1).view(np.uint8)[:] = np.frombuffer(bank, np.uint8)
                 out[a] = rec
                 pending.discard(a)
         return out
 
     def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
-        self._seq = (self._seq + 1) & 0xFFFF
+        seq = self.next_seq()
         bank = record.tobytes()
-        for frame in frames_for(self._seq, bank + write_tag(self.key, address, self._seq, bank)):
+        for frame in frames_for(seq, signed(seq, bank, write_tag(self.key, address, seq, bank))):
             self._send(WRITE | address, frame)
+        self.writes += 1
 
     def close(self) -> None:
         if self._own_bus:
@@ -331,10 +373,11 @@ class CanPort(BoardPort):
         self.types = dict(boards)
         self._in = {a: np.zeros((), BANKS[t][0]) for a, t in boards.items()}
         self._out = {a: np.zeros((), BANKS[t][1]) for a, t in boards.items()}
-        self._rx = {a: Reassembly(BANKS[t][1].itemsize + TAG) for a, t in boards.items()}
+        self._rx = {a: Reassembly(SEQ.size + BANKS[t][1].itemsize + TAG) for a, t in boards.items()}
         self._last_seq: dict[int, int] = {}
         self.bad_frames = 0
-        self.forged = 0  # writes refused: the tag did not match, or an old sequence number
+        self.forged = 0  # writes refused: the tag did not match, or not a newer sequence number
+        self.taken = 0  # writes that reached their registers
         self.requests = 0
 
     def outputs(self, address: int) -> np.ndarray[Any, Any]:
@@ -344,9 +387,11 @@ class CanPort(BoardPort):
         self._in[address][...] = record
 
     def _reply(self, address: int, seq: int) -> None:
+        """The board's ``in`` bank, signed, echoing the request's number."""
         import can
 
-        for frame in frames_for(seq, self._in[address].tobytes()):
+        bank = self._in[address].tobytes()
+        for frame in frames_for(seq, signed(seq, bank, reply_tag(self.key, address, seq, bank))):
             try:
                 self.bus.send(_message(REPLY | address, frame), timeout=0.005)
             except can.CanError:
@@ -364,11 +409,11 @@ class CanPort(BoardPort):
             return
         data = bytes(msg.data)
         if fn == READ:
-            if len(data) < HEAD.size:
+            if len(data) < HEAD.size + SEQ.size:
                 self.bad_frames += 1
                 return
             self.requests += 1
-            self._reply(a, HEAD.unpack_from(data)[0])
+            self._reply(a, SEQ.unpack_from(data, HEAD.size)[0])
             return
         rx = self._rx[a]
         before = rx.bad
@@ -376,14 +421,13 @@ class CanPort(BoardPort):
         self.bad_frames += rx.bad - before
         if whole is None:
             return
-        seq = HEAD.unpack_from(data)[0]
-        bank, tag = whole[:-TAG], whole[-TAG:]
-        last = self._last_seq.get(a)
-        fresh = last is None or 0 < (seq - last) & 0xFFFF < 0x8000
+        seq, bank, tag = unsigned(whole)
+        fresh = seq > self._last_seq.get(a, -1)
         if not (fresh and hmac.compare_digest(tag, write_tag(self.key, a, seq, bank))):
-            self.forged += 1
+            self.forged += 1  # forged, replayed or from another run: never a register
             return
         self._last_seq[a] = seq
+        self.taken += 1
         self._out[a].reshape(1).view(np.uint8)[:] = np.frombuffer(bank, np.uint8)
 
     def service(self, until_ns: int) -> None:
