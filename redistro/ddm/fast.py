@@ -80,7 +80,8 @@ class FastPath:
         assert KERNELS is not None
         n = len(gids)
         in_dtype, out_dtype = wire.PAYLOADS[in_kind], wire.PAYLOADS[out_kind]
-        codec = np.frombuffer(bytearray(wire._codec(key)), dtype=np.uint8)
+        # the plans hold this buffer: rekey() changes the key of every kernel
+        self.codec = codec = np.frombuffer(bytearray(wire._codec(key)), dtype=np.uint8)
         ld_raw = ld.raw
         # the records both paths share: exchange and out records in arenas
         self.ex_arena = np.zeros(n * EXCHANGE.itemsize, dtype=np.uint8)
@@ -185,6 +186,10 @@ class FastPath:
         # the Python path's counters, in the kernels' rows
         self.seq = self.emit_rows[:, _E_SEQ]
         self.last_out = self.emit_rows[:, _E_LAST_OUT]
+
+    def rekey(self, key: bytes) -> None:
+        """Verify and sign with ``key`` from now on (every plan's codec, in place)."""
+        self.codec[:] = np.frombuffer(wire._codec(key), dtype=np.uint8)
 
     def admit(self, raw: bytes) -> int:
         """The local robot whose block took ``raw``, or -1: the Python path's."""

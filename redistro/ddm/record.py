@@ -11,10 +11,19 @@ tag::
 
 The crc32 tells noise from forgery: a flipped bit fails the checksum, a
 record written without the link's key (forged, or renamed to another
-source) fails the tag (``auth``). The key is the session's (``ddm.key`` in
-its runtime directory) or, for nodes started alone, ``ddm.key_file``
-(:func:`load_key`). Computing or checking a tag costs about 1 µs hot in Python,
-about 0.5 µs in the kernels (``wire_verify``, ``wire_seal``: the common case).
+source) fails the tag (``auth``). The link's key is the session's
+(``ddm.key`` in its runtime directory) or, for nodes started alone,
+``ddm.key_file`` (:func:`load_key`). Computing or checking a tag costs
+about 1 µs hot in Python, about 0.5 µs in the kernels (``wire_verify``,
+``wire_seal``: the common case).
+
+Freshness across runs: the link's key signs only hellos. Commands and
+feedback are signed with the *run key*, :func:`run_key` of the link's key
+and the SSC's ddm's nonce (16 random bytes, new in every run), which an
+ESC's ddm takes on only from a hello that answers its own challenge (its
+own fresh nonce, :data:`HELLO` ``peer``): a record or hello of an earlier
+run is refused (``auth``, or a stale hello), whoever sends it
+(:mod:`redistro.ddm.handshake`).
 
 ``seq`` counts the source's records of that kind and robot; ``stamp_ns`` is
 the source's CLOCK_MONOTONIC when it sent the record (comparable only with
@@ -40,20 +49,25 @@ import numpy as np
 
 from redistro.errors import WireError
 from redistro.kernels import KERNELS
-from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
+from redistro.localdata.layout import COMMAND, FEEDBACK
 
 MAGIC = 0x52445344  # "DSDR" little-endian
-VERSION = 2
+VERSION = 3
 TAG_BYTES = 32  # HMAC-SHA256
 KEY_BYTES = 32
 SESSION_KEY = "ddm.key"  # a session's link key, in its runtime directory
 KIND_COMMAND = 1
 KIND_FEEDBACK = 2
-KIND_HELLO = 3  # the connecting side's first record on a new link: it proves the key
+KIND_HELLO = 3  # the handshake's records, signed with the link's key (redistro.ddm.handshake)
+NONCE_BYTES = 16
+# a hello: the sender's nonce for this run, and the nonce of the peer it answers
+HELLO = np.dtype(
+    [("stamp_ns", "<i8"), ("nonce", "u1", (NONCE_BYTES,)), ("peer", "u1", (NONCE_BYTES,))]
+)
 PAYLOADS: dict[int, np.dtype[Any]] = {
     KIND_COMMAND: COMMAND,
     KIND_FEEDBACK: FEEDBACK,
-    KIND_HELLO: COUNTER,
+    KIND_HELLO: HELLO,
 }
 PAYLOAD_BYTES = max(d.itemsize for d in PAYLOADS.values())
 
@@ -147,6 +161,13 @@ def _codec(key: bytes) -> bytes:
 def _check_tag(key: bytes, buf: bytes | bytearray | memoryview) -> None:
     if not hmac.compare_digest(_tag(key, buf), bytes(memoryview(buf)[BODY:SIZE])):
         raise WireError("auth", "the tag does not match the link's key")
+
+
+def run_key(key: bytes, nonce: bytes) -> bytes:
+    """The key of one run's commands and feedback: HMAC-SHA256 of the SSC's
+    nonce under the link's key (RFC 2104 as a key derivation, as HKDF's
+    extract step)."""
+    return hmac.digest(key, b"redistro run key\0" + nonce, "sha256")
 
 
 def new_key(path: Path | str) -> bytes:
@@ -309,11 +330,15 @@ class Encoder:
     def __init__(self, kind: int, robot: int, source: str, key: bytes = b"") -> None:
         if kind not in PAYLOADS:
             raise ValueError(f"unknown record kind {kind}")
-        self.key = key
         self.buf = bytearray(SIZE)
         self.view = memoryview(self.buf)
         self.size = PAYLOADS[kind].itemsize
         self.head = (MAGIC, VERSION, kind, robot, source.encode()[:16])
+        self.rekey(key)
+
+    def rekey(self, key: bytes) -> None:
+        """Sign with ``key`` from now on."""
+        self.key = key
         self.codec = _codec(key) if KERNELS is not None else b""
 
     def encode(self, seq: int, stamp_ns: int, payload: Any, estop: bool = False) -> bytes:

@@ -6,12 +6,19 @@ every other node's card: the records a node writes in one step (the
 SSC's commands for every robot) go out together, as one UDP datagram to a
 multicast group on loopback (and to configured peers on other hosts), at
 most ``BATCH`` records a datagram (1 284 bytes: one Ethernet frame between
-hosts); ``receive`` drains the datagrams that arrived and writes each record
-into this node's card. A node sends from a socket of its own that is not a
-member of the group, so its own writes do not come back to wake it. Nobody
-blocks and nobody waits for anybody: a card always holds the latest record
-of each slot, whoever wrote it last. Each slot is seqlocked (a counter, odd
-while written) so a reader never takes a torn copy.
+hosts); ``receive`` drains the datagrams that arrived, writes each record
+that proves authentic into this node's card, and hands the ddm the latest
+record of every slot written, read back from the card (as the paper's DDM
+reads its SCRAMNet memory). A record that fails the check (``verify_with``:
+the ddm's keys) never touches the card: it is handed to the ddm as it came,
+to be counted (``forged``), whatever source it claims, this node's own
+included. A node sends from a socket of its own that is not a member of the
+group, so its own writes do not come back to wake it; an authentic record
+of its own that a peer on another host sends back is not written again.
+Nobody blocks and nobody waits for anybody: a card always holds the latest
+record of each slot, whoever wrote it last. Each slot is seqlocked (a
+counter, odd while written) so a reader never takes a torn copy. Hellos
+(the handshake's records) have no slot: they are broadcast and handed over.
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ import contextlib
 import socket
 import struct
 import zlib
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING
 
 from redistro.ddm.record import SIZE
@@ -47,6 +54,8 @@ def group_port(session_id: str) -> int:
 
 
 class ReflectiveTransport(Transport):
+    latest_only = True
+
     @classmethod
     def for_node(
         cls,
@@ -92,6 +101,7 @@ class ReflectiveTransport(Transport):
         self.card = Card.create_new(KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
         self.pending: list[bytes] = []  # written this step, not yet sent (flush)
+        self.check: Callable[[bytes], bool] | None = None  # (verify_with)
         try:
             # no peers on other hosts: only the group's datagrams on loopback
             # are received (bound to the group address, joined on lo)
@@ -103,6 +113,10 @@ class ReflectiveTransport(Transport):
             self.card.close()
             self.card.remove()
             raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
+
+    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
+        self.check = check
+        return True
 
     @staticmethod
     def _slot(record: bytes, robot: int) -> int:
@@ -134,9 +148,10 @@ class ReflectiveTransport(Transport):
         raise IPCError(f"card slot {kind}/{robot}: no consistent copy")
 
     def send(self, record: bytes, robot: int) -> None:
-        """Write ``record`` to this node's card; it goes out to the others'
-        with the step's other writes, at :meth:`flush`."""
-        self._write_card(self._slot(record, robot), record)
+        """Write ``record`` to this node's card (a hello has no slot); it goes
+        out to the others' with the step's other writes, at :meth:`flush`."""
+        if 1 <= record[6] <= KINDS:
+            self._write_card(self._slot(record, robot), record)
         self.pending.append(record)
 
     def flush(self) -> None:
@@ -156,12 +171,16 @@ class ReflectiveTransport(Transport):
         pending.clear()
 
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
+        """Records refused by the check (as they came), hellos, and the latest
+        record of each card slot that authentic records wrote."""
         out: list[bytes] = []
+        written: dict[int, tuple[int, int]] = {}  # slot -> (kind, robot)
+        check = self.check
         for _ in range(MAX_DATAGRAMS):  # a flood waits for the next receive
             try:
                 data = self.sock.recv(BATCH * SIZE + 1)
             except BlockingIOError:
-                return out
+                break
             except OSError as exc:
                 raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
             if len(data) % SIZE or len(data) > BATCH * SIZE:
@@ -169,11 +188,22 @@ class ReflectiveTransport(Transport):
                 continue
             for at in range(0, len(data), SIZE):
                 rec = data[at : at + SIZE] if len(data) > SIZE else data
+                if check is not None and not check(rec):
+                    out.append(rec)  # never in the card: the ddm counts it
+                    continue
                 if rec[_SOURCE] == self.source:
                     continue  # our own write, back from a peer on another host
-                if 1 <= rec[6] <= KINDS and rec[7] < MAX_ROBOTS:
-                    self._write_card(self._slot(rec, rec[7]), rec)
-                out.append(rec)
+                kind, robot = rec[6], rec[7]
+                if 1 <= kind <= KINDS and robot < MAX_ROBOTS:
+                    slot = self._slot(rec, robot)
+                    self._write_card(slot, rec)
+                    written[slot] = (kind, robot)
+                else:
+                    out.append(rec)  # a hello
+        for kind, robot in written.values():
+            latest = self.read_card(kind, robot)
+            if latest is not None:
+                out.append(latest)
         return out
 
     def fds(self) -> list[int]:

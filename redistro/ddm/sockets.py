@@ -1,16 +1,19 @@
 """Message passing over TCP: the SSC's ddm sends, the ESC's ddm receives and replies.
 
 An ESC ddm *listens* (``listen=(host, port)``) and takes one peer, the SSC
-ddm. The peer is pinned: once a record signed with the link's key came over
-a connection (the connecting side sends ``hello``, a signed record, first
-thing on every connection), a new connection is refused and counted; a
-connection that has not authenticated within ``HANDSHAKE_S``, or sends a
-record that fails the key, is dropped (and a new connection may take its
-place). The SSC ddm *connects* to one ESC per robot (``peers={robot: (host, port)}``),
-without blocking: the connections are made in ``receive`` (each ESC may
-start after the SSC, on another host), retried every 50 ms until
-``connect_timeout_s``; a record for a robot not yet connected is dropped
-and counted. Records are fixed size, so the stream is cut into whole records by length.
+ddm. The peer is pinned: once the ddm found the connection's records to be
+this run's (the handshake's proof, :mod:`redistro.ddm.handshake`, and the
+records signed with the run's key), a new connection is refused and
+counted; a connection that has not authenticated within ``HANDSHAKE_S``,
+or sends a record that fails the key, is dropped (and a new connection may
+take its place). The SSC ddm *connects* to one ESC per robot
+(``peers={robot: (host, port)}``), without blocking: the connections are
+made in ``receive`` (each ESC may start after the SSC, on another host),
+retried every 50 ms until ``connect_timeout_s``; a link the ESC gave up
+before any record of this run came over it is made again, within the same
+time; a record for a robot not yet connected is dropped and counted.
+``hello``: a record a connecting side sends first on every connection (the
+contract tests'; the ddm says hello itself). Records are fixed size, so the stream is cut into whole records by length.
 Sockets are non-blocking after connect, with TCP_NODELAY; a record that
 finds the send buffer full is dropped and counted (the peer is not reading).
 """
@@ -28,11 +31,9 @@ from collections.abc import Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from redistro.ddm import record as wire
 from redistro.ddm.record import SIZE
 from redistro.ddm.transport import Transport
 from redistro.errors import TransportError
-from redistro.localdata.layout import COUNTER
 
 if TYPE_CHECKING:
     from redistro.config import Config
@@ -103,6 +104,10 @@ class SocketTransport(Transport):
         self.dropped_full = 0
         self.lost: str | None = None  # why a link was lost (raised by the next receive)
         self.lost_robots: dict[int, str] = {}  # connecting side: robot -> why its link was lost
+        # connecting side: robots whose link brought records of this run: a
+        # link lost before that (the ESC gave it up for a newcomer, before
+        # the handshake) is made again until the connect deadline
+        self.proven: set[int] = set()
         if listen is not None:
             srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -111,6 +116,7 @@ class SocketTransport(Transport):
             srv.setblocking(False)
             self.server = srv
         self.pending: dict[int, _Pending] = {}
+        self.addresses: dict[int, tuple[tuple[str, int], str]] = {}  # robot -> (address, name)
         self._receives = 0
         self.generation = 0  # bumped whenever a peer or a link comes or goes
         self.closed = False
@@ -127,7 +133,8 @@ class SocketTransport(Transport):
             except OSError as exc:
                 raise TransportError(f"cannot connect to {name}: {exc.strerror or exc}") from None
             addr = info[0][4]
-            self.pending[robot] = _Pending((str(addr[0]), int(addr[1])), name)
+            self.addresses[robot] = ((str(addr[0]), int(addr[1])), name)
+            self.pending[robot] = _Pending(*self.addresses[robot])
         self._progress()
 
     @classmethod
@@ -148,11 +155,7 @@ class SocketTransport(Transport):
             listen = (cfg.ddm.listen_host, esc_port(cfg, link, robots[0]))
             return cls(listen=listen, authenticate=True)
         index = list(cfg.robots)
-        hello = wire.encode(
-            wire.KIND_HELLO, 0, node, 1, time.monotonic_ns(), bytes(COUNTER.itemsize), key=key
-        )
         return cls(
-            hello=hello,
             peers={
                 index.index(r): (cfg.ddm.esc_hosts.get(r, "127.0.0.1"), esc_port(cfg, link, r))
                 for r in robots
@@ -225,9 +228,11 @@ class SocketTransport(Transport):
             self.peer_since = time.monotonic()
             self.pinned = not self.authenticate
 
-    def authenticated(self) -> None:
+    def authenticated(self, robot: int | None = None) -> None:
         if self.server is not None and self.peer is not None:
             self.pinned = True
+        elif robot is not None:
+            self.proven.add(robot)
 
     def drop_unauthenticated(self) -> None:
         if self.server is not None and self.peer is not None and not self.pinned:
@@ -238,6 +243,11 @@ class SocketTransport(Transport):
 
     def refused(self) -> int:
         return self.refused_count
+
+    def can_send(self, robot: int) -> bool:
+        if self.server is not None:
+            return self.peer is not None
+        return robot in self.links
 
     def send(self, record: bytes, robot: int) -> None:
         link = self.peer if self.server is not None else self.links.get(robot)
@@ -429,6 +439,12 @@ class SocketTransport(Transport):
                     self.generation += 1
                 elif self.server is not None:
                     self.lost = why
+                elif robot not in self.proven and time.monotonic() < self.deadline:
+                    old = self.links.pop(robot)
+                    old.close()
+                    self.generation += 1
+                    addr, name = self.addresses[robot]
+                    self.pending[robot] = _Pending(addr, name, next_try=time.monotonic() + RETRY_S)
                 else:
                     self.links.pop(robot).close()
                     self.generation += 1

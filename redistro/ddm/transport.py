@@ -33,6 +33,9 @@ class Transport(ABC):
     # send/receive/reply): an ESC's ddm then sends its feedback as the reply
     # to each command, not on its own
     replies = False
+    # a memory, not a stream (reflective memory): a receive hands over the
+    # latest record of each slot written since the last
+    latest_only = False
 
     @abstractmethod
     def send(self, record: bytes, robot: int) -> None: ...
@@ -51,6 +54,17 @@ class Transport(ABC):
         link breaks): what a ddm waits on, beside its wake event."""
         return []
 
+    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
+        """A transport that stores what it receives (reflective memory's
+        card): ``check(record)`` says whether a record is authentic before
+        it is stored. False: this transport stores nothing."""
+        return False
+
+    def can_send(self, robot: int) -> bool:
+        """Whether a record for ``robot`` would go out now (a connecting
+        side: its link is made)."""
+        return True
+
     def lost_links(self) -> dict[int, str]:
         """Robots whose own link was lost while the others' still work
         (robot -> why); a transport without per-robot links has none."""
@@ -58,9 +72,10 @@ class Transport(ABC):
 
     # -- peers, for transports with connections (the others ignore these) --
 
-    def authenticated(self) -> None:  # noqa: B027 - optional, a no-op by default
-        """The records just received were signed with the link's key: their
-        connection is the peer's, and no new connection displaces it."""
+    def authenticated(self, robot: int | None = None) -> None:  # noqa: B027 - optional
+        """The records just received (from ``robot``'s link, on a connecting
+        side) were signed with this run's key: their connection is the
+        peer's, and no new connection displaces it."""
 
     def drop_unauthenticated(self) -> None:  # noqa: B027 - optional, a no-op by default
         """A record just received was not signed with the link's key: drop

@@ -30,6 +30,12 @@ Every record carries the node's e-stop: a manager that ended on a fault has
 its ddm say so in every record from then on, and once more at Cleanup. A
 record that comes in with the e-stop set makes the ddm ask its own manager
 for an e-stop (one robot's fault stops the group).
+
+Before any command or feedback, the ddms of a link shake hands
+(:mod:`redistro.ddm.handshake`): the SSC's ddm signs with this run's key
+from the start and sends a robot its records only once that robot's ESC
+answered its hello; an ESC's ddm takes the run key from the SSC's proof,
+and sends nothing before it.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import os
 import threading
 import time
 from typing import Any
@@ -46,6 +53,7 @@ import numpy as np
 from redistro.config import Config
 from redistro.ddm import record as wire
 from redistro.ddm.fast import FastPath
+from redistro.ddm.handshake import Handshake
 from redistro.ddm.transport import (
     AG_ANSWERED,
     AG_OPEN,
@@ -153,7 +161,13 @@ class Ddm(Worker):
             self.out_recs = [Record(COMMAND) for _ in range(n)]
         self.last_out: Any = [0] * n  # seq_src of the last record sent, per robot
         self.in_size = wire.PAYLOADS[self.in_kind].itemsize
-        self.key = link_key(self.cfg, self.spec.session_id)
+        self.link_key = link_key(self.cfg, self.spec.session_id)
+        self.handshake = Handshake(
+            self.kind == "esc", self.link_key, self.spec.node, [self.gid[r] for r in self.robots]
+        )
+        # the key of this run's records: the SSC's from the start; an ESC's
+        # comes with the SSC's proof (until then nothing verifies)
+        self.key = self.handshake.run_key or os.urandom(wire.KEY_BYTES)
         self.encoders = [
             wire.Encoder(self.out_kind, self.gid[r], self.spec.node, self.key) for r in self.robots
         ]
@@ -176,15 +190,18 @@ class Ddm(Worker):
             self.spec.node,
             self.kind,
             self.robots,
-            self.key,
+            self.link_key,
         )
         self.refused_seen = 0
+        self.stale_seen = 0
+        self.greeted = self.kind == "esc"  # the SSC's hellos are not all answered yet
         # what acts on this ddm from outside (the fault harness; none normally)
         make = hooks.factory("ddm_hooks")
         self.hooks = make(self.spec.node, self.kind) if make else None
         if self.hooks is not None:
             names = {g: r for r, g in self.gid.items()}
             self.transport = self.hooks.transport(self.transport, names)
+        self.transport.verify_with(self._authentic)
         self.replying = self.kind == "esc" and self.transport.replies
         self.answer_gid = self.gid[self.robots[0]]
         if KERNELS is not None and self.hooks is None:
@@ -330,6 +347,8 @@ class Ddm(Worker):
                 # the SSC sends first: the worker woke it for a fresh command,
                 # which must not wait behind the feedback's admission
                 self._send(estop)
+                if not self.greeted:
+                    self._greet()
                 self._receive()
                 self._check_links()  # the connecting side loses one robot's link at a time
         except TransportError as exc:
@@ -361,6 +380,63 @@ class Ddm(Worker):
             # count too, as the Python answer's do; the SSC's do not)
             self.status_at = steps
             self._status(estop)
+
+    def _greet(self) -> None:
+        """The SSC's side: a hello to each robot whose feedback has not come
+        yet (every ``HELLO_EVERY_S``), until every robot's has."""
+        now = time.monotonic_ns()
+        waiting = False
+        for i, g in enumerate(self.gid[r] for r in self.robots):
+            if self.ex[i]["updates"]:
+                self.transport.authenticated(g)  # (its link brought this run's records)
+                continue
+            waiting = True
+            if self.handshake.due(i, now) and self.transport.can_send(g):
+                self.transport.send(self.handshake.hello(g), g)
+        self.transport.flush()
+        self.greeted = not waiting
+
+    def _hello(self, raw: bytes, robot: int) -> None:
+        """A hello of the handshake, signed with the link's key (checked)."""
+        reply = self.handshake.take(robot, memoryview(raw)[wire.PAYLOAD_AT :])
+        if reply is None:
+            stale = self.handshake.stale
+            if stale != self.stale_seen:
+                for ex in self.ex:
+                    ex["stale"] += stale - self.stale_seen
+                    ex["dropped"] += stale - self.stale_seen
+                self.stale_seen = stale
+                self.dirty = True
+                if self.kind == "esc":
+                    self.transport.drop_unauthenticated()  # not our SSC of this run
+            return
+        if reply.send:
+            self.transport.send(reply.send, reply.gid)
+            self.transport.flush()
+        if reply.run_key:
+            self._take_run_key(reply.run_key)
+
+    def _authentic(self, raw: bytes) -> bool:
+        """Whether a record is sound and signed (a hello with the link's key,
+        the rest with this run's)."""
+        hello = len(raw) == wire.SIZE and raw[6] == wire.KIND_HELLO
+        try:
+            wire.check(raw, self.link_key if hello else self.key)
+        except WireError:
+            return False
+        return True
+
+    def _take_run_key(self, key: bytes) -> None:
+        """An ESC's side: the SSC's proof came; its records, and ours, are
+        signed with this run's key from now on, and the link is pinned."""
+        self.key = key
+        for enc in self.encoders:
+            enc.rekey(key)
+        if self.fast is not None:
+            self.fast.rekey(key)
+        self.transport.authenticated()
+        self.post("handshake done: this run's key taken from the SSC's proof", logging.DEBUG)
+        self.urgent = self.dirty = True
 
     def _reply(self) -> bool:
         """An ESC's usual step on a stream socket, in one kernel call
@@ -510,16 +586,18 @@ class Ddm(Worker):
             self.refused_seen = refused
             self.dirty = self.urgent = True
         fast = self.fast
-        size, hello, in_kind, gids = wire.SIZE, wire.KIND_HELLO, self.in_kind, self.local
+        size, hello = wire.SIZE, wire.KIND_HELLO
         for raw in received:
             self.dirty = True
-            if len(raw) == size and raw[6] != hello and (raw[6] != in_kind or raw[7] not in gids):
-                continue  # another node's traffic on a broadcast medium (not checked)
             if fast is not None and fast.admit_call(fast.admit_plan, raw) >= 0:
                 taken += 1  # admitted, published and counted (FastPath.admit)
                 continue
+            # every record is checked (another node's traffic on a broadcast
+            # medium too: a forgery is counted whoever it claims to be);
+            # hellos are signed with the link's key, the rest with the run's
+            key = self.link_key if len(raw) == size and raw[6] == hello else self.key
             try:
-                kind, robot, source, seq, stamp, estop = wire.check(raw, self.key)
+                kind, robot, source, seq, stamp, estop = wire.check(raw, key)
             except WireError as exc:
                 field = "forged" if exc.reason == "auth" else "malformed"
                 for ex in self.ex:
@@ -531,16 +609,11 @@ class Ddm(Worker):
                     self.transport.drop_unauthenticated()
                 continue
             if kind == wire.KIND_HELLO:
-                # signed and fresh: the connection is the peer's (pinned); a
-                # replayed hello is a duplicate: its connection is dropped
-                if self.admission.refuse(source, kind, robot, seq, stamp):
-                    self.transport.drop_unauthenticated()
-                else:
-                    self.transport.authenticated()
+                self._hello(raw, robot)
                 continue
             i = self.local.get(robot)
             if kind != self.in_kind or i is None:
-                continue  # another node's traffic on a broadcast medium
+                continue  # another node's traffic on a broadcast medium (authentic)
             ex = self.ex[i]
             if fast is not None:
                 why = fast.refuse(self.admission, i, source, kind, robot, seq, stamp)
@@ -592,9 +665,14 @@ class Ddm(Worker):
         return fresh + taken
 
     def _send(self, estop: bool) -> None:
+        proven = self.handshake.proven
+        if not self.handshake.done and not any(proven):
+            return  # nobody may take our records yet (the handshake)
         if self.fast is not None and not estop:
             mask = self.fast.emit_call(self.fast.emit_plan)  # FastPath.emit
             if mask >= 0:  # else a torn read: the Python path reads again
+                if not self.handshake.done:
+                    mask &= sum(1 << i for i, ok in enumerate(proven) if ok)
                 if mask:
                     self.sends += 1
                     if self.socket_kernels:
@@ -608,6 +686,8 @@ class Ddm(Worker):
                     self.dirty = True
                 return
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
+            if not proven[i]:
+                continue  # (the handshake)
             block.read_into(rec.bytes)
             produced = int(rec["seq_src"])
             if produced == 0 and not estop:
@@ -662,8 +742,9 @@ class Ddm(Worker):
             if self.mgr["estop"] and not self.lost:
                 # the node ended on a fault: tell every peer, once more
                 for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
-                    block.read_into(rec.bytes)
-                    self._send_one(i, rec, True)
+                    if self.handshake.proven[i]:
+                        block.read_into(rec.bytes)
+                        self._send_one(i, rec, True)
                 self.transport.flush()
         if self.fast is not None:
             self.latency.count = self.fast.latency_count()

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import collections
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 
 from redistro.ddm.transport import Transport
 from redistro.errors import TransportError
@@ -174,14 +174,20 @@ class InjectedTransport(Transport):
     def lost_links(self) -> dict[int, str]:
         return {} if self.closed else self.inner.lost_links()
 
-    def authenticated(self) -> None:
-        self.inner.authenticated()
+    def authenticated(self, robot: int | None = None) -> None:
+        self.inner.authenticated(robot)
 
     def drop_unauthenticated(self) -> None:
         self.inner.drop_unauthenticated()
 
     def refused(self) -> int:
         return self.inner.refused()
+
+    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
+        return self.inner.verify_with(check)
+
+    def can_send(self, robot: int) -> bool:
+        return self.inner.can_send(robot)
 
     @property
     def replies(self) -> bool:  # type: ignore[override]

@@ -7,7 +7,8 @@ as the reply; a forged record is dropped and counted."""
 
 from __future__ import annotations
 
-import time
+import dataclasses
+import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,6 +71,17 @@ def _setup(tmp_path: Path) -> Setup:
     return Setup(key, cfg, task, load_hardware(cfg), new_session_id(), gids)
 
 
+def _shake_hands(ssc: Node, escs: dict[str, Node]) -> None:
+    """The run's handshake over in-process ends: the SSC's hellos, the ESCs'
+    challenges, the SSC's proofs, the ESCs take the run key."""
+    for cycle in range(2):
+        ssc.ddm.step(cycle)
+        for esc in escs.values():
+            esc.ddm.step(cycle)
+    assert all(esc.ddm.handshake.done for esc in escs.values())
+    assert all(esc.ddm.key == ssc.ddm.key for esc in escs.values())
+
+
 @pytest.fixture
 def group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
     g = _setup(tmp_path)
@@ -80,6 +92,7 @@ def group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
         r: _node(esc_spec(cfg, task, r, hw[r], sid, positions_file="p.json"), esc_ends[g])
         for r, g in zip(ROBOTS, gids, strict=True)
     }
+    _shake_hands(ssc, escs)
     yield ssc, escs
     for n in [ssc, *escs.values()]:
         n.ddm.cleanup()
@@ -206,13 +219,9 @@ def socket_group(tmp_path: Path) -> Iterator[tuple[Node, dict[str, Node]]]:
     from redistro.ddm.sockets import SocketTransport
 
     g = _setup(tmp_path)
-    key, cfg, task, hw, sid, gids = g.key, g.cfg, g.task, g.hw, g.sid, g.gids
+    cfg, task, hw, sid, gids = g.cfg, g.task, g.hw, g.sid, g.gids
     ends = {g: SocketTransport(listen=("127.0.0.1", 0), authenticate=True) for g in gids}
-    hello = wire.encode(
-        wire.KIND_HELLO, 0, "ssc", 1, time.monotonic_ns(), bytes(COUNTER.itemsize),
-        key=wire.load_key(str(key)),
-    )  # fmt: skip
-    ssc_end = SocketTransport(hello=hello, peers={g: ends[g].address for g in gids})
+    ssc_end = SocketTransport(peers={g: ends[g].address for g in gids})
     nodes: list[Node] = []
     try:
         for r, g in zip(ROBOTS, gids, strict=True):
@@ -354,3 +363,101 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
     assert d.wait_s() == pytest.approx(0.005)
     d.kind, d.answering = "esc", False  # (a socket ESC)
     assert d.wait_s() == pytest.approx(0.005)
+
+
+def test_an_earlier_runs_hello_and_records_are_refused_and_pin_nothing(tmp_path: Path) -> None:
+    """Nodes started alone share a key file. Run 1's hello and commands,
+    recorded, are sent to run 2's ESC over a connection of their own before
+    run 2's SSC comes: the ESC challenges the hello, refuses every command
+    (not signed with run 2's key), never pins that connection, and takes
+    run 2's SSC when it comes."""
+    from redistro.ddm.sockets import SocketTransport
+
+    g = _setup(tmp_path)
+    cfg, task, hw, gids = g.cfg, g.task, g.hw, g.gids
+    gid = gids[1]  # r2
+
+    def esc_of(sid: str) -> tuple[Node, SocketTransport]:
+        end = SocketTransport(listen=("127.0.0.1", 0), authenticate=True)
+        spec = esc_spec(cfg, task, "r2", hw["r2"], sid, positions_file="p.json")
+        return _node(spec, end), end
+
+    def ssc_of(sid: str, address: tuple[str, int]) -> tuple[Node, SocketTransport]:
+        ssc_end = SocketTransport(peers={gid: address})
+        spec = dataclasses.replace(ssc_spec(cfg, task, sid, run_dir=""), robots=["r2"])
+        return _node(spec, ssc_end), ssc_end
+
+    # run 1: a handshake, then commands; everything the SSC sent is recorded
+    sid = new_session_id()
+    esc, end = esc_of(sid)
+    ssc, ssc_end = ssc_of(sid, end.address)
+    sent: list[bytes] = []
+    real_send = ssc_end.send
+    ssc_end.send = lambda record, robot: (sent.append(bytes(record)), real_send(record, robot))[1]  # type: ignore[method-assign]
+    try:
+        _step_until([ssc, esc], lambda: esc.ddm.handshake.done, "run 1's handshake")
+        for seq in range(1, 6):
+            cmd = Record(COMMAND)
+            cmd["seq_src"] = seq
+            cmd.array["tau_nm"] = 5.0
+            ssc.ld.writer("command", 0, role="worker").publish(cmd.bytes)
+            _step_until(
+                [ssc, esc],
+                lambda s=seq: int(esc.ld.block("command", 0).read()["seq_src"]) == s,
+                f"run 1's command {seq}",
+            )
+            if ssc.ddm.fast is not None:  # (sent by the send kernel, not through send())
+                sent.append(bytes(ssc.ddm.fast.wire_views[0]))
+    finally:
+        for n in (ssc, esc):
+            n.ddm.cleanup()
+            n.ld.close()
+            n.ld.unlink()
+    hellos = [r for r in sent if r[6] == wire.KIND_HELLO]
+    commands = [r for r in sent if r[6] == wire.KIND_COMMAND]
+    assert hellos and len(commands) >= 5
+
+    # run 2: the ESC alone, and someone replaying run 1 before its SSC comes
+    sid2 = new_session_id()
+    esc2, end2 = esc_of(sid2)
+    nodes = [esc2]
+    ssc_end2 = None
+    try:
+        replayer = socket.create_connection(end2.address)
+        replayer.settimeout(2.0)
+        for record in [*hellos, *commands]:
+            replayer.sendall(record)
+        wait_for(
+            lambda: esc2.ddm.step(1) or esc2.ddm.ex[0]["forged"] >= 1,
+            5.0,
+            "the replayed commands refused",
+        )
+        assert not esc2.ddm.handshake.done and not end2.pinned
+        assert int(esc2.ld.block("command", 0).read()["seq_src"]) == 0
+        challenge = replayer.recv(wire.SIZE)  # the replayed hello was only challenged
+        assert challenge[6] == wire.KIND_HELLO
+        assert replayer.recv(16) == b""  # and the connection dropped at the first forgery
+        # run 2's SSC: shakes hands, is pinned, its commands are taken
+        ssc2, ssc_end2 = ssc_of(sid2, end2.address)
+        nodes.insert(0, ssc2)
+        cmd = Record(COMMAND)
+        cmd["seq_src"] = 1
+        cmd.array["tau_nm"] = 1.25
+        ssc2.ld.writer("command", 0, role="worker").publish(cmd.bytes)
+        _step_until(
+            [ssc2, esc2],
+            lambda: int(esc2.ld.block("command", 0).read()["seq_src"]) == 1,
+            "run 2's first command",
+        )
+        assert esc2.ddm.handshake.done and end2.pinned
+        assert float(esc2.ld.block("command", 0).read()["tau_nm"][0]) == 1.25
+        assert esc2.ddm.ex[0]["updates"] == 1
+        replayer.close()
+    finally:
+        for n in nodes:
+            n.ddm.cleanup()
+            n.ld.close()
+            n.ld.unlink()
+        for e in (ssc_end, end, ssc_end2, end2):
+            if e is not None:
+                e.close()
