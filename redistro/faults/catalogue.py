@@ -18,7 +18,9 @@ Kinds:
 - ``input``: a bad task file, config or command line;
 - ``hogs``: the whole peg insertion beside two processes spinning on both CPUs;
 - ``limits``: the drill itself, with config that puts a joint limit in its
-  way: nothing is injected, the guard must stop the joint inside the limit.
+  way: nothing is injected, the guard must stop the joint inside the limit;
+- ``rerun``: a session's records to r2, recorded, sent again in a later
+  session with the same key file (:mod:`redistro.faults.rerun`).
 
 Expected: the session ends with one of ``expect``, the first fault's reason
 holds ``reason``; detection within ``limit`` (``death``: 2 cycles of the
@@ -162,6 +164,9 @@ def _inject_scenarios() -> list[Scenario]:
           "5 000 forged commands at once on r2's link", 5000.0, count="forged"),
         s("foreign-connection", "ssc", "ddm.foreign", ("ok",), "", "",
           "a second connection to r2's ddm sends 50 forged commands", 50.0, count="foreign"),
+        s("records-own-source-reflective", "ssc", "ddm.own-source", ("ok",), "", "",
+          "50 forged commands on the reflective-memory network under r2's ESC's own name",
+          50.0, sets=("ddm.transport=reflective",), count="forged"),
     ]  # fmt: skip
 
 
@@ -197,6 +202,10 @@ def _other_scenarios() -> list[Scenario]:
                  count="forged_writes",
                  what="r2's joint-1 brake-release writes recorded on the CAN bus, sent again "
                       "for 1 s once the driver's sequence moved on 70 000 writes"),
+        Scenario("replay-earlier-run", "rerun", "esc.r2", "ddm", "rerun", ("ok",), "", "",
+                 count="forged",
+                 what="a session's hello and commands to r2, recorded, sent to r2's ddm in a "
+                      "later session with the same key file, before that session's SSC comes"),
         Scenario("home-stuck-on", "calibration", "plant", "", "plant.home-stuck-on",
                  ("abnormal",), "no home switch", "",
                  what="r2's home switches stuck on during self-calibration"),

@@ -198,6 +198,12 @@ def run_scenario(
     if sc.kind == "hogs":
         row.update(_hogs(sc, runs, out_dir, config_args))
         return row
+    if sc.kind == "rerun":
+        from redistro.faults.rerun import run_rerun_replay
+
+        task = str(_first_segment_drill(out_dir))
+        row.update(run_rerun_replay(sc, out_dir, cfg, _session_args(sc, runs, config_args), task))
+        return row
     if sc.kind == "stale-ipc" or sc.action == "stale-ipc":
         row.update(_stale_ipc(sc, runs, out_dir, cfg, config_args, rng))
         return row

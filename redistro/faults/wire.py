@@ -21,7 +21,12 @@ trigger on it breaks what that ddm sends:
 - ``ddm.flood``: ``arg`` forgeries at once, then the genuine record (a
   peer streaming without pause);
 - ``ddm.foreign``: a second connection to the peer's port sends ``arg``
-  forgeries (another host taking over the link).
+  forgeries (another host taking over the link);
+- ``ddm.own-source``: for ``arg`` records, a forgery goes out before each
+  genuine one under the receiving node's own name (``esc.<robot>``);
+- ``ddm.capture``: nothing is broken; every record sent for the robot is
+  also appended to ``<trigger>.records`` (an eavesdropper's recording, for
+  a later run to replay), at most ``CAPTURE_MAX``.
 
 The genuine records of the last two still go out: the receiver must refuse
 the bad ones, count them and carry on.
@@ -47,7 +52,10 @@ POINTS = (
     "ddm.renamed",
     "ddm.flood",
     "ddm.foreign",
+    "ddm.own-source",
+    "ddm.capture",
 )
+CAPTURE_MAX = 20_000
 OTHER_KEY = b"not the link's key, 32 bytes...."
 
 
@@ -85,6 +93,7 @@ class InjectedTransport(Transport):
         self.bad_left = int(inj.arg) or 50
         self.delayed: collections.deque[tuple[int, bytes, int]] = collections.deque()
         self.history: collections.deque[tuple[bytes, int]] = collections.deque(maxlen=REPLAY_BACK)
+        self.captured = 0
 
     def _hits(self, robot: int) -> bool:
         return self.inj.concerns(self.robot_ids.get(robot, "")) and self.inj.live()
@@ -95,6 +104,10 @@ class InjectedTransport(Transport):
         self._flush_delayed()
         if not self._hits(robot):
             self.history.append((record, robot))
+            self.inner.send(record, robot)
+            return
+        if self.what == "capture":
+            self._capture(record)
             self.inner.send(record, robot)
             return
         if self.what == "link-close":
@@ -128,11 +141,20 @@ class InjectedTransport(Transport):
                 for _ in range(self.bad_left + 1):
                     self.inner.send(forged, robot)
                 self.bad_left = 0
+            elif self.what == "own-source":
+                own = f"esc.{self.robot_ids.get(robot, '')}".encode()
+                self.inner.send(_resealed(record, source=own, tau=150.0), robot)
             elif self.what == "foreign":
                 self._foreign(record, robot)
                 self.bad_left = 0
         self.history.append((record, robot))
         self.inner.send(record, robot)
+
+    def _capture(self, record: bytes) -> None:
+        if self.captured < CAPTURE_MAX:
+            self.captured += 1
+            with open(f"{self.inj.trigger}.records", "ab") as f:
+                f.write(record)
 
     def _foreign(self, record: bytes, robot: int) -> None:
         """Another connection to the peer's port, sending forgeries."""
