@@ -14,8 +14,9 @@ before any record of this run came over it is made again, within the same
 time; a record for a robot not yet connected is dropped and counted.
 ``hello``: a record a connecting side sends first on every connection (the
 contract tests'; the ddm says hello itself). Records are fixed size, so the
-stream is cut into whole records by length. Sockets are non-blocking after connect, with TCP_NODELAY; a record that
-finds the send buffer full is dropped and counted (the peer is not reading).
+stream is cut into whole records by length. Sockets are non-blocking after
+connect, with TCP_NODELAY; a record that finds the send buffer full is
+dropped and counted (the peer is not reading).
 """
 
 from __future__ import annotations
