@@ -80,12 +80,16 @@ class JointLimits:
     def inner_upper(self) -> np.ndarray:
         return self.upper - self.margin
 
-    def outside(self, q: np.ndarray | list[float], margin: bool = True) -> str:
+    def outside(self, q: np.ndarray | list[float], margin: bool = True, slack: float = 0.0) -> str:
         """'' when every joint of q is inside the limits (less the margin, or
-        the hard limits with ``margin`` false), else which joint is not."""
+        the hard limits with ``margin`` false, widened by ``slack``), else
+        which joint is not."""
         q = np.asarray(q, dtype=np.float64)
         lower, upper = (self.inner_lower, self.inner_upper) if margin else (self.lower, self.upper)
+        lower, upper = lower - slack, upper + slack
         note = f" (joint limits less {self.margin:g} rad margin)" if margin else ""
+        if slack:
+            note = f" (joint limits and {slack:g} rad beyond: as far as a joint can be pushed)"
         for j in range(DOF):
             lo, hi = float(lower[j]), float(upper[j])
             if not lo <= float(q[j]) <= hi:
@@ -183,17 +187,28 @@ def check_ratings(cfg: Config, hardware: dict[str, RobotHardware]) -> None:
 
 
 QUINTIC_PEAK = 1.875  # a quintic's peak speed over its mean speed (15/8)
+# how far past its limit a joint can be found (pushed there with its brakes
+# on, the arm moved while powered off): a recorded position that far out is
+# still a position (the guard lets it move back); further out, it cannot be right
+RECOVERY_BAND_RAD = 0.35
 
 
 def task_motion_problems(
-    cfg: Config, task: Any, start_q: dict[str, list[float]] | None = None
+    cfg: Config,
+    task: Any,
+    start_q: dict[str, list[float]] | None = None,
+    cartesian_q: dict[int, np.ndarray] | None = None,
 ) -> list[str]:
-    """One line per joint goal outside the limits (less the margin), and per
+    """One line per joint goal outside the limits (less the margin), per
     joint move whose distance over its move time is above ``qd_max_rad_s``
     (the quintic's peak, 15/8 of that, is the guard's to judge at run time:
-    a task may run close to the limit on purpose). A move's start is the
-    previous joint goal of its robot, or for the first the robot's position
-    in ``start_q`` (unknown: the speed of that move is left to the guard)."""
+    a task may run close to the limit on purpose), and per goal wrench the
+    guard would refuse (above ``force_max_n`` or ``moment_max_nm``, which
+    the wrist sensor's range bounds). A move's start is the previous joint
+    goal of its robot; after a Cartesian segment, the posture its goal puts
+    the arm in (``cartesian_q``, by segment index: the inverse kinematics of
+    the load check); for the first, the robot's position in ``start_q``
+    (unknown: the speed of that move is left to the guard)."""
     limits = joint_limits(cfg)
     qd_max = np.asarray(cfg.esc.safety.qd_max_rad_s, dtype=np.float64)
     where = task.source or "task"
@@ -231,10 +246,25 @@ def task_motion_problems(
             for r, q in seg.q_rad.items():
                 goal(r, q, seg.duration_s, f"segments[{i}].q_rad.{r}")
     elif task.kind == "strategy":
+        s = cfg.esc.safety
         for i, seg in enumerate(task.segments):
             if seg.scheme == "joint":
                 move_s = seg.goal.move_s or 0.75 * seg.duration_s
                 goal(seg.robot, seg.goal.q_rad, move_s, f"segments[{i}].goal.q_rad")
-            else:
-                prev[seg.robot] = None  # a Cartesian move ends where its IK says
+                continue
+            # a Cartesian move ends where its inverse kinematics says
+            prev[seg.robot] = (cartesian_q or {}).get(i)
+            w = np.asarray(seg.goal.force_xyz_torque_xyz, dtype=np.float64)
+            sel = np.asarray(seg.goal.selection_vector, dtype=np.float64)
+            f, m = float(np.linalg.norm(w[:3] * sel[:3])), float(np.linalg.norm(w[3:] * sel[3:]))
+            for what, value, limit, key, unit in (
+                ("force", f, s.force_max_n, "force_max_n", "N"),
+                ("moment", m, s.moment_max_nm, "moment_max_nm", "N m"),
+            ):
+                if value > limit:
+                    out.append(
+                        f"{where}: segments[{i}].goal.force_xyz_torque_xyz: a goal {what} of "
+                        f"{value:.4g} {unit}, over esc.safety.{key} {limit:g} {unit} (the guard "
+                        "would stop it; the wrist sensor's range bounds that limit)"
+                    )
     return out

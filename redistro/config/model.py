@@ -123,6 +123,10 @@ class SafetyConfig:
     decel_rad_s2: per joint, the deceleration a braking joint can count on
         [rad/s^2]: a joint that cannot stop before its limit less the margin
         at this deceleration is a fault while it still can.
+    recovery_qd_rad_s: a joint resting outside its limits less the margin
+        (or past them) may be moved back toward them at this speed at most
+        [rad/s]; moving further out is a fault. 0: never (a robot left
+        there stays there).
     Every limit is bounded by the hardware's rating (torque: current limit x
     torque constant x gear; speed: the model's; force and moment: the wrist
     sensor's range): a value above it is refused at load.
@@ -144,6 +148,7 @@ class SafetyConfig:
     decel_rad_s2: list[float] = field(
         default_factory=lambda: [5.0] * 7, metadata={"len": 7, "gt": 0}
     )
+    recovery_qd_rad_s: float = field(default=0.5, metadata={"ge": 0, "le": 10})
 
 
 @dataclass(frozen=True)

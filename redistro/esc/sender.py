@@ -4,8 +4,12 @@ Before every command it checks, in this order: the feedback is finite; joint
 speeds, measured joint torques and the wrist force and moment are within the
 limits of ``esc.safety``; every joint is inside its position limits less the
 margin, and can stop inside them at the configured deceleration
-(q + qd|qd| / 2a; redistro/config/limits.py); the command is finite and its
-torques within limits. (NaN passes every ``>`` test: finiteness is checked first.) A
+(q + qd|qd| / 2a; redistro/config/limits.py), or, resting outside them (a
+session that ended there, an arm moved while powered off), is moving back
+toward them no faster than ``recovery_qd_rad_s`` (and not further out than
+``RECOVERY_DRIFT_RAD_S``, the speed a measurement reads at rest): a robot
+can always be brought back; the command is finite and its torques within
+limits. (NaN passes every ``>`` test: finiteness is checked first.) A
 violation freezes the robot at once through the sender's own driver, records
 what tripped in the guard block (the manager ends the session ``unsafe``),
 and the sender sends nothing more. Otherwise it releases the brakes of joints
@@ -48,6 +52,9 @@ from redistro.process.worker import Worker
 
 DOF = 7
 TRACE_CYCLES = 400  # the cycles kept for the trace written when the guard trips
+# a joint outside its limits (less the margin) that moves further out faster
+# than this is refused: what the tachometers read of a joint at rest
+RECOVERY_DRIFT_RAD_S = 0.02
 
 
 class Violation(Exception):
@@ -78,11 +85,15 @@ def check(
     q_lo: np.ndarray | None = None,
     q_hi: np.ndarray | None = None,
     stop_k: np.ndarray | None = None,
+    recovery_qd: float = 0.0,
 ) -> None:
     """Raise Violation naming the first limit broken (pure; unit-tested).
 
     q_lo, q_hi: position limits less the margin [rad]; stop_k: per joint
-    1 / (2 deceleration) [s^2/rad], the stopping distance is qd|qd| stop_k."""
+    1 / (2 deceleration) [s^2/rad], the stopping distance is qd|qd| stop_k;
+    recovery_qd: a joint outside [q_lo, q_hi] may move back toward them at
+    this speed at most [rad/s] (0: never), and no faster than
+    RECOVERY_DRIFT_RAD_S further out."""
     for name, v in (
         ("position", q),
         ("velocity", qd),
@@ -111,8 +122,12 @@ def check(
     if q_lo is not None and q_hi is not None and stop_k is not None:
         for j in range(len(q)):
             if q[j] > q_hi[j]:
+                if recovery_qd > 0 and -recovery_qd <= qd[j] <= RECOVERY_DRIFT_RAD_S:
+                    continue  # on its way back (or at rest): recovering
                 raise Violation("position", j, float(q[j]), float(q_hi[j]), "rad")
             if q[j] < q_lo[j]:
+                if recovery_qd > 0 and -RECOVERY_DRIFT_RAD_S <= qd[j] <= recovery_qd:
+                    continue
                 raise Violation("position", j, float(q[j]), float(q_lo[j]), "rad")
             stop = float(q[j] + qd[j] * abs(qd[j]) * stop_k[j])
             if stop > q_hi[j]:
@@ -141,6 +156,7 @@ class Sender(Worker):
         jl = joint_limits(ctx.cfg)
         self.q_lo, self.q_hi = jl.inner_lower, jl.inner_upper
         self.stop_k = 1.0 / (2.0 * jl.decel)
+        self.recovery_qd = lim.recovery_qd_rad_s
         self.driver = ctx.driver(plant_session(self.spec))
         self.driver.open(owner=False)  # the manager froze the robot before we existed
         ld = self.ld
@@ -249,6 +265,7 @@ class Sender(Worker):
                     self.q_lo,
                     self.q_hi,
                     self.stop_k,
+                    self.recovery_qd,
                 )
             except Violation as v:
                 self._trip(cycle, v)

@@ -41,10 +41,13 @@ def check_positions(cfg: Config, task: Task) -> None:
 
 
 def check_motion(cfg: Config, task: Task) -> None:
-    """Every recorded position inside the joint limits (a positions file
-    beyond them cannot be right), every joint goal inside them less the
-    margin, every joint move within the speed limit (redistro/config/limits.py)."""
-    from redistro.config.limits import joint_limits, task_motion_problems
+    """Every recorded position inside the joint limits, or past them no
+    further than a joint can be pushed (``RECOVERY_BAND_RAD``: beyond, the
+    file cannot be right), every joint goal inside them less the margin,
+    every joint move within the speed limit, after a Cartesian segment too,
+    and every goal wrench within the guard's limits (redistro/config/limits.py)."""
+    from redistro.config.limits import RECOVERY_BAND_RAD, joint_limits, task_motion_problems
+    from redistro.ssc.reach import goal_postures
 
     limits = joint_limits(cfg)
     start: dict[str, list[float]] = {}
@@ -54,14 +57,14 @@ def check_motion(cfg: Config, task: Task) -> None:
             q = positions.read(path, [r]).q_rad[r]
         except positions.PositionsUnknown:
             continue
-        problem = limits.outside(q, margin=False)
+        problem = limits.outside(q, margin=False, slack=RECOVERY_BAND_RAD)
         if problem:
             raise ConfigError(
                 f"{path}: q_rad.{r}: {problem}; the file cannot be right "
                 "(run tasks/self_calibration.yaml)"
             )
         start[r] = q
-    for problem in task_motion_problems(cfg, task, start):
+    for problem in task_motion_problems(cfg, task, start, goal_postures(cfg, task, start)):
         raise ConfigError(problem)
 
 

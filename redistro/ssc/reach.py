@@ -40,6 +40,18 @@ def reachable(
 ) -> tuple[bool, float]:
     """(reached, the best position error [m]) for a TCP pose (position + rotation
     vector), every joint kept in [lo, hi] (default: the model's limits)."""
+    ok, err, _ = solve(model, pose, starts, lo, hi)
+    return ok, err
+
+
+def solve(
+    model: Any,
+    pose: np.ndarray,
+    starts: list[np.ndarray],
+    lo: np.ndarray | None = None,
+    hi: np.ndarray | None = None,
+) -> tuple[bool, float, np.ndarray | None]:
+    """:func:`reachable`, and the posture that reaches the pose (None: none)."""
     from redistro.control.cartesian import rotvec_to_matrix
 
     p_goal = np.asarray(pose[:3], dtype=np.float64)
@@ -56,13 +68,13 @@ def reachable(
             pos, rot = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
             best = min(best, pos)
             if pos < POS_TOL_M and rot < ROT_TOL_RAD:
-                return True, pos
+                return True, pos, q
             step = J.T @ np.linalg.solve(J @ J.T + 1e-2 * np.eye(6), e)
             n = float(np.linalg.norm(step))
             if n > 0.3:
                 step *= 0.3 / n
             q = np.clip(q + step, lo, hi)
-    return False, best
+    return False, best, None
 
 
 def unreachable_goals(cfg: Config, task: Task) -> list[str]:
@@ -98,4 +110,41 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
                 f"{task.source}: segments[{i}].goal: {plan.robot} cannot reach the pose "
                 f"({xyz}) m inside its joint limits: {err * 1e3:.0f} mm short at best"
             )
+    return out
+
+
+def goal_postures(
+    cfg: Config, task: Task, start_q: dict[str, list[float]] | None = None
+) -> dict[int, np.ndarray]:
+    """Per Cartesian segment (by index), the posture its goal puts the arm
+    in: the inverse kinematics from the robot's posture before it (its
+    last joint goal or Cartesian posture, else its recorded position),
+    for the speed check of the joint move after it."""
+    if task.kind != "strategy":
+        return {}
+    from redistro.config.limits import joint_limits
+    from redistro.control.dynamics import ArmModel
+    from redistro.robotmodel import Peg
+    from redistro.ssc.plan import segment_plans
+
+    peg = cfg.workcell.peg
+    limits = joint_limits(cfg)
+    models: dict[str, Any] = {}
+    before: dict[str, np.ndarray] = {
+        r: np.asarray(q, dtype=np.float64) for r, q in (start_q or {}).items()
+    }
+    out: dict[int, np.ndarray] = {}
+    for i, (seg, plan) in enumerate(zip(task.segments, segment_plans(task, cfg), strict=True)):
+        rc = cfg.robots[seg.robot]
+        if seg.scheme == "joint":
+            before[seg.robot] = np.asarray(seg.goal.q_rad, dtype=np.float64)
+            continue
+        model = models.get(seg.robot)
+        if model is None:
+            pg = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
+            model = models[seg.robot] = ArmModel(pg, rc.base_xyz_m)
+        first = before.get(seg.robot, np.asarray(rc.initial_q_rad, dtype=np.float64))
+        ok, _, q = solve(model, plan.pose, [first], limits.inner_lower, limits.inner_upper)
+        if ok and q is not None:
+            out[i] = before[seg.robot] = q
     return out

@@ -94,6 +94,15 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         ).encode(),
         "deep_yaml": b"task: " + b"[" * 100_000 + b"]" * 100_000 + b"\n",
         "a_file": b"x",
+        "fast_after_cartesian": (ROOT / "tasks/fault_drill.yaml")
+        .read_bytes()
+        .replace(
+            b"q_rad: [0, 0.5, 0, -1.2, 0, 1.0, 0]\n      move_s: 5",
+            b"q_rad: [2.5, 0.5, 0, -1.2, 0, 1.0, 0]\n      move_s: 0.05",
+        ),
+        "huge_force": (ROOT / "tasks/peg_insertion_short.yaml")
+        .read_bytes()
+        .replace(b"force_xyz_torque_xyz: [0, 0, -20", b"force_xyz_torque_xyz: [0, 0, -1.0e+6"),
         "big_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
         f"  - {{name: a, duration_s: {big}, q_rad: {{r1: {PARK}}}}}\n".encode(),
         "big_float_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
@@ -242,6 +251,13 @@ CASES = [
         ["bench", "kernels", "--json", "/proc/redistro.json"],
         "--json /proc/redistro.json: /proc is on a proc pseudo-filesystem",
     ),
+    # motions the guard would have to stop
+    (
+        "a joint move after a Cartesian one, too fast",
+        ["check", "{fast_after_cartesian}"],
+        "segments[1].goal.q_rad: joint 1 would move",
+    ),
+    ("a goal force of 1e6 N", ["check", "{huge_force}"], "a goal force of 1e+06 N, over"),
     # what check refuses that would fail only once running
     (
         "a zenoh listen endpoint without a port",

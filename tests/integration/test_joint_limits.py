@@ -132,3 +132,39 @@ def test_the_guard_stops_a_joint_heading_for_its_limit_inside_it(tmp_path: Path)
     # most 0.05 rad before the calibration) stopped inside the limit too
     truth = json.loads((out / "plant.json").read_text())["final_q_rad"][robot][0]
     assert truth < limit + 0.05, truth
+
+
+def test_a_robot_left_at_or_past_its_limit_is_brought_back_by_park(
+    calibrated: Path, tmp_path: Path
+) -> None:
+    """Joint 4 sent exactly to its limit less the margin (the session may
+    end unsafe on arrival: a hair past it): park brings it back. Sent there
+    again, and the limit then narrowed past where it rests (a joint found
+    past its limit): park brings it back all the same; moving back slowly
+    is what the guard lets a joint outside its limits do."""
+    import shutil
+
+    from redistro.config.limits import model_limits
+
+    runs = tmp_path / "runs"
+    shutil.copytree(calibrated, runs)
+    edge = model_limits().lower[3] + 0.05
+    goal = [0.0, 0.5, 0.0, edge, 0.0, 1.0, 0.0]
+    task = _joint_task(tmp_path, goal, 5.0)
+    common = ["--set", f"session.runs_dir={runs}"]
+    narrowed = edge + 0.03  # the joint rests 0.03 rad past this limit
+    lows = ", ".join(repr(v) for v in (*model_limits().lower[:3], narrowed,
+                                          *model_limits().lower[4:]))  # fmt: skip
+    for k, extra in enumerate(([], ["--set", f"esc.safety.q_min_rad=[{lows}]"])):
+        there = run_cli(*common, "session", str(task), "--out", str(tmp_path / f"edge{k}"))
+        assert there.returncode in (0, 1), there.stdout[-2000:] + there.stderr[-2000:]
+        left = load_json(tmp_path / f"edge{k}" / "summary.json")
+        assert left["result"] in ("ok", "unsafe"), left["reason"]
+        rest = positions.read(runs / "positions" / "r1.json", ["r1"]).q_rad["r1"][3]
+        assert rest == pytest.approx(edge, abs=0.01)
+        out = tmp_path / f"park{k}"
+        done = run_cli(*common, *extra, "session", "tasks/park.yaml", "--out", str(out))
+        summary = load_json(out / "summary.json")
+        assert done.returncode == 0 and summary["result"] == "ok", (k, summary["reason"])
+        truth = load_json(out / "plant.json")["final_q_rad"]["r1"]
+        assert truth[3] == pytest.approx(PARK[3], abs=0.06), truth  # (encoder offsets: 0.05)

@@ -58,8 +58,10 @@ def _ok() -> dict[str, np.ndarray]:
 
 def _check(**kw: np.ndarray) -> None:
     args = {**_ok(), **kw}
+    recovery = float(args.pop("recovery_qd", 0.0))
     check(
         **args,
+        recovery_qd=recovery,
         qd_max=np.ones(7),
         tau_max=np.full(7, 10.0),
         force_max=50.0,
@@ -109,6 +111,23 @@ def test_a_joint_near_its_limit_moving_away_or_slowly_is_fine() -> None:
     # 1.95 rad moving away, or toward the limit at 0.3 rad/s (stops in 0.009 rad)
     _check(q=np.full(7, 1.95), qd=np.full(7, -0.9))
     _check(q=np.full(7, 1.95), qd=np.full(7, 0.3))
+
+
+def test_a_joint_left_outside_its_limits_may_move_back_slowly_and_only_back() -> None:
+    """A joint resting past its limit less the margin (or past the limit):
+    at rest or moving back toward the range below the recovery speed it is
+    let go; moving further out, or back too fast, it is refused; with no
+    recovery speed it is refused at once."""
+    out = np.array([0, 0, 0, 2.03, 0, 0, 0.0])  # past 2.0 (the limit less the margin)
+    low = -out
+    for q, qd in ((out, 0.0), (out, -0.3), (out, 0.01), (low, 0.3), (low, -0.01)):
+        _check(q=q, qd=np.array([0, 0, 0, qd, 0, 0, 0.0]), recovery_qd=np.float64(0.5))
+    for q, qd in ((out, 0.05), (out, -0.6), (low, -0.05), (low, 0.6)):
+        with pytest.raises(Violation) as exc:
+            _check(q=q, qd=np.array([0, 0, 0, qd, 0, 0, 0.0]), recovery_qd=np.float64(0.5))
+        assert exc.value.quantity == "position" and exc.value.joint == 3
+    with pytest.raises(Violation, match="position"):
+        _check(q=out)
 
 
 def test_a_nan_command_is_caught_before_any_comparison() -> None:
