@@ -1,5 +1,6 @@
-"""What every part of the fault harness shares: how it starts a child, and
-how it reads a refused command line's end."""
+"""What every part of the fault harness shares: how it starts a child, reads
+a session's id and a refused command line's end, finds what a session left
+behind, and sums a counter of a summary."""
 
 from __future__ import annotations
 
@@ -8,7 +9,11 @@ import os
 import signal
 import subprocess
 import threading
+import time
+from pathlib import Path
 from typing import Any
+
+from redistro.errors import RedistroError
 
 
 def die_with_parent() -> None:
@@ -55,3 +60,86 @@ class StopWatch:
         for pid in signals.children_of(os.getpid()):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGINT)
+
+
+def session_id(proc: subprocess.Popen[str], deadline: float, task: str = "fault_drill") -> str:
+    """The session id of ``task``, from the CLI's first lines."""
+    assert proc.stdout is not None
+    last = ""
+    seen: list[str] = []
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        seen.append(line.strip())
+        if line.startswith("session "):
+            last = line.split()[1]
+        elif line.startswith(f"task {task}") and last:
+            return last
+    said = " | ".join(line for line in seen[-4:] if not line.startswith("["))
+    raise RedistroError(f"the {task} session did not start: {said}")
+
+
+def pids_of(sid: str) -> list[int]:
+    """Processes whose command line names the session (ours: managers, workers, plant)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            cmd = Path(f"/proc/{entry}/cmdline").read_bytes()
+            stat = Path(f"/proc/{entry}/stat").read_bytes()
+        except OSError:
+            continue
+        if sid.encode() in cmd and stat[stat.rfind(b")") + 2 :].split()[0] != b"Z":
+            out.append(int(entry))
+    return out
+
+
+# the memory cards of this user before the harness began (their keys are
+# random: a card of a scenario's session is one that was not there then)
+_CARDS_BEFORE: set[int] | None = None
+
+
+def _cards_now() -> set[int]:
+    from redistro.ipc import sysv
+
+    return sysv.our_keys(os.getuid())
+
+
+def ipc_left(sid: str) -> list[str]:
+    """The session's POSIX objects still in /dev/shm, and every memory card
+    of this user made since the harness began."""
+    global _CARDS_BEFORE
+    left = [e for e in os.listdir("/dev/shm") if sid in e]
+    if _CARDS_BEFORE is None:
+        _CARDS_BEFORE = _cards_now()
+        return left
+    left += [f"sysv {key:#010x}" for key in sorted(_cards_now() - _CARDS_BEFORE)]
+    return left
+
+
+def count_of(doc: Any, key: str) -> int:
+    """The sum of every integer under ``key`` anywhere in ``doc``."""
+    if isinstance(doc, dict):
+        total = 0
+        for k, v in doc.items():
+            if k == key and isinstance(v, int) and not isinstance(v, bool):
+                total += v
+            else:
+                total += count_of(v, key)
+        return total
+    if isinstance(doc, list):
+        return sum(count_of(v, key) for v in doc)
+    return 0
+
+
+# -- what the next start finds --
+
+
+def sid_from(stdout: str) -> str:
+    """The session id a ``redistro session`` printed first ('' if none)."""
+    for line in stdout.splitlines():
+        if line.startswith("session "):
+            return line.split()[1]
+    return ""

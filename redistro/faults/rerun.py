@@ -26,7 +26,7 @@ from typing import Any
 
 from redistro.config.model import Config
 from redistro.faults.catalogue import Scenario
-from redistro.faults.common import die_with_parent
+from redistro.faults.common import count_of, die_with_parent, ipc_left, pids_of, session_id
 
 SESSION_TIMEOUT_S = 120.0
 
@@ -84,7 +84,6 @@ def run_rerun_replay(
     from redistro.ddm.sockets import esc_port
     from redistro.errors import RedistroError
     from redistro.faults.inject import ENV, arm
-    from redistro.faults.runner import _session_id
     from redistro.process import hooks
 
     key = out_dir / "link.key"
@@ -116,7 +115,7 @@ def run_rerun_replay(
     deadline = time.monotonic() + SESSION_TIMEOUT_S
     sid = ""
     try:
-        sid = _session_id(second, deadline)
+        sid = session_id(second, deadline)
         row.update(_replay(esc_port(cfg, sid, "r2"), records, deadline, second))
         second.communicate(timeout=max(1.0, deadline - time.monotonic()))
     except (RedistroError, subprocess.TimeoutExpired) as exc:
@@ -129,8 +128,6 @@ def run_rerun_replay(
         summary = json.loads((out_dir / "run2" / "summary.json").read_text())
     except (OSError, ValueError):
         summary = {}
-    from redistro.faults.runner import _ipc_left, _pids_of, count_of
-
     ddm = summary.get("ddm", {}).get("esc.r2", {})
     latency = ddm.get("command_latency_us") or {}
     row.update(
@@ -139,8 +136,8 @@ def run_rerun_replay(
         count={"forged": count_of(ddm, "forged")},
         command_latency_max_us=latency.get("max"),
     )
-    row["processes_left"] = len(_pids_of(sid)) if sid else 0
-    row["ipc_left"] = _ipc_left(sid) if sid else []
+    row["processes_left"] = len(pids_of(sid)) if sid else 0
+    row["ipc_left"] = ipc_left(sid) if sid else []
     row["passed"] = bool(
         "error" not in row
         and row["recorded_hellos"] > 0

@@ -30,7 +30,15 @@ from redistro.config.model import Config
 from redistro.drivers import positions
 from redistro.errors import RedistroError
 from redistro.faults.catalogue import Scenario
-from redistro.faults.common import die_with_parent, one_line_refusal
+from redistro.faults.common import (
+    count_of,
+    die_with_parent,
+    ipc_left,
+    one_line_refusal,
+    pids_of,
+    session_id,
+    sid_from,
+)
 from redistro.localdata.view import NodeView
 from redistro.process.plan import RECORDERS
 
@@ -72,24 +80,6 @@ def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
         raise RedistroError(f"self-calibration before the scenarios failed: {done.stdout[-500:]}")
 
 
-def _session_id(proc: subprocess.Popen[str], deadline: float, task: str = "fault_drill") -> str:
-    """The session id of ``task``, from the CLI's first lines."""
-    assert proc.stdout is not None
-    last = ""
-    seen: list[str] = []
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        seen.append(line.strip())
-        if line.startswith("session "):
-            last = line.split()[1]
-        elif line.startswith(f"task {task}") and last:
-            return last
-    said = " | ".join(line for line in seen[-4:] if not line.startswith("["))
-    raise RedistroError(f"the {task} session did not start: {said}")
-
-
 def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> bool:
     """Wait until r2 has been moving ``seconds`` into its first segment."""
     view = None
@@ -113,7 +103,7 @@ def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline
 
 def _target_pid(sid: str, sc: Scenario) -> int:
     if sc.node == "plant":
-        for pid in _pids_of(sid):
+        for pid in pids_of(sid):
             cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             if b"plant" in cmd:
                 return pid
@@ -125,52 +115,11 @@ def _target_pid(sid: str, sc: Scenario) -> int:
         return view.pid(sc.proc)
 
 
-def _pids_of(sid: str) -> list[int]:
-    """Processes whose command line names the session (ours: managers, workers, plant)."""
-    out = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            cmd = Path(f"/proc/{entry}/cmdline").read_bytes()
-            stat = Path(f"/proc/{entry}/stat").read_bytes()
-        except OSError:
-            continue
-        if sid.encode() in cmd and stat[stat.rfind(b")") + 2 :].split()[0] != b"Z":
-            out.append(int(entry))
-    return out
-
-
-# the memory cards of this user before the harness began (their keys are
-# random: a card of a scenario's session is one that was not there then)
-_CARDS_BEFORE: set[int] | None = None
-
-
-def _cards_now() -> set[int]:
-    from redistro.ipc import sysv
-
-    return sysv.our_keys(os.getuid())
-
-
-def _ipc_left(sid: str) -> list[str]:
-    """The session's POSIX objects still in /dev/shm, and every memory card
-    of this user made since the harness began."""
-    global _CARDS_BEFORE
-    left = [e for e in os.listdir("/dev/shm") if sid in e]
-    if _CARDS_BEFORE is None:
-        _CARDS_BEFORE = _cards_now()
-        return left
-    left += [f"sysv {key:#010x}" for key in sorted(_cards_now() - _CARDS_BEFORE)]
-    return left
-
-
 def run_scenario(
     sc: Scenario, runs: Path, cfg: Config, config_args: list[str], rng: random.Random
 ) -> dict[str, Any]:
     """Run ``sc`` once; the figures and verdicts as a dict (JSON-ready)."""
-    global _CARDS_BEFORE
-    if _CARDS_BEFORE is None:
-        _CARDS_BEFORE = _cards_now()
+    ipc_left("")  # (the first call notes the memory cards already there)
     out_dir = runs / "faults" / sc.name
     shutil.rmtree(out_dir, ignore_errors=True)  # no summary of an earlier run
     out_dir.mkdir(parents=True)
@@ -253,7 +202,7 @@ def _break_session(
     sid = ""
     cycles_at: dict[str, int] = {}
     try:
-        sid = _session_id(proc, deadline, "self_calibration" if calibration else "fault_drill")
+        sid = session_id(proc, deadline, "self_calibration" if calibration else "fault_drill")
         if calibration or sc.kind == "limits":
             # stuck from the start, or nothing injected: the drill runs into the limit itself
             inject_ns = time.monotonic_ns()
@@ -466,8 +415,8 @@ def _verdict(
         row["estop_spread_ms"] = round((max(stops) - min(stops)) / 1e6, 2)
     watchdog = summary.get("plant", {}).get("watchdog_trips") or []
     row["watchdog_trips"] = [t["robot"] for t in watchdog if t.get("monotonic_ns", 0) >= inject_ns]
-    row["processes_left"] = len(_pids_of(sid)) if sid else 0
-    row["ipc_left"] = _ipc_left(sid) if sid else []
+    row["processes_left"] = len(pids_of(sid)) if sid else 0
+    row["ipc_left"] = ipc_left(sid) if sid else []
     valid = []
     for r in ("r1", "r2"):
         try:
@@ -499,24 +448,6 @@ def _verdict(
 def reason_matches(expected: str, cause: str) -> bool:
     """``expected`` (alternatives split by ``|``; empty: anything) is in ``cause``."""
     return any(part in cause for part in expected.split("|"))
-
-
-def count_of(doc: Any, key: str) -> int:
-    """The sum of every integer under ``key`` anywhere in ``doc``."""
-    if isinstance(doc, dict):
-        total = 0
-        for k, v in doc.items():
-            if k == key and isinstance(v, int) and not isinstance(v, bool):
-                total += v
-            else:
-                total += count_of(v, key)
-        return total
-    if isinstance(doc, list):
-        return sum(count_of(v, key) for v in doc)
-    return 0
-
-
-# -- what the next start finds --
 
 
 def _refused_start(
@@ -583,19 +514,19 @@ def _stale_ipc(
     deadline = time.monotonic() + SESSION_TIMEOUT_S
     sid = ""
     try:
-        sid = _session_id(proc, deadline)
+        sid = session_id(proc, deadline)
         if not _wait_moving(sid, rng.uniform(0.5, 2.5), proc, deadline):
             raise RedistroError("r2 never moved (the session ended or stalled first)")
-        victims = [proc.pid, *_pids_of(sid)]
+        victims = [proc.pid, *pids_of(sid)]
         for pid in victims:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         proc.communicate(timeout=30)
         wait_until = time.monotonic() + 10
-        while _pids_of(sid) and time.monotonic() < wait_until:
+        while pids_of(sid) and time.monotonic() < wait_until:
             time.sleep(0.02)  # the kernel reaps the orphans (a condition, with a deadline)
         row["killed"] = len(victims)
-        row["left_by_crash"] = _ipc_left(sid)
+        row["left_by_crash"] = ipc_left(sid)
     except (RedistroError, subprocess.TimeoutExpired, OSError, ValueError) as exc:
         row["error"] = str(exc)
     finally:
@@ -620,8 +551,8 @@ def _stale_ipc(
     row["reaped"] = [ln for ln in done.stderr.splitlines() if ln.startswith("reaped ")]
     row["calibrated_first"] = "self-calibration of" in done.stdout
     sids = [x for x in (sid, sid_from(done.stdout)) if x]
-    row["processes_left"] = sum(len(_pids_of(x)) for x in sids)
-    row["ipc_left"] = [o for x in sids for o in _ipc_left(x)]
+    row["processes_left"] = sum(len(pids_of(x)) for x in sids)
+    row["ipc_left"] = [o for x in sids for o in ipc_left(x)]
     row["passed"] = bool(
         "error" not in row
         and row["left_by_crash"]
@@ -672,8 +603,8 @@ def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> di
         "wall_s": round(wall, 1),
         # how busy the hogs kept the CPUs (2.0: both, the whole time)
         "hog_cpus": round(cpu / wall, 2) if wall > 0 else 0.0,
-        "processes_left": len(_pids_of(sid)) if sid else 0,
-        "ipc_left": _ipc_left(sid) if sid else [],
+        "processes_left": len(pids_of(sid)) if sid else 0,
+        "ipc_left": ipc_left(sid) if sid else [],
     }
     row["passed"] = bool(
         row["got"] in sc.expect
@@ -682,11 +613,3 @@ def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> di
         and not row["ipc_left"]
     )
     return row
-
-
-def sid_from(stdout: str) -> str:
-    """The session id a ``redistro session`` printed first ('' if none)."""
-    for line in stdout.splitlines():
-        if line.startswith("session "):
-            return line.split()[1]
-    return ""
