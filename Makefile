@@ -38,11 +38,13 @@ install: $(VENV)/.installed
 install-test: $(VENV)/.installed-test
 
 # Debian packages the tests need: rt-tests gives cyclictest, the timer
-# baseline; iproute2 gives ip, for the two-namespace node test (run as root).
+# baseline; iproute2 gives ip, for the two-namespace node test (run as root);
+# openssl makes the tests' own certificate authority (zenoh over TLS).
 system-deps:
 	@PKGS=; \
 	command -v cyclictest >/dev/null 2>&1 || PKGS="$$PKGS rt-tests"; \
 	command -v ip >/dev/null 2>&1 || PKGS="$$PKGS iproute2"; \
+	command -v openssl >/dev/null 2>&1 || PKGS="$$PKGS openssl"; \
 	if [ -n "$$PKGS" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	  echo "installing$$PKGS with apt-get"; \

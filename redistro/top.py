@@ -310,8 +310,13 @@ def run_zenoh_top(endpoints: list[str], cfg: Any, as_json: bool, interval_s: flo
             raise ConfigError(f"--zenoh {e}: expected an endpoint like tcp/host:port")
     looks = []
     for e in endpoints:
+        if e.startswith("tls/"):
+            from redistro.session.preflight import check_zenoh_tls
+
+            check_zenoh_tls(cfg, needed=True)
+        tls = zt.tls_settings(cfg) if e.startswith("tls/") else None
         try:
-            looks.append(zt.look(e, users, min(max(interval_s, 0.5), 5.0)))
+            looks.append(zt.look(e, users, min(max(interval_s, 0.5), 5.0), tls))
         except ValueError as exc:
             raise ConfigError(f"top --zenoh: {exc}") from None
     if as_json:

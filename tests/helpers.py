@@ -153,3 +153,37 @@ def esc_segment(
         finally:
             seg.close()
             seg.unlink()
+
+
+def make_test_ca(folder: Path, names: tuple[str, ...] = ("ssc", "esc")) -> dict[str, Path]:
+    """A certificate authority of the tests' own (openssl, EC P-256, two
+    days), and for each of ``names`` a certificate for ``localhost`` and
+    127.0.0.1 signed by it (server and client use): ``ca``, ``<name>.pem``,
+    ``<name>.key`` (mode 0600) in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], check=True, capture_output=True, timeout=60)
+
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    ca, ca_key = folder / "ca.pem", folder / "ca.key"
+    openssl("req", "-x509", *ec, "-keyout", str(ca_key), "-out", str(ca), "-days", "2",
+            "-subj", f"/CN=redistro test CA {folder.name}",
+            "-addext", "basicConstraints=critical,CA:TRUE",
+            "-addext", "keyUsage=critical,keyCertSign,cRLSign")  # fmt: skip
+    ext = folder / "leaf.ext"
+    ext.write_text(
+        "basicConstraints=critical,CA:FALSE\n"
+        "keyUsage=critical,digitalSignature\n"
+        "extendedKeyUsage=serverAuth,clientAuth\n"
+        "subjectAltName=DNS:localhost,IP:127.0.0.1\n"
+    )
+    out = {"ca": ca}
+    for name in names:
+        key, csr, pem = folder / f"{name}.key", folder / f"{name}.csr", folder / f"{name}.pem"
+        openssl("req", *ec, "-keyout", str(key), "-out", str(csr), "-subj", "/CN=localhost")
+        sign = ["-CA", str(ca), "-CAkey", str(ca_key), "-CAcreateserial", "-days", "2"]
+        openssl("x509", "-req", "-in", str(csr), *sign, "-out", str(pem), "-extfile", str(ext))
+        os.chmod(key, 0o600)
+        out[f"{name}.pem"], out[f"{name}.key"] = pem, key
+    return out

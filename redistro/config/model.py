@@ -270,6 +270,29 @@ class SscConfig:
 
 
 @dataclass(frozen=True)
+class ZenohTlsConfig:
+    """TLS for zenoh's ``tls/HOST:PORT`` endpoints: every file PEM, a file
+    of this user (the key mode 0600).
+
+    ca_file: the certificate authority every node's certificate is checked
+        against (the group's own CA; no system roots).
+    cert_file, key_file: this node's certificate (signed by that CA) and
+        its private key: presented when listening and, with ``mtls``, when
+        connecting.
+    mtls: the listening side asks every connecting node for its
+        certificate and refuses a connection without one from the CA.
+    verify_name: a connecting node checks that the listening node's
+        certificate names the host it connects to.
+    """
+
+    ca_file: str = ""
+    cert_file: str = ""
+    key_file: str = ""
+    mtls: bool = True
+    verify_name: bool = True
+
+
+@dataclass(frozen=True)
 class ZenohConfig:
     """The DDM over Eclipse Zenoh (``ddm.transport: zenoh``).
 
@@ -279,10 +302,11 @@ class ZenohConfig:
     mode: the ESCs' sessions: ``client`` (through the SSC's session, which
         is a peer and routes for the group's clients and its viewers) or
         ``peer``.
-    listen, connect: zenoh endpoints (``tcp/host:port``). Both empty (the
-        default): the SSC's ddm listens on ``tcp/<ddm.listen_host>:<port>``
-        and each ESC's ddm connects to ``tcp/127.0.0.1:<port>`` (on other
-        hosts: the SSC's host in ``connect``).
+    listen, connect: zenoh endpoints (``tcp/host:port``, ``tls/host:port``).
+        Both empty (the default): the SSC's ddm listens on
+        ``tcp/<ddm.listen_host>:<port>`` (``tls/...`` when ``tls`` names a
+        certificate) and each ESC's ddm connects to ``tcp/127.0.0.1:<port>``
+        (on other hosts: the SSC's host in ``connect``).
     port: that port (0: derived from the group).
     scouting: multicast scouting (off: only the endpoints above).
     users_file: user/password lines (``name:password``, a file of this user,
@@ -293,6 +317,7 @@ class ZenohConfig:
     access_control: every node's session refuses what its peers may not
         send: the SSC takes only each ESC's own robot's feedback, an ESC
         only its robot's commands from its group's SSC.
+    tls: certificates for ``tls/`` endpoints (:class:`ZenohTlsConfig`).
     """
 
     group: str = ""
@@ -303,6 +328,7 @@ class ZenohConfig:
     scouting: bool = False
     users_file: str = ""
     access_control: bool = True
+    tls: ZenohTlsConfig = field(default_factory=ZenohTlsConfig)
 
 
 @dataclass(frozen=True)

@@ -235,11 +235,30 @@ def _settings(user: str, users_file: str, *, scouting: bool) -> dict[str, Any]:
     }
 
 
-def client_settings(endpoint: str, user: str, users_file: str) -> dict[str, Any]:
+def tls_settings(cfg: Config) -> dict[str, Any]:
+    """zenoh's TLS settings from ``ddm.zenoh.tls``: the group's CA only,
+    this node's certificate both ways (mutual TLS when ``mtls``)."""
+    t = cfg.ddm.zenoh.tls
+    return {
+        "transport/link/tls/root_ca_certificate": t.ca_file,
+        "transport/link/tls/listen_certificate": t.cert_file,
+        "transport/link/tls/listen_private_key": t.key_file,
+        "transport/link/tls/connect_certificate": t.cert_file,
+        "transport/link/tls/connect_private_key": t.key_file,
+        "transport/link/tls/enable_mtls": t.mtls,
+        "transport/link/tls/verify_name_on_connect": t.verify_name,
+    }
+
+
+def client_settings(
+    endpoint: str, user: str, users_file: str, tls: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """A client session of ``user`` through the session listening at
-    ``endpoint`` (which routes for it), without scouting."""
+    ``endpoint`` (which routes for it), without scouting; ``tls``: the
+    settings of :func:`tls_settings` (a ``tls/`` endpoint)."""
     out = _settings(user, users_file, scouting=False)
     out.update({"mode": "client", "connect/endpoints": [endpoint]})
+    out.update(tls or {})
     return out
 
 
@@ -252,12 +271,16 @@ def session_config(
     z = cfg.ddm.zenoh
     listen, connect = list(z.listen), list(z.connect)
     if not listen and not connect:
-        endpoint = f"tcp/{cfg.ddm.listen_host}:{ssc_port(cfg, group)}"
+        proto = "tls" if z.tls.cert_file else "tcp"
         if kind == "ssc":
-            listen = [endpoint]
+            listen = [f"{proto}/{cfg.ddm.listen_host}:{ssc_port(cfg, group)}"]
         else:
-            connect = [f"tcp/127.0.0.1:{ssc_port(cfg, group)}"]
+            # (with TLS, the name its certificate gives the SSC's host)
+            host = "localhost" if proto == "tls" else "127.0.0.1"
+            connect = [f"{proto}/{host}:{ssc_port(cfg, group)}"]
     out = _settings(user_of(node, group), users_file, scouting=z.scouting)
+    if any(e.startswith("tls/") for e in (*listen, *connect)):
+        out.update(tls_settings(cfg))
     # the SSC's session accepts the group's and routes for them (a peer);
     # the ESCs' are ``ddm.zenoh.mode`` (clients by default: through it)
     out["mode"] = "peer" if kind == "ssc" else z.mode
@@ -595,11 +618,13 @@ class ZenohTransport(Transport):
 # -- viewers --
 
 
-def look(endpoint: str, users_file: str, seconds: float = 1.5) -> dict[str, Any]:
+def look(
+    endpoint: str, users_file: str, seconds: float = 1.5, tls: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """What a viewer sees through one session's door (``endpoint``): every
     group's nodes alive (their liveliness tokens) and the last status each
     published within ``seconds``. Connects as the viewer user."""
-    settings = client_settings(endpoint, VIEWER, users_file)
+    settings = client_settings(endpoint, VIEWER, users_file, tls)
     status: dict[tuple[str, str], Any] = {}
 
     def take(sample: Any) -> None:

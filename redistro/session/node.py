@@ -36,6 +36,7 @@ from redistro.process.owner import run_nodes, write_json
 from redistro.session.preflight import (
     check_key,
     check_motion,
+    check_zenoh_tls,
     check_zenoh_users,
     positions_file,
     unknown_positions,
@@ -85,6 +86,7 @@ def run_node(
             raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
     check_key(cfg, needed=True)
     check_zenoh_users(cfg, ["ssc" if kind == "ssc" else f"esc.{robot}"], link)
+    check_zenoh_tls(cfg)
     check_motion(cfg, task)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)

@@ -105,6 +105,41 @@ def check_key(cfg: Config, needed: bool = False) -> None:
         raise ConfigError(f"{cfg.origin('ddm.key_file')}: ddm.key_file: {exc}") from None
 
 
+def check_zenoh_tls(cfg: Config, needed: bool = False) -> None:
+    """Over zenoh with ``tls/`` endpoints (or ``ddm.zenoh.tls.cert_file``
+    set; ``needed``: a viewer's ``tls/`` endpoint): the CA, the node's
+    certificate and its key readable, PEM, the key private (mode 0600)."""
+    from redistro.config.inputs import read_text
+    from redistro.ddm import record as wire
+
+    z = cfg.ddm.zenoh
+    endpoints = (*z.listen, *z.connect)
+    used = needed or (
+        cfg.ddm.transport == "zenoh"
+        and (bool(z.tls.cert_file) or any(e.startswith("tls/") for e in endpoints))
+    )
+    if not used:
+        return
+    for field, path, marker in (
+        ("ca_file", z.tls.ca_file, "CERTIFICATE"),
+        ("cert_file", z.tls.cert_file, "CERTIFICATE"),
+        ("key_file", z.tls.key_file, "PRIVATE KEY"),
+    ):
+        where = f"{cfg.origin('ddm.zenoh.tls.' + field)}: ddm.zenoh.tls.{field}"
+        if not path:
+            raise ConfigError(f"{where}: a tls/ endpoint needs it (a PEM file)")
+        try:
+            text = (
+                wire.read_private(path, "key", 1 << 16)
+                if field == "key_file"
+                else read_text(path, "certificate", 1 << 16)
+            )
+        except (ValueError, ConfigError) as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        if "-----BEGIN " not in text or marker not in text:
+            raise ConfigError(f"{where}: {path} holds no PEM {marker.lower()}")
+
+
 def check_zenoh_users(cfg: Config, nodes: list[str], link: str | None) -> None:
     """Over zenoh: ``ddm.zenoh.users_file`` readable and private. Nodes
     started alone (``link`` given) share no session folder: they need the
@@ -146,6 +181,7 @@ def preflight(cfg: Config, task_path: str) -> Task:
     check_workcell(cfg)
     check_key(cfg)
     check_zenoh_users(cfg, ["ssc", *(f"esc.{r}" for r in task.robots)], None)
+    check_zenoh_tls(cfg)
     check_positions(cfg, task)
     check_motion(cfg, task)
     from redistro.ssc.reach import unreachable_goals

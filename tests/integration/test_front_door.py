@@ -270,6 +270,18 @@ CASES = [
         "ddm.zenoh.listen[0]: expected a port 1-65535",
     ),
     (
+        "a tls endpoint without certificates",
+        [
+            "--set",
+            "ddm.transport=zenoh",
+            "--set",
+            "ddm.zenoh.listen=[tls/127.0.0.1:7447]",
+            "session",
+            "tasks/park.yaml",
+        ],
+        "ddm.zenoh.tls.ca_file: a tls/ endpoint needs it",
+    ),
+    (
         "a zenoh group that is a wildcard",
         ["--set", "ddm.zenoh.group=lab/**", "session", "tasks/park.yaml"],
         "ddm.zenoh.group: expected 1-64 letters, digits, _ or - (no key-expression wildcards)",

@@ -54,10 +54,28 @@ def _free_port() -> int:
     return port
 
 
+def _tls_sets(folder: Path, who: str, ca: str = "ca") -> list[str]:
+    """--set lines for TLS: the group's CA, ``who``'s certificate and key
+    (made by a test CA in ``folder``/``ca``)."""
+    from tests.helpers import make_test_ca
+
+    made = folder / ca
+    if not (made / "ca.pem").exists():
+        make_test_ca(made)
+    return [
+        f"ddm.zenoh.tls.ca_file={made / 'ca.pem'}",
+        f"ddm.zenoh.tls.cert_file={made / (who + '.pem')}",
+        f"ddm.zenoh.tls.key_file={made / (who + '.key')}",
+    ]
+
+
 def _zenoh_pair(
-    robots: tuple[str, ...] = ("r1",), answer: Callable[[bytes], int] | None = None
+    robots: tuple[str, ...] = ("r1",),
+    answer: Callable[[bytes], int] | None = None,
+    tls: bool = False,
 ) -> Pair:
-    """The SSC's session and r1's ESC's, authenticated, under access rules."""
+    """The SSC's session and r1's ESC's, authenticated, under access rules
+    (``tls``: over mutual TLS, each node with a certificate of a test CA)."""
     import shutil
     import tempfile
 
@@ -68,11 +86,14 @@ def _zenoh_pair(
     users = f"{folder}/users"
     group = new_session_id()
     zt.new_users_file(users, group, ["ssc", *(f"esc.{r}" for r in robots)])
-    cfg = load_config(None, [f"ddm.zenoh.port={_free_port()}"])
+    port = _free_port()
     gids = {r: i for i, r in enumerate(robots)}
 
     def side(node: str, kind: str, mine: list[str]) -> zt.ZenohTransport:
-        settings = zt.session_config(cfg, group, node, kind, mine, users)
+        sets = [f"ddm.zenoh.port={port}"]
+        if tls:
+            sets += _tls_sets(Path(folder), "ssc" if kind == "ssc" else "esc")
+        settings = zt.session_config(load_config(None, sets), group, node, kind, mine, users)
         return zt.ZenohTransport(
             settings, group=group, node=node, kind=kind, robots=mine, gids=gids
         )
@@ -102,6 +123,7 @@ PAIRS: dict[str, Callable[[], Pair]] = {
     "reflective": _reflective_pair,
     "loopback": _loopback_pair,
     "zenoh": _zenoh_pair,
+    "zenoh-tls": lambda: _zenoh_pair(tls=True),
 }
 
 
@@ -525,6 +547,55 @@ def test_a_zenoh_node_with_a_wrong_password_is_refused_and_says_so() -> None:
                     esc.receive()
                     time.sleep(0.01)  # polling a non-blocking receive, to a deadline
             assert not ssc.connected() and ssc.receive() == []
+        finally:
+            ssc.close()
+            esc.close()
+    finally:
+        shutil.rmtree(folder)
+
+
+@pytest.mark.parametrize("wrong", ["another CA's certificate", "no certificate"])
+def test_a_zenoh_node_with_a_wrong_certificate_is_refused(wrong: str) -> None:
+    """Over mutual TLS, an ESC whose certificate the group's CA did not sign
+    (or that has none) never gets in: the SSC's side refuses the
+    connection, the ESC's ddm reports it cannot reach the group's door."""
+    import shutil
+    import tempfile
+
+    from redistro.config import load_config
+    from redistro.ddm import zenoh_transport as zt
+
+    folder = Path(tempfile.mkdtemp())
+    try:
+        users = str(folder / "users")
+        group = new_session_id()
+        zt.new_users_file(users, group, ["ssc", "esc.r1"])
+        port = f"ddm.zenoh.port={_free_port()}"
+        ssc_cfg = load_config(None, [port, *_tls_sets(folder, "ssc")])
+        esc_sets = [port, *_tls_sets(folder, "esc", ca="other")]
+        esc_sets[1] = f"ddm.zenoh.tls.ca_file={folder / 'ca' / 'ca.pem'}"  # it trusts the SSC
+        esc_cfg = load_config(None, esc_sets)
+        gids = {"r1": 0}
+        ssc = zt.ZenohTransport(
+            zt.session_config(ssc_cfg, group, "ssc", "ssc", ["r1"], users),
+            group=group, node="ssc", kind="ssc", robots=["r1"], gids=gids,
+        )  # fmt: skip
+        settings = zt.session_config(esc_cfg, group, "esc.r1", "esc", ["r1"], users)
+        assert settings["connect/endpoints"][0].startswith("tls/localhost:")
+        if wrong == "no certificate":  # the client shows none
+            settings = {k: v for k, v in settings.items() if "/connect_" not in k}
+        esc = zt.ZenohTransport(
+            settings, group=group, node="esc.r1", kind="esc", robots=["r1"], gids=gids,
+            connect_timeout_s=1.5,
+        )  # fmt: skip
+        try:
+            with pytest.raises(TransportError, match=r"cannot reach the group's door"):
+                deadline = time.monotonic() + 5
+                while time.monotonic() < deadline:
+                    esc.receive()
+                    ssc.receive()
+                    time.sleep(0.01)  # polling a non-blocking receive, to a deadline
+            assert not ssc.connected()
         finally:
             ssc.close()
             esc.close()
