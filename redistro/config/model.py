@@ -359,6 +359,12 @@ class DdmConfig:
         fresh key in its runtime directory; nodes started alone
         (``redistro node``) need this file, the same on every node.
     zenoh: the zenoh transport's settings.
+    encrypt: every command's and feedback's payload encrypted (ChaCha20 with
+        a key derived from the run's key; the record's tag covers the
+        ciphertext): what multicast on loopback or a network shows of the
+        robots' state is then only its headers. The records then take the
+        ddm's Python path, not the compiled one (docs/PERFORMANCE.md
+        gives the cost per record).
     """
 
     transport: Literal["socket", "reflective", "zenoh"] = "socket"
@@ -373,6 +379,7 @@ class DdmConfig:
     peers: list[str] = field(default_factory=list)
     key_file: str = ""
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    encrypt: bool = False
 
 
 @dataclass(frozen=True)

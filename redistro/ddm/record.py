@@ -170,6 +170,31 @@ def run_key(key: bytes, nonce: bytes) -> bytes:
     return hmac.digest(key, b"redistro run key\0" + nonce, "sha256")
 
 
+def cipher_key(run_key: bytes) -> bytes:
+    """The key that encrypts one run's payloads (``ddm.encrypt``), apart from
+    the run key that signs them."""
+    return hmac.digest(run_key, b"redistro record cipher\0", "sha256")
+
+
+_NONCE = struct.Struct("<IBBHQ")  # ChaCha20's block counter (0), then kind, robot, 0, seq
+
+
+def crypt(key: bytes, kind: int, robot: int, seq: int, payload: bytes | memoryview) -> bytes:
+    """A payload encrypted, or decrypted (the same operation), with ChaCha20
+    (``cryptography``'s documented cipher) under ``key``. The nonce is the
+    record's kind, robot and sequence number: each sender's (the SSC's
+    commands, an ESC's feedback) and never repeated under one run's key.
+    With the record's tag (HMAC-SHA256 with the run key, over the header
+    and the encrypted payload) this is encrypt-then-MAC."""
+    from cryptography.hazmat.primitives.ciphers import Cipher, algorithms
+
+    nonce = _NONCE.pack(0, kind, robot, 0, seq)
+    out: bytes = (
+        Cipher(algorithms.ChaCha20(key, nonce), mode=None).encryptor().update(bytes(payload))
+    )
+    return out
+
+
 def new_key(path: Path | str) -> bytes:
     """A fresh random key, written to ``path`` (mode 0600, created, never
     overwritten)."""

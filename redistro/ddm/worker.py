@@ -75,6 +75,13 @@ from redistro.process.stats import Samples
 from redistro.process.worker import Worker
 
 REPLIED = 1 << 40  # ddm_reply: the usual step done whole
+
+
+def _stamp_of(payload: memoryview) -> int:
+    """The producer's stamp [ns] that starts a (decrypted) payload."""
+    return int.from_bytes(payload[:8], "little", signed=True)
+
+
 NOTHING = -errno.EAGAIN  # ... nothing had come
 
 
@@ -204,7 +211,11 @@ class Ddm(Worker):
         self.transport.verify_with(self._authentic)
         self.replying = self.kind == "esc" and self.transport.replies
         self.answer_gid = self.gid[self.robots[0]]
-        if KERNELS is not None and self.hooks is None:
+        # encrypted payloads take the Python path (the kernels copy payloads
+        # into Local Data as they come)
+        self.encrypt = self.cfg.ddm.encrypt
+        self.cipher = wire.cipher_key(self.key) if self.encrypt and self.kind != "esc" else b""
+        if KERNELS is not None and self.hooks is None and not self.encrypt:
             self._plan_fast(ld)
         for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
             ex["feedback_wanted"] = 1
@@ -430,6 +441,8 @@ class Ddm(Worker):
         """An ESC's side: the SSC's proof came; its records, and ours, are
         signed with this run's key from now on, and the link is pinned."""
         self.key = key
+        if self.encrypt:
+            self.cipher = wire.cipher_key(key)
         for enc in self.encoders:
             enc.rekey(key)
         if self.fast is not None:
@@ -633,6 +646,8 @@ class Ddm(Worker):
                 self.post(f"e-stop from {name.decode(errors='replace')}", logging.ERROR)
                 self.estop_request = True
             payload: Any = memoryview(raw)[wire.PAYLOAD_AT : wire.PAYLOAD_AT + self.in_size]
+            if self.cipher:
+                payload = memoryview(wire.crypt(self.cipher, kind, robot, seq, payload))
             if self.hooks is not None:
                 payload = self.hooks.command(payload)
             self.in_blocks[i].publish(payload)
@@ -654,7 +669,7 @@ class Ddm(Worker):
                 self.delivered_rec["count"] = self.sent_rec["count"]
                 self.delivered_rec["stamp_ns"] = now
                 self.delivered_block.publish(self.delivered_rec.bytes)
-                stamp = wire.payload_stamp(raw)
+                stamp = wire.payload_stamp(raw) if not self.cipher else _stamp_of(payload)
                 if 0 < stamp <= now:
                     if fast is not None:
                         fast.add_latency(now - stamp)
@@ -720,7 +735,11 @@ class Ddm(Worker):
 
     def _send_one(self, i: int, rec: Record, estop: bool) -> None:
         self.seq[i] += 1
-        data = self.encoders[i].encode(self.seq[i], time.monotonic_ns(), rec.bytes, estop)
+        payload: Any = rec.bytes
+        if self.cipher:
+            payload = wire.crypt(self.cipher, self.out_kind, self.gid[self.robots[i]],
+                                 self.seq[i], payload)  # fmt: skip
+        data = self.encoders[i].encode(self.seq[i], time.monotonic_ns(), payload, estop)
         self.transport.send(data, self.gid[self.robots[i]])
         self.ex[i]["sent"] += 1
         self.dirty = True

@@ -11,6 +11,7 @@ off it (event-driven), are one runner.
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import signal
@@ -178,6 +179,12 @@ class _Runner:
             except Exception as exc:
                 worker.post(f"initialization failed: {exc}", logging.CRITICAL)
                 raise WorkerFailed(str(exc)) from exc
+            # the collector's one full pass, then no more: before ``ready``,
+            # at the default priority (in the SSC worker it takes 10-25 ms,
+            # which at 1 kHz were its first cycles' heartbeats)
+            gc.collect()
+            gc.freeze()
+            gc.disable()  # no collector pauses inside cycles; Routine allocates little
             granted = sched.apply(
                 me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory
             )
@@ -230,11 +237,6 @@ class _Runner:
         manager_fd: int,
     ) -> str:
         """The cycle loop. Returns why it ended ('' for an orderly end)."""
-        import gc
-
-        gc.collect()
-        gc.freeze()
-        gc.disable()  # no collector pauses inside cycles; Routine allocates little
         self.cpu_start_s = time.process_time()
         my_go = go[self.index]
         watch_s = max(0.05, 4 * self.period_ns / 1e9)
@@ -362,13 +364,8 @@ class _Runner:
         Each tick it runs one step and signs its heartbeat with the newest
         manager cycle, so the manager watches it like any worker.
         """
-        import gc
-
         from redistro.ipc.timer import IntervalTimer
 
-        gc.collect()
-        gc.freeze()
-        gc.disable()
         self.cpu_start_s = time.process_time()
         timer = IntervalTimer(rate_hz)
         worker.period_ns = timer.period_ns
@@ -409,12 +406,8 @@ class _Runner:
         signals (a signalfd) and its manager's pidfd, at most
         ``worker.wait_s()``; it steps when woken by data or by that deadline,
         and signs its heartbeat with the newest manager cycle each time."""
-        import gc
         import select
 
-        gc.collect()
-        gc.freeze()
-        gc.disable()
         self.cpu_start_s = time.process_time()
         sigfd = signals.signalfd(WAIT_SET)
         poller = select.epoll()

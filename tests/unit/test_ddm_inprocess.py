@@ -61,11 +61,11 @@ class Setup:
     gids: list[int]
 
 
-def _setup(tmp_path: Path) -> Setup:
+def _setup(tmp_path: Path, sets: tuple[str, ...] = ()) -> Setup:
     """A group's link key, config, task, hardware, session id and robot ids."""
     key = tmp_path / "link.key"
     wire.new_key(key)
-    cfg = load_config(ROOT / "config/redistro.yaml", [f"ddm.key_file={key}"])
+    cfg = load_config(ROOT / "config/redistro.yaml", [f"ddm.key_file={key}", *sets])
     task = load_task(ROOT / "tasks/peg_insertion_short.yaml", cfg)
     gids = [list(cfg.robots).index(r) for r in ROBOTS]
     return Setup(key, cfg, task, load_hardware(cfg), new_session_id(), gids)
@@ -461,3 +461,51 @@ def test_an_earlier_runs_hello_and_records_are_refused_and_pin_nothing(tmp_path:
         for e in (ssc_end, end, ssc_end2, end2):
             if e is not None:
                 e.close()
+
+
+def test_encrypted_payloads_cross_unreadable_and_arrive_whole(tmp_path: Path) -> None:
+    """ddm.encrypt: what goes on the wire holds no byte of a command's
+    payload as the worker wrote it; the ESC's Local Data gets it whole; a
+    flipped bit of the ciphertext fails the tag (forged), as any change."""
+    g = _setup(tmp_path, ("ddm.encrypt=true",))
+    ssc_end, esc_ends = Loopback.group(g.gids)
+    wire_seen: list[bytes] = []
+    real = ssc_end.send
+
+    def seen(record: bytes, robot: int) -> None:
+        wire_seen.append(bytes(record))
+        real(record, robot)
+
+    ssc_end.send = seen  # type: ignore[method-assign]
+    ssc = _node(ssc_spec(g.cfg, g.task, g.sid, run_dir=""), ssc_end)
+    escs = {
+        r: _node(esc_spec(g.cfg, g.task, r, g.hw[r], g.sid, positions_file="p.json"), esc_ends[gid])
+        for r, gid in zip(ROBOTS, g.gids, strict=True)
+    }
+    try:
+        _shake_hands(ssc, escs)
+        assert ssc.ddm.fast is None and ssc.ddm.cipher and escs["r2"].ddm.cipher == ssc.ddm.cipher
+        cmd = Record(COMMAND)
+        cmd["seq_src"] = 1
+        cmd.array["tau_nm"] = [1.25, -2.5, 3.75, 0, 0, 0, 0.5]
+        ssc.ld.writer("command", 1, role="worker").publish(cmd.bytes)
+        ssc.ddm.step(5)
+        escs["r2"].ddm.step(5)
+        got = escs["r2"].ld.block("command", 0).read()
+        assert list(got["tau_nm"]) == [1.25, -2.5, 3.75, 0, 0, 0, 0.5]
+        sent = [r for r in wire_seen if r[6] == wire.KIND_COMMAND]
+        assert sent
+        plain = cmd.array["tau_nm"].tobytes()
+        assert all(plain not in r for r in sent)
+        assert escs["r2"].ddm.ex[0]["updates"] == 1
+        # a flipped bit of the ciphertext: the tag fails
+        bad = bytearray(sent[-1])
+        bad[wire.PAYLOAD_AT + 20] ^= 1
+        real(bytes(bad), g.gids[1])
+        escs["r2"].ddm.step(6)
+        assert escs["r2"].ddm.ex[0]["dropped"] >= 1
+    finally:
+        for n in [ssc, *escs.values()]:
+            n.ddm.cleanup()
+            n.ld.close()
+            n.ld.unlink()
