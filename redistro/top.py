@@ -185,7 +185,11 @@ def measure(only: str | None, interval_s: float) -> dict[str, Any]:
 
 
 def render(doc: dict[str, Any]) -> Any:
+    """The tables of ``doc``; the names and texts a session wrote (a fault's
+    text may quote a task's or a segment's name) are printed as they are,
+    escaped: never read as markup."""
     from rich.console import Group
+    from rich.markup import escape
     from rich.table import Table
     from rich.text import Text
 
@@ -208,7 +212,9 @@ def render(doc: dict[str, Any]) -> Any:
                 f", {estop}"
             )
             if n.get("fault"):
-                title += f" [red]{n['fault']}: {n.get('fault_text')}[/red]"
+                title += (
+                    f" [red]{escape(str(n['fault']))}: {escape(str(n.get('fault_text')))}[/red]"
+                )
             # short headings and no column rules: fits an 80-column terminal
             t = Table(
                 title=title,
@@ -323,21 +329,23 @@ def run_zenoh_top(endpoints: list[str], cfg: Any, as_json: bool, interval_s: flo
         print(json.dumps({"zenoh": looks}, indent=1))
         return 0
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     console = Console()
     for look in looks:
         if not look["groups"]:
-            console.print(f"{look['endpoint']}: no group seen")
+            console.print(escape(f"{look['endpoint']}: no group seen"))
         for group, nodes in look["groups"].items():
-            t = Table(title=f"group {group} (through {look['endpoint']})", title_justify="left")
+            title = escape(f"group {group} (through {look['endpoint']})")
+            t = Table(title=title, title_justify="left")
             for c in ("node", "alive", "host", "pid", "updates", "e-stop", "link"):
                 t.add_column(c)
             for n in nodes:
                 t.add_row(
-                    n["node"],
+                    escape(str(n["node"])),
                     "yes" if n["alive"] else "[red]no[/red]",
-                    str(n.get("host", "-")),
+                    escape(str(n.get("host", "-"))),
                     str(n.get("pid", "-")),
                     ",".join(str(u) for u in n.get("updates", [])) or "-",
                     "[red]E-STOP[/red]" if n.get("estop") else "-",

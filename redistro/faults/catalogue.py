@@ -20,7 +20,9 @@ Kinds:
 - ``limits``: the drill itself, with config that puts a joint limit in its
   way: nothing is injected, the guard must stop the joint inside the limit;
 - ``rerun``: a session's records to r2, recorded, sent again in a later
-  session with the same key file (:mod:`redistro.faults.rerun`).
+  session with the same key file (:mod:`redistro.faults.rerun`);
+- ``local-user``: another user squatting memory-card keys, or planting
+  links in an ``--out`` folder (:mod:`redistro.faults.local_user`).
 
 Expected: the session ends with one of ``expect``, the first fault's reason
 holds ``reason``; detection within ``limit`` (``death``: 2 cycles of the
@@ -206,6 +208,13 @@ def _other_scenarios() -> list[Scenario]:
                  count="forged",
                  what="a session's hello and commands to r2, recorded, sent to r2's ddm in a "
                       "later session with the same key file, before that session's SSC comes"),
+        Scenario("card-squat", "local-user", "", "", "card-squat", ("ok",), "", "",
+                 what="another user holds 256 memory-card keys of the project's range while "
+                      "a session runs over reflective memory"),
+        Scenario("out-planted-links", "local-user", "", "", "out-planted-links", refused,
+                 "", "",
+                 what="session --out into another user's folder holding links to a private "
+                      "file, named as the run folder's files"),
         Scenario("home-stuck-on", "calibration", "plant", "", "plant.home-stuck-on",
                  ("abnormal",), "no home switch", "",
                  what="r2's home switches stuck on during self-calibration"),

@@ -147,6 +147,12 @@ def run_scenario(
     if sc.kind == "hogs":
         row.update(_hogs(sc, runs, out_dir, config_args))
         return row
+    if sc.kind == "local-user":
+        from redistro.faults.local_user import run_local_user
+
+        task = str(_first_segment_drill(out_dir))
+        row.update(run_local_user(sc, out_dir, _session_args(sc, runs, config_args), task))
+        return row
     if sc.kind == "rerun":
         from redistro.faults.rerun import run_rerun_replay
 

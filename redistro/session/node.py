@@ -20,6 +20,7 @@ for the first command (frozen until then, ``starving`` if none comes within
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -95,6 +96,7 @@ def run_node(
         run_dir = Path(out_dir) if out_dir else Path(cfg.session.runs_dir) / s.id
         files.make_folder(run_dir, "run folder")
         messages = str(run_dir / "messages.log")
+        os.close(files.create(messages))  # (new: the manager only appends to it)
         if kind == "esc":
             spec = esc_spec(
                 cfg,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -138,6 +139,7 @@ def _run_task(
         run_dir = Path(out_dir) if out_dir else runs / s.id
         files.make_folder(run_dir, "run folder")
         messages = str(run_dir / "messages.log")
+        os.close(files.create(messages))  # (new: the managers only append to it)
         say(f"session {s.id}")
         say(f"task {task.task} ({task.kind}) on {', '.join(task.robots)}; run folder {run_dir}")
         plant = PlantProcess.start(s, run_dir, plant_config(cfg))

@@ -60,3 +60,13 @@ def test_the_scheduling_column_names_what_was_granted() -> None:
     assert sched_text(POLICY_CODES["SCHED_RR"], 19, 0) == "rr/19"
     assert sched_text(POLICY_CODES["nice"], 0, -9) == "nice/-9"
     assert sched_text(POLICY_CODES["default"], 0, 0) == "default"
+
+
+def test_names_and_fault_texts_are_printed_as_they_are() -> None:
+    """A fault text quoting a segment named like markup is not markup."""
+    doc = _doc()
+    node = doc["sessions"][0]["nodes"][0]
+    node["fault"], node["fault_text"] = "unsafe", "segment [/x] [bold]tilt[/bold] tripped"
+    console = Console(width=300, record=True, color_system=None)
+    console.print(render(doc))
+    assert "segment [/x] [bold]tilt[/bold] tripped" in console.export_text()
