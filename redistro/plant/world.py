@@ -136,7 +136,11 @@ class World:
         if urdf_dir is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="redistro-urdf-")
             urdf_dir = Path(self._tmp.name)
-        self.fixture = self._build_table_and_fixture()
+        try:
+            self.fixture = self._build_table_and_fixture()
+        except BaseException:
+            pb.disconnect(physicsClientId=cid)
+            raise
         self.arms: dict[str, Arm] = {}
         peg_cfg = cfg.workcell.peg
         for name, rc in cfg.robots.items():

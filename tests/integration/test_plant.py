@@ -273,3 +273,21 @@ def test_the_amplifiers_watchdog_brakes_an_arm_nobody_commands(tmp_path: Path) -
         d.freeze()
     trips = rig.plant.result()["watchdog_trips"]
     assert any(t["robot"] == "r1" for t in trips), trips
+
+
+def test_the_plant_refuses_a_world_whose_bodies_overlap() -> None:
+    """Built from a config that bypassed the load checks (the plant judges
+    its own world): two bases in one another, then a base in the table, are
+    refused, naming which body; the shipped work-cell is built."""
+    import dataclasses
+
+    from redistro.config import load_config
+    from redistro.plant.world import World
+
+    cfg = load_config("config/redistro.yaml")
+    World(cfg).close()
+    for base, what in (([0.0, -0.4, 0.0], "inside robot r2"), ([0.45, 0.0, 0.0], "table")):
+        r1 = dataclasses.replace(cfg.robots["r1"], base_xyz_m=base)
+        bad = dataclasses.replace(cfg, robots={**cfg.robots, "r1": r1})
+        with pytest.raises(ConfigError, match=what):
+            World(bad)
