@@ -75,14 +75,12 @@ from redistro.process.stats import Samples
 from redistro.process.worker import Worker
 
 REPLIED = 1 << 40  # ddm_reply: the usual step done whole
+NOTHING = -errno.EAGAIN  # ... nothing had come
 
 
 def _stamp_of(payload: memoryview) -> int:
     """The producer's stamp [ns] that starts a (decrypted) payload."""
     return int.from_bytes(payload[:8], "little", signed=True)
-
-
-NOTHING = -errno.EAGAIN  # ... nothing had come
 
 
 def link_id(spec: NodeSpec) -> str:
@@ -202,6 +200,7 @@ class Ddm(Worker):
         self.refused_seen = 0
         self.stale_seen = 0
         self.greeted = self.kind == "esc"  # the SSC's hellos are not all answered yet
+        self.shaken = False  # every local robot's handshake done (the usual step's test)
         # what acts on this ddm from outside (the fault harness; none normally)
         make = hooks.factory("ddm_hooks")
         self.hooks = make(self.spec.node, self.kind) if make else None
@@ -426,6 +425,7 @@ class Ddm(Worker):
             self.transport.flush()
         if reply.run_key:
             self._take_run_key(reply.run_key)
+        self.shaken = self.handshake.done
 
     def _authentic(self, raw: bytes) -> bool:
         """Whether a record is sound and signed (a hello with the link's key,
@@ -681,12 +681,12 @@ class Ddm(Worker):
 
     def _send(self, estop: bool) -> None:
         proven = self.handshake.proven
-        if not self.handshake.done and not any(proven):
+        if not self.shaken and not any(proven):
             return  # nobody may take our records yet (the handshake)
         if self.fast is not None and not estop:
             mask = self.fast.emit_call(self.fast.emit_plan)  # FastPath.emit
             if mask >= 0:  # else a torn read: the Python path reads again
-                if not self.handshake.done:
+                if not self.shaken:  # only to the robots shaken hands with
                     mask &= sum(1 << i for i, ok in enumerate(proven) if ok)
                 if mask:
                     self.sends += 1
@@ -701,7 +701,7 @@ class Ddm(Worker):
                     self.dirty = True
                 return
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
-            if not proven[i]:
+            if not self.shaken and not proven[i]:
                 continue  # (the handshake)
             block.read_into(rec.bytes)
             produced = int(rec["seq_src"])
