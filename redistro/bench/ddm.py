@@ -165,6 +165,7 @@ def _figures(
             "feedback_seen": (ssc.get("seen") or {}).get(r, 0),
             "answered_in_transport": esc.get("answered", 0),
             "dropped": esc.get("dropped", 0) + (ssc.get("dropped") or {}).get(r, 0),
+            "dropped_by_esc": esc.get("dropped_by", {}),
             "cpu_percent": esc.get("cpu_percent"),
             "step_cpu_us": esc.get("step_cpu_us"),
             # why its ESC side stopped: the SSC's last command ("finished"),
@@ -300,6 +301,8 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
         if kind == "esc"
         else {r: int(e["dropped"]) for r, e in zip(spec.robots, ex, strict=True)}
     )
+    reasons = ("malformed", "forged", "duplicate", "out_of_order", "stale")
+    out["dropped_by"] = {why: int(sum(e[why] for e in ex)) for why in reasons}
     if kind == "esc":
         out["command_latency_us"] = ddm.latency.summary_us()
         out["taken"] = int(ex[0]["updates"])

@@ -599,12 +599,20 @@ class Ddm(Worker):
             self.refused_seen = refused
             self.dirty = self.urgent = True
         fast = self.fast
-        size, hello = wire.SIZE, wire.KIND_HELLO
+        size, hello, in_kind, gids = wire.SIZE, wire.KIND_HELLO, self.in_kind, self.local
+        keyless = not self.handshake.run_key  # an ESC before the SSC's proof
         for raw in received:
             self.dirty = True
             if fast is not None and fast.admit_call(fast.admit_plan, raw) >= 0:
                 taken += 1  # admitted, published and counted (FastPath.admit)
                 continue
+            if (
+                keyless
+                and len(raw) == size
+                and raw[6] != hello
+                and (raw[6] != in_kind or raw[7] not in gids)
+            ):
+                continue  # another robot's traffic: without the run key, not ours to judge
             # every record is checked (another node's traffic on a broadcast
             # medium too: a forgery is counted whoever it claims to be);
             # hellos are signed with the link's key, the rest with the run's
