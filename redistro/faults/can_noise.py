@@ -117,6 +117,14 @@ def _replay(cfg: Config, session_id: str, frames: list[Any], seconds: float) -> 
     return writes
 
 
+def _ended(row: dict[str, Any], fault: str, sid: str) -> None:
+    """How the driver's run ended (an I/O fault or not), what it left."""
+    row["got"] = "abnormal" if fault else "ok"
+    row["cause"] = fault
+    row["processes_left"] = 0
+    row["ipc_left"] = sorted(e for e in os.listdir("/dev/shm") if sid in e)
+
+
 def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str, Any]:
     """The plant on the CAN backplane, r2's robot-level driver reading it at
     200 Hz (holding its DAC at zero, the brakes on) for 3 s, corrupt frames on
@@ -195,10 +203,7 @@ def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str,
     row["count"] = {"bad_frames": row["plant_bad_frames"] + row["controller_bad_frames"]}
     if forged:
         row["count"] = {"forged_writes": row["plant_forged_writes"]}
-    row["got"] = "abnormal" if fault else "ok"
-    row["cause"] = fault
-    row["processes_left"] = 0
-    row["ipc_left"] = sorted(e for e in os.listdir("/dev/shm") if sid in e)
+    _ended(row, fault, sid)
     row["passed"] = bool(
         not fault
         and reads > 300
@@ -304,10 +309,7 @@ def run_can_replay(out_dir: Path, cfg: Config) -> dict[str, Any]:
     row["plant_taken_writes"] = int(result.get("taken_writes", 0))
     row["watchdog_trips"] = [t.get("robot") for t in result.get("watchdog_trips") or []]
     row["count"] = {"forged_writes": row["plant_forged_writes"]}
-    row["got"] = "abnormal" if fault else "ok"
-    row["cause"] = fault
-    row["processes_left"] = 0
-    row["ipc_left"] = sorted(e for e in os.listdir("/dev/shm") if sid in e)
+    _ended(row, fault, sid)
     row["passed"] = bool(
         not fault
         and row["captured_frames"] > 0

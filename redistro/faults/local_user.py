@@ -27,7 +27,7 @@ SQUATS = 256
 LINKS = ("summary.json.tmp", "summary.json", "messages.log", "plant.json", "session.mcap")
 
 
-def _as_other(make: Any) -> None:
+def as_other(make: Any) -> None:
     """``make()`` in a child process of uid OTHER (forked: modules loaded)."""
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child
@@ -69,7 +69,7 @@ def _card_squat(sc: Scenario, out_dir: Path, session_args: list[str], task: str)
             sysv_ipc.SharedMemory(key, sysv_ipc.IPC_CREX, size=64, mode=0o644)
 
     row: dict[str, Any] = {}
-    _as_other(squat)
+    as_other(squat)
     try:
         done = subprocess.run(
             [*session_args, "--set", "ddm.transport=reflective", "session", task,

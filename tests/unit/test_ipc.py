@@ -6,10 +6,11 @@ import contextlib
 import os
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 
+from redistro.faults.local_user import OTHER as SQUATTER
+from redistro.faults.local_user import as_other as _as_squatter
 from redistro.ipc import names, sched, session
 from redistro.ipc.sem import Semaphore
 from redistro.ipc.timer import IntervalTimer
@@ -250,26 +251,6 @@ def test_a_signal_wait_that_returns_no_signal_waits_on(monkeypatch: pytest.Monke
     assert len(asked) == 2 and asked[1] <= asked[0] <= 1.0  # the same deadline
     returns[:] = [SimpleNamespace(si_signo=0), None]
     assert signals.wait(frozenset({signal.SIGTERM}), 0.0) is None
-
-
-SQUATTER = 12345  # a uid that is not ours (the tests run as root: chown and setuid work)
-
-
-def _as_squatter(make: Any) -> None:
-    """Call ``make()`` in a child process of another user (forked: the
-    interpreter's modules are already loaded)."""
-    pid = os.fork()
-    if pid == 0:  # pragma: no cover - the child
-        code = 1
-        try:
-            os.setgid(SQUATTER)
-            os.setuid(SQUATTER)
-            make()
-            code = 0
-        finally:
-            os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0
 
 
 @pytest.mark.skipif(os.getuid() != 0, reason="makes objects of another user (root only)")
