@@ -13,11 +13,16 @@ index or an unknown sequence is counted and dropped, never trusted. Every send
 and receive has a timeout; a bus error or a board that does not answer in time
 is an :class:`~redistro.errors.IOFault`.
 
-Every write and every reply is signed: its payload is a 64-bit sequence
-number, the bank, and a 32-byte HMAC-SHA256 over the frame's function,
-address, sequence number and bank with the plant's CAN key (``can.key`` in
-the plant session's runtime folder, made fresh by each plant at start,
-read by the drivers). The header's 16-bit number only matches segments.
+Every write and every reply is signed with the plant's CAN key (``can.key``
+in the plant session's runtime folder, made fresh by each plant at start,
+read by the drivers): an HMAC-SHA256 over the frame's function, address,
+64-bit sequence number and bank. A write's payload is the sequence number,
+the bank and the tag (32 bytes); a reply's is the bank and the tag's first
+16 bytes (HMAC-SHA256-128, as RFC 4868's truncation), its number being the
+request's, which the driver knows: a reply then fits the frames it took
+unsigned plus at most one (a driver's read of r2's boards: 13 frames, 11
+unsigned, 16 with the full tag and the number). The header's 16-bit number
+only matches segments.
 
 - A write's sequence number is the driver's: strictly growing, never below
   the monotonic clock in ns when written (``next_seq``), so it never wraps
@@ -27,9 +32,9 @@ read by the drivers). The header's 16-bit number only matches segments.
   sent again (whatever the sequence did since), or one from another run
   (another key), never reaches a register (counted in ``forged``), and
   never moves what the chassis expects of the genuine writer.
-- A read request carries the driver's next number; the reply echoes it
-  under the tag, so a reply that is forged, or captured and sent again,
-  is not taken (``bad_frames``).
+- A read request carries the driver's next number; the reply's tag covers
+  it, so a reply that is forged, or captured and sent again (another
+  request's), is not taken (``bad_frames``).
 
 The ``udp_multicast`` bus joins its group and sends on loopback only
 (``plant.can.loopback_only``).
@@ -65,7 +70,8 @@ WRITE, READ, REPLY = 0x100, 0x200, 0x300
 LATE_BATCH = 64  # frames a late plant still takes before its next step
 INVENTORY = 0x7F0  # controller -> chassis: who is there?
 INVENTORY_REPLY = 0x7F1  # chassis -> controller: (address u8, type u8) pairs
-TAG = 32  # a write's or a reply's HMAC-SHA256
+TAG = 32  # a write's HMAC-SHA256
+REPLY_TAG = 16  # a reply's, truncated (HMAC-SHA256-128)
 SEQ = struct.Struct("<Q")  # the 64-bit sequence number that starts a signed payload
 KEY_FILE = "can.key"  # in the plant session's runtime folder
 _SIGNED = struct.Struct("<HBQ")  # what the tag covers before the bank: function, address, seq
@@ -76,7 +82,7 @@ def write_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
 
 
 def reply_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
-    return hmac.digest(key, _SIGNED.pack(REPLY, address, seq) + bank, "sha256")
+    return hmac.digest(key, _SIGNED.pack(REPLY, address, seq) + bank, "sha256")[:REPLY_TAG]
 
 
 def signed(seq: int, bank: bytes, tag: bytes) -> bytes:
@@ -312,7 +318,7 @@ class CanBackplane(Backplane):
                 raise IOFault(f"no board at address {a} in the chassis")
             if a not in self._rx:
                 din = BANKS[types[a]][0]
-                self._rx[a] = Reassembly(SEQ.size + din.itemsize + TAG)
+                self._rx[a] = Reassembly(din.itemsize + REPLY_TAG)
                 self._recs[a] = np.zeros((), din)
             self._send(READ | a, request)
         pending = set(addresses)
@@ -342,8 +348,8 @@ class CanBackplane(Backplane):
             whole = rx.add(msg.data, want_seq=seq)
             self.bad_frames += rx.bad - before
             if whole is not None:
-                echo, bank, tag = unsigned(whole)
-                if echo != seq or not hmac.compare_digest(tag, reply_tag(self.key, a, seq, bank)):
+                bank, tag = whole[:-REPLY_TAG], whole[-REPLY_TAG:]
+                if not hmac.compare_digest(tag, reply_tag(self.key, a, seq, bank)):
                     self.bad_frames += 1  # forged, or an old reply sent again: not taken
                     continue
                 rec = self._recs[a]
@@ -387,11 +393,11 @@ class CanPort(BoardPort):
         self._in[address][...] = record
 
     def _reply(self, address: int, seq: int) -> None:
-        """The board's ``in`` bank, signed, echoing the request's number."""
+        """The board's ``in`` bank, signed over the request's number."""
         import can
 
         bank = self._in[address].tobytes()
-        for frame in frames_for(seq, signed(seq, bank, reply_tag(self.key, address, seq, bank))):
+        for frame in frames_for(seq, bank + reply_tag(self.key, address, seq, bank)):
             try:
                 self.bus.send(_message(REPLY | address, frame), timeout=0.005)
             except can.CanError:
