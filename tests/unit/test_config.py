@@ -231,3 +231,20 @@ def test_a_strategy_task_calibrates_first_as_its_own_section_says() -> None:
     assert cal.calibration.segment_s == [2.4, 2.4, 1.8] and cal.calibration.range_deg == 12.0
     peg = load_task(ROOT / "tasks/peg_insertion.yaml", cfg)
     assert calibration_first(peg, ["r1", "r2"]).calibration == CalibrationTask()
+
+
+def test_an_error_message_quotes_a_huge_value_without_walking_it() -> None:
+    """A value as a message shows it: cut short, and made from its first
+    items only (a document expanded to millions of items is not printed
+    whole first)."""
+    import time
+
+    from redistro.errors import shown
+
+    huge = [[i] * 8 for i in range(1_000_000)]
+    t0 = time.process_time()
+    text = shown(huge)
+    assert time.process_time() - t0 < 0.05
+    assert len(text) <= 60 and text.startswith("[[0, 0, 0")
+    assert len(shown(10**80)) <= 60 and shown(10**80).startswith("1000")
+    assert shown("x" * 1000).endswith("...") and len(shown("x" * 1000)) == 60
