@@ -91,9 +91,7 @@ def _row(k: int, doc: dict[str, Any]) -> str:
     worst = max(start.items(), key=lambda kv: kv[1]["max_age_cycles"], default=("-", {}))
     ct = doc.get("cyclictest_us") or {}
     nodes = doc.get("nodes") or {}
-    overruns = ", ".join(
-        f"{n} {v.get('overrun_percent', '-')}" for n, v in sorted(nodes.items())
-    )
+    overruns = ", ".join(f"{n} {v.get('overrun_percent', '-')}" for n, v in sorted(nodes.items()))
     return (
         f"| {k} | {doc.get('result', 'no result')} {doc.get('reason', '')} | "
         f"{start.get('ssc/worker', {}).get('first_heartbeat_after_cycles', '-')} | "
