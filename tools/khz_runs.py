@@ -87,8 +87,10 @@ def main() -> int:
 
 
 def _row(k: int, doc: dict[str, Any]) -> str:
-    start = doc.get("start", {})
-    worst = max(start.items(), key=lambda kv: kv[1]["max_age_cycles"], default=("-", {}))
+    start: dict[str, dict[str, int]] = doc.get("start", {})
+    worst: tuple[str, dict[str, int]] = max(
+        start.items(), key=lambda kv: kv[1]["max_age_cycles"], default=("-", {})
+    )
     ct = doc.get("cyclictest_us") or {}
     nodes = doc.get("nodes") or {}
     overruns = ", ".join(f"{n} {v.get('overrun_percent', '-')}" for n, v in sorted(nodes.items()))
