@@ -142,7 +142,11 @@ def _commander(
         for pub in orders[k & 1]:
             command[:8] = time.monotonic_ns().to_bytes(8, "little")
             pub.put(bytes(command))
-    time.sleep(0.2)  # the last replies
+    # the last replies: until every command's came, or 2 s passed (with
+    # congestion control DROP, a loaded host may drop a command or a reply)
+    deadline = time.monotonic() + 2.0
+    while sum(replies) < robots * count and time.monotonic() < deadline:
+        time.sleep(0.005)  # polling the subscriber's count, to a deadline
     sub.undeclare()
     s.close()
     print(json.dumps({"replies": replies}), flush=True)

@@ -139,6 +139,7 @@ def _planted_links(
         links_untouched=sorted(p.name for p in trap.iterdir()) == sorted(LINKS),
         ipc_left=sorted(set(os.listdir("/dev/shm")) - before),
         processes_left=0,
+        plant_started="plant running" in done.stdout,
     )
     row["passed"] = bool(
         row["got"] == "refused"
@@ -146,6 +147,7 @@ def _planted_links(
         and f"owned by uid {OTHER}" in row["cause"]
         and row["victim_intact"]
         and row["links_untouched"]
+        and not row["plant_started"]
         and not row["ipc_left"]
     )
     return row

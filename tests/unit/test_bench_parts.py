@@ -170,14 +170,16 @@ def test_the_socket_floor_sends_to_every_robot_in_turn() -> None:
 
 def test_the_zenoh_floor_answers_every_command_of_every_robot() -> None:
     """Bare zenoh-python: the commander puts each robot's command at the
-    rate, each replier answers in zenoh's thread; every command timed and
-    answered."""
+    rate, each replier answers in zenoh's thread; every command that came
+    timed and answered. Zenoh drops under congestion (``DROP``, as the ddm
+    does): a host busy elsewhere loses a few, never most."""
     from redistro.bench import floor
 
     got = floor.measure(200.0, 0.5, 19, robots=2, module="redistro.bench.zenoh_floor")
-    assert got["commands"] == 2 * 100 and got["replies"] == got["commands"], got
     cpu, latency = got["reply_cpu_us"], got["latency_us"]
-    assert cpu["samples"] == latency["samples"] == got["commands"], got
+    assert got["commands"] == 2 * 100, got
+    assert cpu["samples"] == latency["samples"] <= got["commands"], got  # commands that came
+    assert 0.9 * got["commands"] <= got["replies"] <= latency["samples"], got
     assert 0 < latency["p50"] <= latency["p99"] <= latency["max"] < 1e6, got
 
 
