@@ -13,9 +13,11 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-# pip builds the one compiled part (redistro/_kernels.c, see setup.py) with
-# the machine's C compiler; a change to it rebuilds.
-KERNELS := setup.py redistro/_kernels.c
+# pip builds the one compiled part (redistro._kernels: the C files beside
+# their owners and the header setup.py generates from the declared layouts)
+# with the machine's C compiler; a change to any of them rebuilds.
+KERNELS := setup.py $(wildcard redistro/*.c redistro/*/*.c redistro/*.h redistro/*/*.h) \
+	redistro/kernel_layouts.py $(wildcard redistro/*_layout.py redistro/*/*_layout.py)
 
 $(VENV)/.installed: pyproject.toml $(KERNELS) | $(BIN)/python build-deps
 	$(BIN)/python -m pip install -q -e .
@@ -25,13 +27,18 @@ $(VENV)/.installed-test: pyproject.toml $(KERNELS) | $(BIN)/python build-deps
 	$(BIN)/python -m pip install -q -e '.[test]'
 	touch $@ $(VENV)/.installed
 
-# The C compiler the kernels need (Debian: gcc), installed when missing.
+# What the kernels build with (Debian packages), installed when missing:
+# the C compiler, libcrypto's headers (HMAC) and zlib's (crc32).
 build-deps:
-	@if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1; then \
+	@PKGS=; \
+	command -v cc >/dev/null 2>&1 || command -v gcc >/dev/null 2>&1 || PKGS="$$PKGS gcc"; \
+	[ -f /usr/include/openssl/evp.h ] || PKGS="$$PKGS libssl-dev"; \
+	[ -f /usr/include/zlib.h ] || PKGS="$$PKGS zlib1g-dev"; \
+	if [ -n "$$PKGS" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
-	  echo "installing gcc with apt-get"; \
+	  echo "installing$$PKGS with apt-get"; \
 	  $$SUDO apt-get update -qq && \
-	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq gcc >/dev/null; \
+	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$PKGS >/dev/null; \
 	fi
 
 install: $(VENV)/.installed

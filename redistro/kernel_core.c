@@ -287,13 +287,14 @@ static PyObject *signature(PyObject *mod, PyObject *arg) {
     if (out == NULL)
         return NULL;
     for (int i = 0; i < sig->nargs; i++) {
-        char t[2] = {sig->args[i].type, 0};
-        PyObject *pair = Py_BuildValue("(ss)", sig->args[i].name, t);
-        if (pair == NULL) {
+        const Arg *a = &sig->args[i];
+        char t[2] = {a->type, 0}, d[2] = {a->dim, 0};
+        PyObject *arg = Py_BuildValue("(ssiisi)", a->name, t, a->size, a->row, d, a->per);
+        if (arg == NULL) {
             Py_DECREF(out);
             return NULL;
         }
-        PyTuple_SET_ITEM(out, i, pair);
+        PyTuple_SET_ITEM(out, i, arg);
     }
     return out;
 }
@@ -309,7 +310,8 @@ static PyMethodDef CORE_METHODS[] = {
     {"copy", copy, METH_O, "Copy many byte ranges from one buffer to another."},
     {"seq_read", seq_read, METH_O, "Consistent copies of many seqlocked blocks."},
     {"seq_write", seq_write, METH_O, "Publish many seqlocked blocks."},
-    {"signature", signature, METH_O, "A kernel's arguments: ((name, type), ...)."},
+    {"signature", signature, METH_O,
+     "A kernel's arguments: ((name, type, size, row, dim, per), ...) (kernels.h, Arg)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -336,6 +338,27 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         goto fail;
     if (answer_kernel_init(m) < 0)
         goto fail;
+    if (PyModule_AddStringConstant(m, "LAYOUTS_DIGEST", KERNEL_LAYOUTS_DIGEST) < 0)
+        goto fail;
+    PyObject *names = PyList_New(0);
+    if (names == NULL)
+        goto fail;
+    for (int s = 0; s < NSETS; s++)
+        for (int i = 0; i < SETS[s]->nsignatures; i++) {
+            PyObject *name = PyUnicode_FromString(SETS[s]->signatures[i].name);
+            if (name == NULL || PyList_Append(names, name) < 0) {
+                Py_XDECREF(name);
+                Py_DECREF(names);
+                goto fail;
+            }
+            Py_DECREF(name);
+        }
+    PyObject *tuple = PyList_AsTuple(names);
+    Py_DECREF(names);
+    if (tuple == NULL || PyModule_AddObject(m, "KERNEL_NAMES", tuple) < 0) {
+        Py_XDECREF(tuple);
+        goto fail;
+    }
     return m;
 fail:
     Py_DECREF(m);

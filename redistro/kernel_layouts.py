@@ -14,8 +14,9 @@ so that the build can read it):
 - the build (setup.py) writes :func:`header` into the C kernels' include
   path: ``#define CARTESIAN_LAW_KIN_J 0`` (a field's offset, in elements of
   the buffer's type: float64 and int64 buffers count 8-byte elements, byte
-  buffers bytes); the C uses those names, no offset literals; ``CARTESIAN_LAW_KIN__N`` is a
-  record's size in elements. The header carries
+  buffers bytes); the C uses those names, no offset literals;
+  ``CARTESIAN_LAW_KIN__N`` is a record's size in elements and
+  ``CARTESIAN_LAW_KIN_J__LEN`` an array field's. The header carries
   :func:`digest`: a build of other layouts is refused at import
   (:mod:`redistro.kernels`).
 
@@ -107,9 +108,17 @@ def header() -> str:
             assert dt.fields is not None
             for name, field in dt.fields.items():
                 out.append(f"#define {prefix}_{name.upper()} {field[1] // unit}")
+                if field[0].shape:  # an array field: its elements
+                    out.append(f"#define {prefix}_{name.upper()}__LEN {field[0].itemsize // unit}")
             out.append(f"#define {prefix}__N {dt.itemsize // unit}")  # (never a field's name)
     out.append("#endif")
     return "\n".join(out) + "\n"
+
+
+def elements(records: Any) -> Any:
+    """The flat elements of a record (or records) of a layout: a view."""
+    arr = np.asarray(records)
+    return arr.reshape(-1).view(element(arr.dtype))
 
 
 class LayoutMismatch(ValueError):
@@ -133,7 +142,7 @@ def flat(kernel: str, buf: str, obj: Any, layout: np.dtype[Any] | Table) -> Any:
     size = dt.itemsize // element(dt).itemsize
     n = arr.size
     if isinstance(layout, Table):
-        if n == 0 or n % size:
+        if n % size:
             raise LayoutMismatch(f"{where}: {n} elements, expected a multiple of {size}")
     elif n != size:
         raise LayoutMismatch(f"{where}: {n} elements, expected {size} (one record)")

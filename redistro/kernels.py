@@ -1,11 +1,13 @@
 """The compiled kernels (``redistro._kernels``, C) and what they work on.
 
-A kernel runs one cycle's arithmetic of an I/O path in one call (see the C
-source for why). It knows no layout: its caller builds a :class:`Plan` once,
-in Initialization, from named buffers and byte-offset tables computed from
-its own declared layouts. An :class:`Arena` hands out typed, aligned views of
-one byte buffer, so that the many small vectors a kernel touches can also be
-copied with one table (:func:`copy_table`).
+A kernel runs one cycle's arithmetic of an I/O path in one call (see
+redistro/kernel_core.c for why). Its caller builds a Plan once, in
+Initialization, from named buffers (:func:`plan`); a buffer with fields has
+one declared layout (:mod:`redistro.kernel_layouts`), checked here, and the
+C reads its fields at offsets generated from that same layout. An
+:class:`Arena` hands out typed, aligned views of one byte buffer, so that
+the many small vectors a kernel touches can also be copied with one table
+(:func:`copy_table`).
 
 Every module that uses a kernel keeps a numpy implementation of the same
 arithmetic (the reference; its unit tests run both on the same inputs and
@@ -20,6 +22,13 @@ from typing import Any
 
 import numpy as np
 
+from redistro import kernel_layouts
+
+
+class StaleKernels(ImportError):
+    """The compiled kernels were built from other layouts than the source's."""
+
+
 KERNELS: Any
 try:
     if os.environ.get("REDISTRO_KERNELS", "1") == "0":
@@ -29,6 +38,12 @@ try:
     KERNELS = _kernels
 except ImportError:  # pragma: no cover - the build makes it
     KERNELS = None
+
+if KERNELS is not None and kernel_layouts.digest() != KERNELS.LAYOUTS_DIGEST:
+    raise StaleKernels(
+        "redistro._kernels was built from other kernel layouts than the source's: "
+        "rebuild it (make, or pip install -e .)"
+    )
 
 AVAILABLE = KERNELS is not None
 __all__ = [
@@ -40,20 +55,50 @@ __all__ = [
     "copy_rows",
     "copy_table",
     "plan",
+    "record",
+    "table",
 ]
+
+
+_LAYOUTS: dict[str, dict[str, Any]] = {}
 
 
 def plan(kernel: str, **buffers: Any) -> Any:
     """A Plan of ``kernel`` over ``buffers`` (each an array or a writable
-    buffer; the kernel's signature says which names and element types)."""
+    buffer; the kernel's signature says which names and element types).
+    A buffer with a declared layout may be a structured record (or a table
+    of them) of exactly that layout, or its flat elements; either is checked
+    against the layout (LayoutMismatch names the kernel, buffer and field)."""
     assert KERNELS is not None
-    return KERNELS.Plan(kernel, buffers)
+    if not _LAYOUTS:
+        _LAYOUTS.update(kernel_layouts.all_layouts())
+    declared = _LAYOUTS.get(kernel, {})
+    flat = {
+        name: kernel_layouts.flat(kernel, name, buf, declared[name]) if name in declared else buf
+        for name, buf in buffers.items()
+    }
+    return KERNELS.Plan(kernel, flat)
 
 
-def offsets(*rows: tuple[int, ...]) -> np.ndarray[Any, Any]:
-    """A table of int64 rows (flattened) for a kernel."""
-    table: np.ndarray[Any, Any] = np.array(rows, dtype=np.int64).reshape(-1)
-    return table
+def _layout(kernel: str, buf: str) -> Any:
+    if not _LAYOUTS:
+        _LAYOUTS.update(kernel_layouts.all_layouts())
+    return _LAYOUTS[kernel][buf]
+
+
+def table(kernel: str, buf: str, rows: list[tuple[Any, ...]]) -> np.ndarray[Any, Any]:
+    """A table of ``kernel``'s buffer ``buf``: one record of its declared
+    layout per row (each a tuple in the layout's field order)."""
+    dtype = kernel_layouts.dtype_of(_layout(kernel, buf))
+    out: np.ndarray[Any, Any] = np.array([tuple(r) for r in rows], dtype=dtype).reshape(-1)
+    return out
+
+
+def record(kernel: str, buf: str) -> np.ndarray[Any, Any]:
+    """A zeroed record of ``kernel``'s buffer ``buf``'s declared layout (a
+    0-d structured array: fields by name, ``rec["q_lo"][...] = ...``)."""
+    out: np.ndarray[Any, Any] = np.zeros((), dtype=kernel_layouts.dtype_of(_layout(kernel, buf)))
+    return out
 
 
 class Arena:
@@ -96,13 +141,14 @@ def address_in(buffer: np.ndarray[Any, Any], view: np.ndarray[Any, Any]) -> int:
 
 
 def copy_table(rows: list[tuple[int, int, int]]) -> np.ndarray[Any, Any]:
-    """(src_off, dst_off, size) rows for the ``copy`` kernel."""
-    return offsets(*rows) if rows else np.zeros(0, dtype=np.int64)
+    """(src, dst, size) rows for the ``copy`` kernel (COPY_ROW, core_layout.py)."""
+    return table("copy", "table", rows)
 
 
-def copy_rows(src: np.ndarray[Any, Any], dst: np.ndarray[Any, Any], table: np.ndarray) -> None:
+def copy_rows(src: np.ndarray[Any, Any], dst: np.ndarray[Any, Any], rows: np.ndarray) -> None:
     """The ``copy`` kernel's arithmetic in numpy (reference and fallback)."""
-    for s, d, n in table.reshape(-1, 3).tolist():
+    spans = zip(rows["src"].tolist(), rows["dst"].tolist(), rows["size"].tolist(), strict=True)
+    for s, d, n in spans:
         dst[d : d + n] = src[s : s + n]
 
 
@@ -120,9 +166,9 @@ def copier(arena: Arena, record: np.ndarray[Any, Any], fields: dict[str, str]) -
         if view.nbytes != ftype.itemsize:
             raise ValueError(f"{src} ({view.nbytes} bytes) does not fit {name} ({ftype.itemsize})")
         rows.append((arena.offset(src), off, ftype.itemsize))
-    table = copy_table(rows)
+    rows_ = copy_table(rows)
     if AVAILABLE:
-        p = plan("copy", src=arena.buffer, dst=dst, table=table)
+        p = plan("copy", src=arena.buffer, dst=dst, table=rows_)
         run = KERNELS.copy
         return lambda: run(p)
-    return lambda: copy_rows(arena.buffer, dst, table)
+    return lambda: copy_rows(arena.buffer, dst, rows_)

@@ -99,12 +99,12 @@ def _driver(cfg: Config, hw: Any, use: bool, calls: int) -> Any:
 
 def _law(cfg: Config, use: bool, calls: int) -> Any:
     from redistro.control.cartesian import (
-        CartesianLaw,
         ForceParams,
         ImpedanceGains,
         TaskFrameCommand,
         rotvec_to_matrix,
     )
+    from redistro.control.cartesian_law import CartesianLaw
     from redistro.control.dynamics import ArmModel
     from redistro.robotmodel import Peg
 
@@ -183,7 +183,7 @@ def _wire(use: bool, calls: int) -> Any:
         codec = wire._codec(key)
         verify: Callable[[], object] = lambda: KERNELS.wire_verify(codec, raw)  # noqa: E731
     else:
-        enc.codec = b""  # the Python path
+        enc.codec = None  # the Python path
 
         def verify() -> None:
             if int.from_bytes(raw[wire._CRC_AT : wire._CRC_AT + 4], "little") != wire._crc(raw):

@@ -56,13 +56,13 @@ static PyObject *quintic(PyObject *mod, PyObject *arg) {
     Py_RETURN_NONE;
 }
 
-/* 'j': the joints (as many as the gains' layout has per field) */
-#define PID_JOINTS (JOINT_PID_GAINS_KI - JOINT_PID_GAINS_KP)
+/* the PID's joints: as many as the gains' layout has per field ('j': the quintic's) */
+#define PID_JOINTS JOINT_PID_GAINS_KP__LEN
 static const Signature JOINT_SIGNATURES[] = {
     {"joint_pid",
-     ARGS(REC("q", 'd', PID_JOINTS), DIM("qd", 'd', 'j', 1), DIM("q_ref", 'd', 'j', 1),
-          DIM("qd_ref", 'd', 'j', 1), DIM("g", 'd', 'j', 1), DIM("on", 'B', 'j', 1),
-          REC("tau", 'd', PID_JOINTS), DIM("integral", 'd', 'j', 1),
+     ARGS(REC("q", 'd', PID_JOINTS), REC("qd", 'd', PID_JOINTS), REC("q_ref", 'd', PID_JOINTS),
+          REC("qd_ref", 'd', PID_JOINTS), REC("g", 'd', PID_JOINTS), REC("on", 'B', PID_JOINTS),
+          REC("tau", 'd', PID_JOINTS), REC("integral", 'd', PID_JOINTS),
           REC("gains", 'd', JOINT_PID_GAINS__N), REC("dt", 'd', JOINT_PID_DT__N))},
     {"quintic",
      ARGS(DIM("q0", 'd', 'j', 1), DIM("d", 'd', 'j', 1), DIM("q", 'd', 'j', 1),

@@ -214,10 +214,6 @@ static PyObject *eig3_kernel(PyObject *mod, PyObject *arg) {
     PlanObject *pl = plan_arg(arg, "eig3");
     if (pl == NULL)
         return NULL;
-    if (pl->n[EG_A] != 9 || pl->n[EG_W] != 3 || pl->n[EG_V] != 9) {
-        PyErr_SetString(PyExc_ValueError, "eig3: a[9], w[3], v[9]");
-        return NULL;
-    }
     eig3(F64(pl, EG_A), F64(pl, EG_W), F64(pl, EG_V));
     Py_RETURN_NONE;
 }
@@ -242,8 +238,8 @@ static PyObject *cholesky_kernel(PyObject *mod, PyObject *arg) {
 }
 
 static const Signature LINALG_SIGNATURES[] = {
-    {"eig3", ARGS({"a", 'd'}, {"w", 'd'}, {"v", 'd'})},
-    {"cholesky", ARGS({"a", 'd'}, {"l", 'd'}, {"b", 'd'})},
+    {"eig3", ARGS(REC("a", 'd', 9), REC("w", 'd', 3), REC("v", 'd', 9))},
+    {"cholesky", ARGS(FREE("a", 'd'), FREE("l", 'd'), FREE("b", 'd'))},
 };
 
 static PyMethodDef LINALG_METHODS[] = {

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from redistro.control import joint_layout
+
 F64 = np.ndarray[Any, np.dtype[np.float64]]
 
 
@@ -138,11 +140,18 @@ class PidLoop:
         self.gains, self.state = gains, state
         self.args = (q, qd, q_ref, qd_ref, g, on)
         self.tau = tau
-        self.dt = np.zeros(1)
+        self._dt = np.zeros((), joint_layout.PID_DT)
+        self.dt = self._dt["dt"]  # the cycle, set per call
         self.work = PidWork(len(tau))
         self.use_kernel = kernels.AVAILABLE if use_kernel is None else use_kernel
         if self.use_kernel:
-            table = np.concatenate([gains.kp, gains.ki, gains.kd, gains.i_lim]).astype(np.float64)
+            table = np.zeros((), joint_layout.PID_GAINS)
+            table["kp"], table["ki"], table["kd"], table["i_max"] = (
+                gains.kp,
+                gains.ki,
+                gains.kd,
+                gains.i_lim,
+            )
             self._plan = kernels.plan(
                 "joint_pid",
                 q=q,
@@ -154,14 +163,14 @@ class PidLoop:
                 tau=tau,
                 integral=state.integral,
                 gains=table,
-                dt=self.dt,
+                dt=self._dt,
             )
             self._run = kernels.KERNELS.joint_pid
 
     def update(self, dt_s: float) -> None:
         """One cycle: ``tau`` from the bound arrays' present values."""
         if self.use_kernel:
-            self.dt[0] = dt_s
+            self.dt[...] = dt_s
             self._run(self._plan)
         else:
             q, qd, q_ref, qd_ref, g, on = self.args

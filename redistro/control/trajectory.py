@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from redistro.control import joint_layout
+
 F64 = np.ndarray[Any, np.dtype[np.float64]]
 PEAK_SPEED = 15.0 / 8.0  # peak |qd| x T / |q1 - q0|
 
@@ -88,7 +90,9 @@ class QuinticRef:
         self.q, self.qd, self.qdd = q, qd, qdd
         self.q0 = np.zeros(n)
         self.d = np.zeros(n)
-        self.time = np.array([1.0, 0.0])  # duration, time
+        self.time = np.zeros((), joint_layout.QUINTIC_TIME)
+        self.duration, self.t = self.time["duration"], self.time["t"]
+        self.duration[...] = 1.0
         self.use_kernel = kernels.AVAILABLE if use_kernel is None else use_kernel
         if self.use_kernel:
             self._plan = kernels.plan(
@@ -101,11 +105,11 @@ class QuinticRef:
             raise ValueError(f"duration_s must be > 0, got {duration_s}")
         self.q0[...] = q0
         np.subtract(q1, q0, out=self.d)
-        self.time[0] = duration_s
+        self.duration[...] = duration_s
 
     def at(self, t_s: float) -> None:
         if self.use_kernel:
-            self.time[1] = t_s
+            self.t[...] = t_s
             self._run(self._plan)
         else:
-            quintic_into(self.q0, self.d, float(self.time[0]), t_s, self.q, self.qd, self.qdd)
+            quintic_into(self.q0, self.d, float(self.duration), t_s, self.q, self.qd, self.qdd)

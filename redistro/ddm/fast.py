@@ -27,18 +27,12 @@ from typing import Any
 import numpy as np
 
 from redistro.ddm import record as wire
-from redistro.kernels import KERNELS, plan
+from redistro.ddm import wire_layout
+from redistro.kernels import KERNELS, plan, table
 from redistro.localdata.block import Record
 from redistro.localdata.layout import EXCHANGE
 from redistro.localdata.segment import LocalData
 from redistro.process.stats import Samples
-
-_ROW = 8  # int64 per robot in both kernels' rows
-# admit rows: gid, in-block seq, payload offsets, claimed, last seq, last stamp
-_GID, _SEQ_OFF, _PAY_OFF, _CLAIMED, _LAST_SEQ, _LAST_STAMP = range(6)
-# emit rows: out-block seq, payload offsets, last seq_src sent, wire seq
-_E_SEQ_OFF, _E_PAY_OFF, _E_LAST_OUT, _E_SEQ = range(4)
-
 
 _U64 = (1 << 64) - 1
 
@@ -81,7 +75,7 @@ class FastPath:
         n = len(gids)
         in_dtype, out_dtype = wire.PAYLOADS[in_kind], wire.PAYLOADS[out_kind]
         # the plans hold this buffer: rekey() changes the key of every kernel
-        self.codec = codec = np.frombuffer(bytearray(wire._codec(key)), dtype=np.uint8)
+        self.codec = codec = wire.codec_record(key)
         ld_raw = ld.raw
         # the records both paths share: exchange and out records in arenas
         self.ex_arena = np.zeros(n * EXCHANGE.itemsize, dtype=np.uint8)
@@ -90,47 +84,42 @@ class FastPath:
         self.out = [Record(out_dtype, self.out_arena, i * out_dtype.itemsize) for i in range(n)]
 
         head = wire.HEADER
-        self.admit_rows = np.zeros((n, _ROW), dtype=np.int64)
+        # one row per local robot: its gid, its in block, its claiming source's state
+        self.admit_rows = np.zeros(n, wire_layout.ADMIT_ROW)
         for i, (g, (name, index)) in enumerate(zip(gids, in_blocks, strict=True)):
-            seq_off, pay_off, _ = ld.block_offsets(name, index)
-            self.admit_rows[i, [_GID, _SEQ_OFF, _PAY_OFF]] = (g, seq_off, pay_off)
+            row = self.admit_rows[i]
+            row["gid"] = g
+            row["seq_off"], row["pay_off"], _ = ld.block_offsets(name, index)
         self.src = np.zeros(n * 16, dtype=np.uint8)
         sent = ld.block_offsets("starving_sent") if starving else (-1, -1, 0)
         delivered = ld.block_offsets("starving_delivered") if starving else (-1, -1, 0)
-        # latency count, records taken, the last ddm_recv's admitted records (a mask)
-        self.state = np.zeros(3, dtype=np.int64)
+        self.state = np.zeros((), wire_layout.ADMIT_STATE)
         self.latency = latency
-        # the kernel's params, in its order (DA_* in the C source)
-        admit_params = np.array(
-            [
-                *(wire.MAGIC, wire.VERSION, in_kind, wire.PAYLOAD_AT, in_dtype.itemsize),
-                *(
-                    _field(head, f)
-                    for f in ("magic", "version", "kind", "robot", "source", "seq", "stamp_ns")
-                ),
-                _field(head, "estop"),
-                EXCHANGE.itemsize,
-                *(_field(EXCHANGE, f) for f in ("updates", "last_update_ns", "fresh")),
-                *(sent[0], sent[1], delivered[0], delivered[1]),
-            ],
-            dtype=np.int64,
-        )
+        p = np.zeros((), wire_layout.ADMIT_PARAMS)
+        p["magic"], p["version"], p["kind"] = wire.MAGIC, wire.VERSION, in_kind
+        p["payload_at"], p["size"] = wire.PAYLOAD_AT, in_dtype.itemsize
+        for f in ("magic", "version", "kind", "robot", "source", "seq", "estop"):
+            p[f"h_{f}"] = _field(head, f)
+        p["h_stamp"] = _field(head, "stamp_ns")
+        p["ex_size"], p["ex_updates"] = EXCHANGE.itemsize, _field(EXCHANGE, "updates")
+        p["ex_last"], p["ex_fresh"] = _field(EXCHANGE, "last_update_ns"), _field(EXCHANGE, "fresh")
+        p["sent_seq"], p["sent_pay"], p["deliv_seq"], p["deliv_pay"] = (*sent[:2], *delivered[:2])
         self.admit_plan = plan(
             "ddm_admit",
             ld=ld_raw,
             codec=codec,
-            params=admit_params,
-            rows=self.admit_rows.reshape(-1),
+            params=p,
+            rows=self.admit_rows,
             src=self.src,
             ex=self.ex_arena,
             lat=latency._buf,
             state=self.state,
         )
 
-        self.emit_rows = np.zeros((n, _ROW), dtype=np.int64)
+        self.emit_rows = np.zeros(n, wire_layout.EMIT_ROW)
         for i, (name, index) in enumerate(out_blocks):
-            seq_off, pay_off, _ = ld.block_offsets(name, index)
-            self.emit_rows[i, [_E_SEQ_OFF, _E_PAY_OFF]] = (seq_off, pay_off)
+            row = self.emit_rows[i]
+            row["seq_off"], row["pay_off"], _ = ld.block_offsets(name, index)
         self.wire = np.zeros(n * wire.SIZE, dtype=np.uint8)
         mem = memoryview(self.wire)  # type: ignore[arg-type]
         for i, g in enumerate(gids):  # the header's constant part, once
@@ -139,32 +128,31 @@ class FastPath:
                 0, 0, 0, 0,
             )  # fmt: skip
         self.wire_views = [mem[i * wire.SIZE : (i + 1) * wire.SIZE] for i in range(n)]
-        emit_params = np.array(  # DE_* in the C source
-            [
-                *(wire.PAYLOAD_AT, out_dtype.itemsize, _field(out_dtype, "seq_src")),
-                *(_field(head, f) for f in ("seq", "stamp_ns", "estop")),
-                *(EXCHANGE.itemsize, _field(EXCHANGE, "sent")),
-            ],
-            dtype=np.int64,
-        )
+        e = np.zeros((), wire_layout.EMIT_PARAMS)
+        e["payload_at"], e["size"] = wire.PAYLOAD_AT, out_dtype.itemsize
+        e["seqsrc_at"] = _field(out_dtype, "seq_src")
+        e["h_seq"], e["h_stamp"] = _field(head, "seq"), _field(head, "stamp_ns")
+        e["h_estop"] = _field(head, "estop")
+        e["ex_size"], e["ex_sent"] = EXCHANGE.itemsize, _field(EXCHANGE, "sent")
         self.emit_plan = plan(
             "ddm_emit",
             ld=ld_raw,
             codec=codec,
-            params=emit_params,
-            rows=self.emit_rows.reshape(-1),
+            params=e,
+            rows=self.emit_rows,
             out=self.out_arena,
             wire=self.wire,
             ex=self.ex_arena,
         )
         # sending on stream sockets (a transport that has them): each robot's
-        # socket, refreshed when the transport's peers change
+        # socket, refreshed when the transport's peers change; per robot the
+        # bytes sent or -errno; ddm_reply's outcome (the emit's mask, the
+        # send's trouble bits)
         self.send_fds = np.full(n, -1, dtype=np.int64)
-        # per robot the bytes sent or -errno; then ddm_reply's emit mask and
-        # trouble bits
-        self.send_status = np.zeros(n + 2, dtype=np.int64)
+        self.send_status = np.zeros(n, dtype=np.int64)
+        self.reply = np.zeros((), wire_layout.REPLY)
         self.send_plan = plan(
-            "ddm_send", wire=self.wire, fds=self.send_fds, status=self.send_status
+            "ddm_send", wire=self.wire, fds=self.send_fds, status=self.send_status, reply=self.reply
         )
         self.admit_call = KERNELS.ddm_admit
         self.emit_call = KERNELS.ddm_emit
@@ -177,19 +165,18 @@ class FastPath:
             seq_off, pay_off, size = ld.block_offsets("exchange", i)
             rows.append((seq_off, pay_off, size, i * EXCHANGE.itemsize))
         self.publish_plan = plan(
-            "seq_write",
-            dst=ld_raw,
-            src=self.ex_arena,
-            table=np.array(rows, dtype=np.int64).reshape(-1),
+            "seq_write", dst=ld_raw, src=self.ex_arena, table=table("seq_write", "table", rows)
         )
         self.publish_call = KERNELS.seq_write
         # the Python path's counters, in the kernels' rows
-        self.seq = self.emit_rows[:, _E_SEQ]
-        self.last_out = self.emit_rows[:, _E_LAST_OUT]
+        self.seq = self.emit_rows["seq"]
+        self.last_out = self.emit_rows["last_out"]
+        self.mask = self.state["mask"]  # the last ddm_recv's admitted records
+        self.taken = self.state["taken"]  # records the kernels admitted
 
     def rekey(self, key: bytes) -> None:
         """Verify and sign with ``key`` from now on (every plan's codec, in place)."""
-        self.codec[:] = np.frombuffer(wire._codec(key), dtype=np.uint8)
+        self.codec[...] = wire.codec_record(key)
 
     def admit(self, raw: bytes) -> int:
         """The local robot whose block took ``raw``, or -1: the Python path's."""
@@ -205,7 +192,7 @@ class FastPath:
 
     def claimed(self, i: int, source: bytes) -> bool:
         row = self.admit_rows[i]
-        return bool(row[_CLAIMED]) and bytes(self.src[16 * i : 16 * i + 16]) == source
+        return bool(row["claimed"]) and bytes(self.src[16 * i : 16 * i + 16]) == source
 
     def refuse(
         self,
@@ -222,32 +209,32 @@ class FastPath:
         claims the row (its state moves there)."""
         row = self.admit_rows[i]
         if self.claimed(i, source):
-            last_seq = int(row[_LAST_SEQ]) & _U64  # the kernel compares seqs unsigned
+            last_seq = int(row["last_seq"]) & _U64  # the kernel compares seqs unsigned
             why = ""
             if seq == last_seq:
                 why = "duplicate"
             elif seq < last_seq:
                 why = "out_of_order"
-            elif stamp <= row[_LAST_STAMP]:
+            elif stamp <= row["last_stamp"]:
                 why = "stale"
             if why:
                 admission.dropped[why] += 1
                 return why
-            row[_LAST_SEQ], row[_LAST_STAMP] = _signed(seq), stamp
+            row["last_seq"], row["last_stamp"] = _signed(seq), stamp
             admission.accepted += 1
             return ""
         why = admission.refuse(source, kind, robot, seq, stamp)
-        if not why and not row[_CLAIMED]:
+        if not why and not row["claimed"]:
             admission.last.pop((source, kind, robot), None)
             self.src[16 * i : 16 * i + 16] = np.frombuffer(source.ljust(16, b"\0")[:16], np.uint8)
-            row[_LAST_SEQ], row[_LAST_STAMP], row[_CLAIMED] = _signed(seq), stamp, 1
+            row["last_seq"], row["last_stamp"], row["claimed"] = _signed(seq), stamp, 1
         return why
 
     def add_latency(self, value_ns: int) -> None:
         lat = self.latency._buf
-        count = int(self.state[0])
+        count = int(self.state["latency_count"])
         lat[count % lat.shape[0]] = value_ns
-        self.state[0] = count + 1
+        self.state["latency_count"] = count + 1
 
     def latency_count(self) -> int:
-        return int(self.state[0])
+        return int(self.state["latency_count"])

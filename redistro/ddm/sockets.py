@@ -314,7 +314,7 @@ class SocketTransport(Transport):
         made that recv itself."""
         state = self._admit[2]  # type: ignore[index]
         whole = got > 0 and got % SIZE == 0 and got < len(self.rx)
-        if whole and int(state[2]) == (1 << (got // SIZE)) - 1:
+        if whole and int(state["mask"]) == (1 << (got // SIZE)) - 1:
             return True
         self._receives -= 1  # (the next receive counts itself)
         self._got = got
@@ -333,7 +333,7 @@ class SocketTransport(Transport):
         else:
             self._got = None
         if got > 0 and got % SIZE == 0 and got < len(self.rx):
-            n, mask = got // SIZE, int(state[2])
+            n, mask = got // SIZE, int(state["mask"])
             if mask == (1 << n) - 1:
                 self.taken += n
             else:

@@ -23,9 +23,6 @@ if TYPE_CHECKING:
 
 # what an answer (``Transport.answer_with``) did with a record
 NOT_TAKEN, ANSWERED, OWED = 0, 1, 2
-# a compiled answer's gate (an int64 array the ddm and the kernel share;
-# AG_* in the C source): open, records taken, a reply owed
-AG_OPEN, AG_ANSWERED, AG_OWED = 0, 1, 2
 
 
 class Transport(ABC):

@@ -85,6 +85,7 @@ REPLY = np.dtype([("emitted", I8), ("trouble", I8)])
 GATE = np.dtype([("open", I8), ("answered", I8), ("owed", I8)])
 
 LAYOUTS = {
+    "wire": {"codec": CODEC},
     "ddm_admit": {
         "codec": CODEC,
         "params": ADMIT_PARAMS,

@@ -52,12 +52,10 @@ import numpy as np
 
 from redistro.config import Config
 from redistro.ddm import record as wire
+from redistro.ddm import wire_layout
 from redistro.ddm.fast import FastPath
 from redistro.ddm.handshake import Handshake
 from redistro.ddm.transport import (
-    AG_ANSWERED,
-    AG_OPEN,
-    AG_OWED,
     ANSWERED,
     NOT_TAKEN,
     OWED,
@@ -127,7 +125,7 @@ class Ddm(Worker):
         self.owed = False  # an answer's feedback the ddm's own step is to send
         self.answered_here = 0  # records the Python answer took whole
         # the compiled answer (``_compiled_answer``): its gate and counts
-        # (AG_* in the C source), and what runs before each record (a bench's
+        # (GATE, ddm/wire_layout.py), and what runs before each record (a bench's
         # stand-in for the acquisition; None in a node)
         self.gate: Any = None
         self.before_answer: Any = None
@@ -261,7 +259,7 @@ class Ddm(Worker):
         if not self.socket_kernels:
             compiled = None
             if hasattr(KERNELS, "Answerer"):
-                self.gate = np.zeros(3, dtype=np.int64)
+                self.gate = np.zeros((), wire_layout.GATE)
                 _, manager_at, _ = ld.block_offsets("manager")
                 self.estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
                 compiled = self._compiled_answer
@@ -271,14 +269,14 @@ class Ddm(Worker):
     @property
     def answered(self) -> int:
         """Records taken whole in the transport's thread (by either answer)."""
-        return self.answered_here + (0 if self.gate is None else int(self.gate[AG_ANSWERED]))
+        return self.answered_here + (0 if self.gate is None else int(self.gate["answered"]))
 
     def _open_gate(self) -> None:
         """The compiled answer's gate: open while this ddm answers, was
         commanded and has its link (the e-stop it reads itself)."""
         if self.gate is not None:
             commanded = self.commanded or self.kind != "esc"
-            self.gate[AG_OPEN] = int(self.answering and commanded and not self.lost)
+            self.gate["open"] = int(self.answering and commanded and not self.lost)
 
     def _compiled_answer(self, put: Any, inbox: Any, fallback: Any, wake: Any) -> Any:
         """The answer in one compiled call (``_kernels.Answerer``), for the
@@ -349,8 +347,8 @@ class Ddm(Worker):
                 fresh = self._receive()
                 new_estop = estop and not self.estop_sent
                 owed, self.owed = self.owed, False
-                if self.gate is not None and self.gate[AG_OWED]:
-                    owed, self.gate[AG_OWED] = True, 0
+                if self.gate is not None and self.gate["owed"]:
+                    owed, self.gate["owed"] = True, 0
                 if owed or not (self.replying and self.commanded and not fresh and not new_estop):
                     self._send(estop)  # (replying, feedback goes out with a command only)
             else:
@@ -384,7 +382,7 @@ class Ddm(Worker):
         every = self.transport.status_every
         steps = self.steps
         if self.gate is not None and self.kind == "esc":
-            steps += int(self.gate[AG_ANSWERED])
+            steps += int(self.gate["answered"])
         if every and steps - self.status_at >= every:
             # (by count: an ESC's answers in the transport's thread step the
             # count too, as the Python answer's do; the SSC's do not)
@@ -527,9 +525,9 @@ class Ddm(Worker):
         if not transport.received(got):
             return False
         self.dirty = True
-        if fast.send_status[2]:
+        if fast.reply["trouble"]:
             transport.send_result(self.gid[self.robots[0]], int(fast.send_status[0]))
-        elif fast.send_status[1] == -1:  # a torn read of the feedback: read it again
+        elif fast.reply["emitted"] == -1:  # a torn read of the feedback: read it again
             self._send(False)
         return True
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from redistro import kernels
 from redistro.config.hardware import RobotHardware, by_board
+from redistro.drivers import driver_layout
 from redistro.drivers.io import registers as R
 from redistro.drivers.io.adc import AdcDriver
 from redistro.drivers.io.backplane import Backplane
@@ -148,15 +149,16 @@ class RobotDriver:
         self._acc = a.take("acc", np.int64, DOF)
         self._q_ref = a.take("q_ref", np.float64, DOF)
         self._prev_q = a.take("prev_q", np.float64, DOF)
-        # [have_ref, prev_step (-1: none), step, coherent]
-        self._state = a.take("state", np.int64, 4)
-        self._state[1] = -1
-        self.step_now = self._state[2:3]  # the boards' sample number of the last sample
+        # what decoding keeps between samples, and its parameters (driver_layout.py)
+        st = self._state = a.take("state", driver_layout.STATE, ())
+        st["prev_step"] = -1
+        self.step_now = st["step"]  # the boards' sample number of the last sample
         a.alias("step", self.step_now)
-        # [jump_limit_rad_s, physics_hz, has_tach, has_torque, retry an incoherent snapshot]
-        self._params = a.take("params", np.float64, 5)
-        self._params[:] = (0.0, physics_hz, float(self.has_tach), float(self.has_torque), 1.0)
-        self._jump = a.take("jump", np.float64, 3)  # delta, limit, steps of a refused change
+        pa = self._params = a.take("params", driver_layout.PARAMS, ())
+        pa["physics_hz"], pa["retry"] = physics_hz, 1.0
+        pa["has_tach"], pa["has_torque"] = float(self.has_tach), float(self.has_torque)
+        self._retry = pa["retry"]  # 0 while an incoherent snapshot is decoded as it is
+        self._jump = a.take("jump", driver_layout.JUMP, ())  # a refused counter change
         self.tau_cmd = a.take("tau_cmd", np.float64, DOF)  # the torques send() writes
         self._read: Any = None  # the batch reader and writer: made by open()
         self._write_dac: Any = None
@@ -188,8 +190,13 @@ class RobotDriver:
             return w[kind][:, 2] if len(w[kind]) else []
 
         none = np.full(DOF, -1, dtype=np.int64)
-        wrist = self.hw.wrist
-        wrist_row = [regs.row[wrist.address]] if wrist is not None else []
+        # the wrist's strain and calibration registers (-1: no wrist)
+        strain = np.full((), -1, driver_layout.ONE_OFFSET)
+        cal = np.full((), -1, driver_layout.ONE_OFFSET)
+        if self.hw.wrist is not None:
+            wrist_row = [regs.row[self.hw.wrist.address]]
+            strain["at"] = at(force, "in", "strain", wrist_row)[0]
+            cal["at"] = at(force, "in", "calibration", wrist_row)[0]
         self._decode_plan = kernels.plan(
             "driver_decode",
             image=regs.image,
@@ -207,8 +214,8 @@ class RobotDriver:
             home_bit=np.ascontiguousarray(chs("home"), dtype=np.int64),
             brake_word=at(dio, "in", "outputs_readback", rows("brake")),
             brake_bit=np.ascontiguousarray(chs("brake"), dtype=np.int64),
-            strain_off=at(force, "in", "strain", wrist_row) if wrist_row else np.full(1, -1),
-            cal_off=at(force, "in", "calibration", wrist_row) if wrist_row else np.full(1, -1),
+            strain_off=strain,
+            cal_off=cal,
             counts_per_rad=self.counts_per_rad,
             tach_scale=self.tach_scale,
             torque_scale=self.torque_scale,
@@ -241,11 +248,11 @@ class RobotDriver:
     @property
     def jump_limit_rad_s(self) -> float:
         """Speed above which a counter change is a glitch (0: not checked)."""
-        return float(self._params[0])
+        return float(self._params["jump_limit_rad_s"])
 
     @jump_limit_rad_s.setter
     def jump_limit_rad_s(self, value: float) -> None:
-        self._params[0] = value
+        self._params["jump_limit_rad_s"] = value
 
     # -- set-up --
 
@@ -313,12 +320,13 @@ class RobotDriver:
         if bad < 0:
             self._read()
             self.stamp_ns[0] = time.monotonic_ns()
-            self._params[4] = 0.0
+            self._retry[...] = 0.0
             bad = decode()
-            self._params[4] = 1.0
+            self._retry[...] = 1.0
         if bad:
             j = bad - 1
-            delta, limit, n = self._jump.tolist()
+            jump = self._jump
+            delta, limit, n = float(jump["delta"]), float(jump["limit"]), float(jump["steps"])
             raise IOFault(
                 f"{self.name} joint {j + 1}: encoder jump of {int(delta)} counts in "
                 f"{int(n)} sample(s) (any real motion: at most {limit:.0f})"
@@ -334,9 +342,9 @@ class RobotDriver:
             self.wrench.copy(),
             self.home_levels.copy(),
             self.brakes.copy(),
-            int(self._state[2]),
+            int(self._state["step"]),
             int(self.stamp_ns[0]),
-            bool(self._state[3]),
+            bool(self._state["coherent"]),
             self.latch_count.astype(np.int64),
             self.latch_edge.copy(),
             self.latch_q.copy(),
@@ -349,8 +357,8 @@ class RobotDriver:
         steps = [int(recs[a]["step"]) for a in self.enc]
         step = min(steps)
         st = self._state
-        st[2], st[3] = step, min(steps) == max(steps)
-        if not st[3] and self._params[4]:
+        st["step"], st["coherent"] = step, min(steps) == max(steps)
+        if not st["coherent"] and self._params["retry"]:
             return -1
         raw = np.zeros(DOF, dtype=np.int64)
         latch_raw = np.zeros(DOF, dtype=np.int64)
@@ -360,21 +368,23 @@ class RobotDriver:
             latch_raw[js] = rec["latch"][axes]
             self.latch_count[js] = rec["latch_count"][axes]
             self.latch_edge[js] = rec["latch_edge"][axes]
-        if not st[0]:
+        if not st["have_ref"]:
             signed = np.where(raw >= ENC_MODULO // 2, raw - ENC_MODULO, raw)
             self._q_ref[...] = signed / self.counts_per_rad
             self._acc[:] = 0
-            st[0] = 1
+            st["have_ref"] = 1
         else:
             delta = _wrap(raw - self._raw)
-            limit_rad_s = self._params[0]
-            if limit_rad_s > 0 and st[1] >= 0:
-                n = max(1, step - int(st[1]))
+            limit_rad_s = self._params["jump_limit_rad_s"]
+            prev = int(st["prev_step"])
+            if limit_rad_s > 0 and prev >= 0:
+                n = max(1, step - prev)
                 limit = limit_rad_s * self.counts_per_rad * n / self.physics_hz + 2
                 bad = np.flatnonzero(np.abs(delta) > limit)
                 if bad.size:
                     j = int(bad[0])
-                    self._jump[:] = (float(delta[j]), float(limit[j]), float(n))
+                    jump = self._jump
+                    jump["delta"], jump["limit"], jump["steps"] = delta[j], limit[j], n
                     return j + 1
             self._acc += delta
         self._raw[...] = raw
@@ -384,10 +394,10 @@ class RobotDriver:
         if self.has_tach:
             for a, (js, ch) in self.tach.items():
                 self.qd[js] = recs[a]["code"][ch] * self.tach_scale[js]
-        elif st[1] >= 0 and step > st[1]:
-            dt = (step - int(st[1])) / self.physics_hz
+        elif st["prev_step"] >= 0 and step > st["prev_step"]:
+            dt = (step - int(st["prev_step"])) / self.physics_hz
             self.qd[...] = (self.q - self._prev_q) / dt
-        st[1] = step
+        st["prev_step"] = step
         self._prev_q[...] = self.q
         if self.has_torque:
             for a, (js, ch) in self.torque.items():
@@ -510,5 +520,5 @@ class RobotDriver:
         self._raw[...] = values
         self._acc[:] = 0
         self._q_ref[...] = q
-        self._state[0] = 1  # a reference
-        self._state[1] = -1  # no previous sample
+        self._state["have_ref"] = 1  # a reference
+        self._state["prev_step"] = -1  # no previous sample

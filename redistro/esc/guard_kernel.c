@@ -6,81 +6,98 @@
 
 #include <math.h>
 
+#define DOF GUARD_PREPARE_LIMITS_QD_MAX__LEN /* joints of an arm */
+#define FINISHED 2 /* the session status that ends control (SessionStatus.FINISHED) */
+
 enum {
     GP_FB, GP_FB_OFF, GP_SRC, GP_SRC_OFF, GP_HOME, GP_HOME_OFF, GP_LIMITS, GP_ON,
     GP_RELEASED, GP_TAU, GP_TRACE, GP_TRACE_AT
 };
 
-/* -- the sender's safety guard -- */
+#define LIM(f) (lim + GUARD_PREPARE_LIMITS_##f)
+#define ROW(f) (row + GUARD_PREPARE_TRACE_##f)
+#define AT(f) at[GUARD_PREPARE_TRACE_AT_##f]
 
-/* One command, prepared and screened (see esc/sender.py):
- * on[j]: the joint is under control (src joint_on, none once the session
- * status says finished: src_off[2] >= 0 and status == 2); tau[j]: its
- * commanded torque (0 for a joint off, NaN or not); a trace row (cycle
- * trace_at[1], the boards' step, q, qd, tau, tau commanded) at row
- * trace_at[0] % rows, trace_at[0] += 1. fb_off: offsets of q, qd, tau,
- * wrench in the feedback record; src_off: of the torques, joints on and
- * session status (-1: none) in the command; limits: qd_max[7], tau_max[7],
- * force_max, moment_max.
- * Returns bit 1: a figure is not finite or over its limit (the guard's
+/* One joint screened: bit 1 when a figure is not finite or over its limit,
+ * or it could not stop inside its position limits. */
+static long screen_joint(const double *lim, int j, double q, double qd, double t, double c) {
+    double stop = q + qd * fabs(qd) * LIM(STOP_K)[j];
+    if (!isfinite(q) || !isfinite(qd) || !isfinite(t) || !isfinite(c))
+        return 1;
+    if (fabs(qd) > LIM(QD_MAX)[j] || fabs(t) > LIM(TAU_MAX)[j] || fabs(c) > LIM(TAU_MAX)[j])
+        return 1;
+    return q < LIM(Q_LO)[j] || q > LIM(Q_HI)[j] || stop < LIM(Q_LO)[j] || stop > LIM(Q_HI)[j];
+}
+
+/* The wrist's wrench screened: bit 1 when not finite or over its limits. */
+static long screen_wrench(const double *lim, const uint8_t *w_at) {
+    double w[6];
+    long flags = 0;
+    for (int i = 0; i < 6; i++) {
+        w[i] = ld_f64(w_at + 8 * i);
+        if (!isfinite(w[i]))
+            flags = 1;
+    }
+    if (sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) > *LIM(FORCE_MAX) ||
+        sqrt(w[3] * w[3] + w[4] * w[4] + w[5] * w[5]) > *LIM(MOMENT_MAX))
+        flags = 1;
+    return flags;
+}
+
+/* guard_prepare(plan): one command, prepared and screened (see
+ * esc/sender.py; the layouts: esc/guard_layout.py). on[j]: the joint is
+ * under control (its joint_on, none once the session status says
+ * finished); tau[j]: its commanded torque (0 for a joint off); a trace row
+ * (the cycle, the boards' step, q, qd, tau, tau commanded) written at row
+ * rows % n, rows += 1. Returns bit 1: a figure is not finite or over its
+ * limit, or a joint could not stop inside its position limits (the guard's
  * check decides what); bit 2: the joints on differ from ``released``. */
 static PyObject *guard_prepare(PyObject *mod, PyObject *arg) {
     PlanObject *pl = plan_arg(arg, "guard_prepare");
     if (pl == NULL)
         return NULL;
     const uint8_t *fb = U8(pl, GP_FB), *src = U8(pl, GP_SRC), *home = U8(pl, GP_HOME);
-    int64_t *fo = I64(pl, GP_FB_OFF), *so = I64(pl, GP_SRC_OFF), *at = I64(pl, GP_TRACE_AT);
-    double *lim = F64(pl, GP_LIMITS), *tau = F64(pl, GP_TAU), *trace = F64(pl, GP_TRACE);
+    const int64_t *fo = I64(pl, GP_FB_OFF), *so = I64(pl, GP_SRC_OFF);
+    int64_t *at = I64(pl, GP_TRACE_AT);
+    const double *lim = F64(pl, GP_LIMITS);
+    double *tau = F64(pl, GP_TAU), *trace = F64(pl, GP_TRACE);
     uint8_t *on = U8(pl, GP_ON), *released = U8(pl, GP_RELEASED);
-    Py_ssize_t rows = pl->n[GP_TRACE] / 30;
-    /* limits: qd_max[7] tau_max[7] force moment, then (when given) the
-       position limits less the margin lo[7] hi[7] and 1/(2 decel)[7] */
-    int pos_limits = pl->n[GP_LIMITS] >= 37;
-    int finished = so[2] >= 0 && src[so[2]] == 2;
+    Py_ssize_t rows = pl->n[GP_TRACE] / GUARD_PREPARE_TRACE__N;
+    int64_t status_at = so[GUARD_PREPARE_SRC_OFF_SESSION_STATUS];
+    int finished = status_at >= 0 && src[status_at] == FINISHED;
+    double *row = trace + GUARD_PREPARE_TRACE__N * (AT(ROWS) % rows);
+    AT(ROWS) += 1;
+    *ROW(CYCLE) = (double)AT(CYCLE);
+    *ROW(STEP) = (double)ld_u64(home + I64(pl, GP_HOME_OFF)[GUARD_PREPARE_HOME_OFF_STEP]);
     long flags = 0;
-    double *row = trace + 30 * (at[0] % rows);
-    at[0] += 1;
-    row[0] = (double)at[1];
-    row[1] = (double)ld_u64(home + I64(pl, GP_HOME_OFF)[0]);
-    for (int j = 0; j < 7; j++) {
-        double q = ld_f64(fb + fo[0] + 8 * j), qd = ld_f64(fb + fo[1] + 8 * j);
-        double t = ld_f64(fb + fo[2] + 8 * j);
-        on[j] = !finished && src[so[1] + j] != 0;
-        double c = on[j] ? ld_f64(src + so[0] + 8 * j) : 0.0;
+    for (int j = 0; j < DOF; j++) {
+        double q = ld_f64(fb + fo[GUARD_PREPARE_FB_OFF_Q] + 8 * j);
+        double qd = ld_f64(fb + fo[GUARD_PREPARE_FB_OFF_QD] + 8 * j);
+        double t = ld_f64(fb + fo[GUARD_PREPARE_FB_OFF_TAU] + 8 * j);
+        on[j] = !finished && src[so[GUARD_PREPARE_SRC_OFF_JOINT_ON] + j] != 0;
+        double c = on[j] ? ld_f64(src + so[GUARD_PREPARE_SRC_OFF_TAU] + 8 * j) : 0.0;
         tau[j] = c;
-        row[2 + j] = q;
-        row[9 + j] = qd;
-        row[16 + j] = t;
-        row[23 + j] = c;
-        if (!isfinite(q) || !isfinite(qd) || !isfinite(t) || !isfinite(c))
-            flags |= 1;
-        if (fabs(qd) > lim[j] || fabs(t) > lim[7 + j] || fabs(c) > lim[7 + j])
-            flags |= 1;
-        if (pos_limits) { /* inside the limits, and able to stop inside them */
-            double stop = q + qd * fabs(qd) * lim[30 + j];
-            if (q < lim[16 + j] || q > lim[23 + j] || stop < lim[16 + j] || stop > lim[23 + j])
-                flags |= 1;
-        }
+        ROW(Q)[j] = q;
+        ROW(QD)[j] = qd;
+        ROW(TAU)[j] = t;
+        ROW(TAU_CMD)[j] = c;
+        flags |= screen_joint(lim, j, q, qd, t, c);
         if (on[j] != released[j])
             flags |= 2;
     }
-    double w[6];
-    for (int i = 0; i < 6; i++) {
-        w[i] = ld_f64(fb + fo[3] + 8 * i);
-        if (!isfinite(w[i]))
-            flags |= 1;
-    }
-    if (sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) > lim[14] ||
-        sqrt(w[3] * w[3] + w[4] * w[4] + w[5] * w[5]) > lim[15])
-        flags |= 1;
+    flags |= screen_wrench(lim, fb + fo[GUARD_PREPARE_FB_OFF_WRENCH]);
     return PyLong_FromLong(flags);
 }
 
 static const Signature GUARD_SIGNATURES[] = {
     {"guard_prepare",
-     ARGS({"fb", 'B'}, {"fb_off", 'q'}, {"src", 'B'}, {"src_off", 'q'}, {"home", 'B'},
-          {"home_off", 'q'}, {"limits", 'd'}, {"on", 'B'}, {"released", 'B'}, {"tau", 'd'},
-          {"trace", 'd'}, {"trace_at", 'q'})},
+     ARGS(FREE("fb", 'B'), REC("fb_off", 'q', GUARD_PREPARE_FB_OFF__N), FREE("src", 'B'),
+          REC("src_off", 'q', GUARD_PREPARE_SRC_OFF__N), FREE("home", 'B'),
+          REC("home_off", 'q', GUARD_PREPARE_HOME_OFF__N),
+          REC("limits", 'd', GUARD_PREPARE_LIMITS__N), REC("on", 'B', DOF),
+          REC("released", 'B', DOF), REC("tau", 'd', DOF),
+          ROWS("trace", 'd', GUARD_PREPARE_TRACE__N),
+          REC("trace_at", 'q', GUARD_PREPARE_TRACE_AT__N))},
 };
 
 static PyMethodDef GUARD_METHODS[] = {

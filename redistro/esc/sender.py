@@ -36,6 +36,7 @@ import numpy as np
 
 from redistro import kernels
 from redistro.config.limits import joint_limits
+from redistro.esc import guard_layout
 from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Record
 from redistro.localdata.layout import (
@@ -186,8 +187,9 @@ class Sender(Worker):
         self.guard_tau = self.guard.array["tau_nm"]
         # the last cycles as the guard saw them, written out if it trips:
         # per row cycle, board step, q, qd, tau (measured), tau commanded
-        self.trace = np.zeros((TRACE_CYCLES, 2 + 4 * DOF))
-        self.trace_at = np.zeros(2, dtype=np.int64)  # rows written, this cycle
+        self.trace = np.zeros(TRACE_CYCLES, guard_layout.TRACE_ROW)
+        self.trace_at = np.zeros((), guard_layout.TRACE_AT)  # rows written, this cycle
+        self.cycle_now = self.trace_at["cycle"]
         run_dir = os.path.dirname(self.spec.messages_path)
         self.trace_path = os.path.join(run_dir, f"trip-{self.robot}.json") if run_dir else ""
         # the guard's screen: the command prepared (joints on, their torques)
@@ -198,29 +200,33 @@ class Sender(Worker):
         assert fields is not None
         fbf, homef = FEEDBACK.fields, HOME.fields
         assert fbf is not None and homef is not None
-        self.limits = np.concatenate(
-            [
-                self.qd_max,
-                self.tau_max,
-                [self.force_max, self.moment_max],
-                self.q_lo,
-                self.q_hi,
-                self.stop_k,
-            ]
-        ).astype(np.float64)
-        status = int(fields["session_status"][1]) if "session_status" in fields else -1
+        gl = self.guard_limits = np.zeros((), guard_layout.LIMITS)
+        gl["qd_max"], gl["tau_max"] = self.qd_max, self.tau_max
+        gl["force_max"], gl["moment_max"] = self.force_max, self.moment_max
+        gl["q_lo"], gl["q_hi"], gl["stop_k"] = self.q_lo, self.q_hi, self.stop_k
+        fb_off = np.zeros((), guard_layout.FB_OFF)
+        for name, field in (
+            ("q", "q_rad"),
+            ("qd", "qd_rad_s"),
+            ("tau", "tau_nm"),
+            ("wrench", "wrench"),
+        ):
+            fb_off[name] = fbf[field][1]
+        src_off = np.zeros((), guard_layout.SRC_OFF)
+        src_off["tau"], src_off["joint_on"] = fields["tau_nm"][1], fields["joint_on"][1]
+        src_off["session_status"] = (
+            fields["session_status"][1] if "session_status" in fields else -1
+        )
+        home_off = np.zeros((), guard_layout.HOME_OFF)
+        home_off["step"] = homef["step"][1]
         self._prepare_args = {
             "fb": self.fb.array.reshape(1).view(np.uint8),
-            "fb_off": np.array(
-                [int(fbf[n][1]) for n in ("q_rad", "qd_rad_s", "tau_nm", "wrench")], np.int64
-            ),
+            "fb_off": fb_off,
             "src": src.array.reshape(1).view(np.uint8),
-            "src_off": np.array(
-                [int(fields["tau_nm"][1]), int(fields["joint_on"][1]), status], np.int64
-            ),
+            "src_off": src_off,
             "home": self.home.array.reshape(1).view(np.uint8),
-            "home_off": np.array([int(homef["step"][1])], np.int64),
-            "limits": self.limits,
+            "home_off": home_off,
+            "limits": gl,
             "on": self.on,
             "released": self.released,
             "tau": self.tau_cmd,
@@ -245,7 +251,7 @@ class Sender(Worker):
         else:
             self.control_block.read_into(self.ctl.bytes)
         self.home_block.read_into(self.home.bytes)
-        self.trace_at[1] = cycle
+        self.cycle_now[...] = cycle
         flags = self._prepare()
         on, tau_cmd = self.on, self.tau_cmd
         self.guard["cycle"] = cycle
@@ -303,26 +309,27 @@ class Sender(Worker):
         on, tau = self.on, self.tau_cmd
         on[...] = (src["joint_on"] != 0) & (not finished)
         tau[...] = np.where(on, src["tau_nm"], 0.0)
-        row = self.trace[self.trace_at[0] % TRACE_CYCLES]
-        self.trace_at[0] += 1
-        row[0], row[1] = self.trace_at[1], self.home["step"]
-        row[2:9], row[9:16], row[16:23], row[23:] = fb["q_rad"], fb["qd_rad_s"], fb["tau_nm"], tau
-        flags = 0
-        measured = np.concatenate([fb["q_rad"], fb["qd_rad_s"], fb["tau_nm"], tau, fb["wrench"]])
-        lim = self.limits
+        at = self.trace_at
+        row = self.trace[int(at["rows"]) % TRACE_CYCLES]
+        at["rows"] += 1
+        row["cycle"], row["step"] = at["cycle"], self.home["step"]
         q, qd = fb["q_rad"], fb["qd_rad_s"]
-        stop = q + qd * np.abs(qd) * lim[30:37]
+        row["q"], row["qd"], row["tau"], row["tau_cmd"] = q, qd, fb["tau_nm"], tau
+        measured = np.concatenate([q, qd, fb["tau_nm"], tau, fb["wrench"]])
+        lim = self.guard_limits
+        stop = q + qd * np.abs(qd) * lim["stop_k"]
+        flags = 0
         if (
             not np.isfinite(measured).all()
-            or (q < lim[16:23]).any()
-            or (q > lim[23:30]).any()
-            or (stop < lim[16:23]).any()
-            or (stop > lim[23:30]).any()
-            or (np.abs(fb["qd_rad_s"]) > lim[:7]).any()
-            or (np.abs(fb["tau_nm"]) > lim[7:14]).any()
-            or (np.abs(tau) > lim[7:14]).any()
-            or np.linalg.norm(fb["wrench"][:3]) > lim[14]
-            or np.linalg.norm(fb["wrench"][3:]) > lim[15]
+            or (q < lim["q_lo"]).any()
+            or (q > lim["q_hi"]).any()
+            or (stop < lim["q_lo"]).any()
+            or (stop > lim["q_hi"]).any()
+            or (np.abs(qd) > lim["qd_max"]).any()
+            or (np.abs(fb["tau_nm"]) > lim["tau_max"]).any()
+            or (np.abs(tau) > lim["tau_max"]).any()
+            or np.linalg.norm(fb["wrench"][:3]) > lim["force_max"]
+            or np.linalg.norm(fb["wrench"][3:]) > lim["moment_max"]
         ):
             flags |= 1
         if (on != self.released).any():
@@ -356,17 +363,17 @@ class Sender(Worker):
         """The last cycles before the trip, oldest first, as JSON columns."""
         if not self.trace_path:
             return
-        traced = int(self.trace_at[0])
+        traced = int(self.trace_at["rows"])
         n = min(traced, TRACE_CYCLES)
         start = traced - n
         rows = self.trace[np.arange(start, traced) % TRACE_CYCLES]
         doc = {
-            "cycle": rows[:, 0].astype(np.int64).tolist(),
-            "step": rows[:, 1].astype(np.int64).tolist(),
-            "q_rad": rows[:, 2:9].tolist(),
-            "qd_rad_s": rows[:, 9:16].tolist(),
-            "tau_nm": rows[:, 16:23].tolist(),
-            "tau_cmd_nm": rows[:, 23:30].tolist(),
+            "cycle": rows["cycle"].astype(np.int64).tolist(),
+            "step": rows["step"].astype(np.int64).tolist(),
+            "q_rad": rows["q"].tolist(),
+            "qd_rad_s": rows["qd"].tolist(),
+            "tau_nm": rows["tau"].tolist(),
+            "tau_cmd_nm": rows["tau_cmd"].tolist(),
         }
         try:
             from redistro import files

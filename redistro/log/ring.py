@@ -180,9 +180,10 @@ class Capture:
             (*ld.block_offsets("proc", j), lay.rows_offset + j * PROC_STATUS.itemsize)
             for j in range(lay.n_procs)
         ]
-        self._read_table = kernels.offsets(*rows)
-        self._write_table = np.zeros(4, dtype=np.int64)  # seq, payload, size, 0: the slot's
-        self._write_table[2] = lay.payload
+        self._read_table = kernels.table("seq_read", "table", rows)
+        # the slot's seq and payload (set per cycle), the size, from the staging's start
+        self._write_table = kernels.table("seq_write", "table", [(0, 0, lay.payload, 0)])
+        self._slot_seq, self._slot_payload = self._write_table["seq"], self._write_table["payload"]
         self.torn = np.zeros(len(rows), dtype=np.int64)  # blocks held mid-write (kept as were)
         self._kernels = kernels.AVAILABLE
         if self._kernels:
@@ -202,8 +203,8 @@ class Capture:
         at = ring.slot_offset(cycle)
         if self._kernels:
             kernels.KERNELS.seq_read(self._read)
-            self._write_table[0] = at
-            self._write_table[1] = at + 8
+            self._slot_seq[0] = at
+            self._slot_payload[0] = at + 8
             kernels.KERNELS.seq_write(self._write)
         else:
             self._capture_python(at)
@@ -212,8 +213,8 @@ class Capture:
     def _capture_python(self, at: int) -> None:
         from redistro.errors import TornReadTimeout
 
-        rows = self._read_table.reshape(-1, 4)
-        for block, (_seq, _data, size, dst) in zip(self._blocks, rows.tolist(), strict=True):
+        rows = zip(self._read_table["size"].tolist(), self._read_table["dst"].tolist(), strict=True)
+        for block, (size, dst) in zip(self._blocks, rows, strict=True):
             with contextlib.suppress(TornReadTimeout):
                 block.read_into(self._head[dst : dst + size], budget_s=0.0005)
         mem = self.ring._mem

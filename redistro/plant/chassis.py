@@ -36,6 +36,7 @@ from redistro.drivers.io import registers as R
 from redistro.drivers.io.bank import TRUTH
 from redistro.drivers.io.image import RegisterImage
 from redistro.drivers.io.registers import BOARD_NAMES, BoardType
+from redistro.plant import chassis_layout
 from redistro.plant.devices import Encoders, HomeSwitches, Motors, WristSensors
 from redistro.plant.disturbance import Disturbance
 from redistro.plant.world import BRAKE_STOPPED_RAD_S, Arm, World
@@ -131,7 +132,8 @@ class Chassis:
                 )
         # the chassis' state: one buffer (the truth is copied out of it in one call)
         st = self.state = kernels.Arena(64 * n + 1024 + 160 * len(wrists))
-        self.step_arr = st.take("step", np.int64, 1)
+        self.step_rec = st.take("step", chassis_layout.STEP, ())  # the plant's step
+        self.step_now = self.step_rec["step"]
         self.q = st.take("q", np.float64, n)
         self.qd = st.take("qd", np.float64, n)
         self.tau = st.take("tau", np.float64, n)  # at the joint: motor, or brake on a braked joint
@@ -365,7 +367,7 @@ class Chassis:
             motor_tau=self.motor_tau,
             brake=self._brake,
             braked=self.braked,
-            copy=kernels.offsets(*copy) if copy else np.zeros(0, np.int64),
+            copy=kernels.table("chassis_apply", "copy", copy),
             req_off=at(enc, "out", "preset_req", every(enc)),
             req_seen=self._requests_seen.view(np.uint8).reshape(-1),
         )
@@ -406,7 +408,7 @@ class Chassis:
             strain_off=at(force, "in", "strain", self.ft_rows),
             sample_off=at(force, "in", "sample", self.ft_rows),
             step_off=np.concatenate([at(t, "in", "step", every(t)) for t in b.inp]),
-            step=self.step_arr,
+            step=self.step_rec,
         )
         self._truth_plan = kernels.plan(
             "copy", src=self.state.buffer, dst=self.truth_image, table=self._truth_copy
@@ -475,7 +477,7 @@ class Chassis:
 
     @property
     def step_count(self) -> int:
-        return int(self.step_arr[0])
+        return int(self.step_now)
 
     def read_outputs(self, port: Any) -> None:
         """Take every board's latest ``out`` bank from the backplane's board side
@@ -606,7 +608,7 @@ class Chassis:
         if self.disturbance is not None:
             self.disturbance.before_physics(self)
         self.world.step()
-        self.step_arr[0] += 1
+        self.step_now += 1
 
     def sample(self) -> None:
         """Joint states -> every board's ``in`` bank and the truth."""

@@ -15,6 +15,7 @@ import numpy as np
 
 from redistro.config.hardware import SensorsConfig
 from redistro.drivers.io.registers import ENC_MODULO
+from redistro.plant import chassis_layout
 
 F64 = np.ndarray[Any, np.dtype[np.float64]]
 
@@ -107,8 +108,9 @@ class WristSensors:
 
     The noise is drawn ahead in blocks (one draw of many samples costs about
     what one draw of six does), already in gauge counts: ``noise`` (block, k,
-    6) and the next row to use, ``noise_at[0]`` (both filled in place: a
-    compiled kernel may hold them)."""
+    6) and the next row to use, ``noise_at["row"]`` (NOISE_AT,
+    plant/chassis_layout.py; both filled in place: a compiled kernel may
+    hold them)."""
 
     NOISE_BLOCK = 1024
 
@@ -122,7 +124,8 @@ class WristSensors:
         self.sigma = np.array([noise_n] * 3 + [noise_nm] * 3)
         self.rng = np.random.default_rng(seed)
         self.noise = np.zeros((self.NOISE_BLOCK, self.k, 6))
-        self.noise_at = np.zeros(1, dtype=np.int64)
+        self.noise_at = np.zeros((), chassis_layout.NOISE_AT)
+        self._row = self.noise_at["row"]
         self.refill()
         self._counts = np.zeros((self.k, 6, 1))
 
@@ -130,13 +133,13 @@ class WristSensors:
         """The next block of noise (in gauge counts); start at its first row."""
         w = self.rng.normal(0.0, 1.0, (self.NOISE_BLOCK, self.k, 6)) * self.sigma + self.bias
         self.noise[...] = np.matmul(self.inverse, w[..., None])[..., 0]
-        self.noise_at[0] = 0
+        self._row[...] = 0
 
     def _draw(self) -> F64:
-        if self.noise_at[0] >= self.NOISE_BLOCK:
+        if self._row >= self.NOISE_BLOCK:
             self.refill()
-        row: F64 = self.noise[self.noise_at[0]]
-        self.noise_at[0] += 1
+        row: F64 = self.noise[int(self._row)]
+        self._row += 1
         return row
 
     def gauges_into(self, wrenches: F64, out: np.ndarray[Any, Any]) -> None:

@@ -310,7 +310,8 @@ def _truth_publisher(bank: RegisterBank, chassis: Any) -> Any:
     n = len(chassis.rigs)
     if chassis.kernels:
         size = TRUTH.itemsize
-        table = kernels.offsets(*((*bank.truth_offsets(i)[:2], size, i * size) for i in range(n)))
+        spans = [(*bank.truth_offsets(i)[:2], size, i * size) for i in range(n)]
+        table = kernels.table("seq_write", "table", spans)
         p = kernels.plan("seq_write", dst=bank.raw, src=chassis.truth_image, table=table)
         write = kernels.KERNELS.seq_write
         return lambda: write(p)

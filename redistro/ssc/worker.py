@@ -32,7 +32,6 @@ import numpy as np
 
 from redistro import kernels
 from redistro.control.cartesian import (
-    CartesianLaw,
     ForceParams,
     ImpedanceGains,
     TaskFrameCommand,
@@ -40,6 +39,7 @@ from redistro.control.cartesian import (
     pose_error,
     rotvec_to_matrix,
 )
+from redistro.control.cartesian_law import CartesianLaw
 from redistro.control.dynamics import ArmModel
 from redistro.control.pid import PidGains, PidLoop, PidState
 from redistro.control.search import DESCENT_ACCEL_M_S2, Phase, SpiralSearch
@@ -51,7 +51,7 @@ from redistro.robotmodel import PLATE, Peg
 from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
 
 DOF = 7
-V_MAX, A_MAX = 41, 43  # the force axes' speed and acceleration in CartesianLaw.gains
+X, Y, Z, RZ = 0, 1, 2, 5  # Cartesian axes, in the law's 6-vectors
 DEEP_IN = 3.0  # this many search.drop_m below the contact: in the hole for sure
 TOUCH_ABOVE_M = 0.003  # a searching descent slows to search.touch_m_s this far above the mouth
 RETREAT_S = 2.0  # a failed search lifts the tool off in this long [s]
@@ -145,7 +145,7 @@ class _LawCopier:
     applied wrench, the TCP pose, the reference): two kernel calls."""
 
     def __init__(self, law: CartesianLaw, cmd: Record, plan: Record) -> None:
-        out = law.out.view(np.uint8)
+        out = law.out.reshape(1).view(np.uint8)
         parts = []
         for rec, fields in (
             (cmd, [(law.tau, "tau_nm")]),
@@ -154,11 +154,11 @@ class _LawCopier:
             spec = rec.array.dtype.fields
             assert spec is not None
             rows = [
-                (kernels.address_in(law.out, v), int(spec[name][1]), v.nbytes) for v, name in fields
+                (kernels.address_in(out, v), int(spec[name][1]), v.nbytes) for v, name in fields
             ]
             if rec is plan:
                 for v, name in ((law.tcp_rot, "tcp_rot_xyz"), (law.ref_p, "ref_xyz_m")):
-                    rows.append((kernels.address_in(law.out, v), int(spec[name][1]), v.nbytes))
+                    rows.append((kernels.address_in(out, v), int(spec[name][1]), v.nbytes))
             parts.append((out, rec.array.reshape(1).view(np.uint8), kernels.copy_table(rows)))
         self.runs: list[Any] = []
         for src, dst, table in parts:
@@ -485,21 +485,21 @@ class SscWorker(Worker):
             near = abs(z - plan.mouth_z_m) < TOUCH_ABOVE_M
             # near the mouth as drawn: touch gently; past it, untouched, the
             # peg is going into the hole: the law's own speed again
-            gains[V_MAX] = srch.p.touch_m_s if near else st.gains0[V_MAX]
+            gains["v_max"] = srch.p.touch_m_s if near else st.gains0["v_max"]
         elif phase == Phase.SETTLE and before != phase:
-            gains[V_MAX] = st.gains0[V_MAX]
-            gains[5] = srch.p.yaw_stiffness_nm_rad  # in touch: the search's soft yaw
-            cmd[8] = -srch.p.force_n
+            gains["v_max"] = st.gains0["v_max"]
+            gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad  # in touch: the search's soft yaw
+            cmd["goal_wrench"][Z] = -srch.p.force_n
             st.views["wrench_goal"][2] = -srch.p.force_n
             self.post(f"{st.name}: contact off the hole at t={t:.2f} s; searching")
         elif phase == Phase.SEARCH:
             if before != phase:
                 gains[...] = st.gains0
                 st.fast_z = st.slow_z = -math.inf
-                gains[0] = gains[1] = srch.p.stiffness_n_m
-                gains[5] = srch.p.yaw_stiffness_nm_rad
+                gains["k"][X] = gains["k"][Y] = srch.p.stiffness_n_m
+                gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad
                 if before == Phase.IN_HOLE:  # a slip, not the hole: search on
-                    cmd[8] = -srch.p.force_n
+                    cmd["goal_wrench"][Z] = -srch.p.force_n
                     st.views["wrench_goal"][2] = -srch.p.force_n
                     self.post(f"{st.name}: no hole there (t={t:.2f} s); searching on")
             x, y = plan.pose[0] + srch.ox, plan.pose[1] + srch.oy
@@ -511,25 +511,25 @@ class SscWorker(Worker):
             cap = srch.p.max_lateral_n / srch.p.stiffness_n_m
             if lead > cap:
                 x, y = tx + dx * cap / lead, ty + dy * cap / lead
-            ref[0] = ref[3] = x
-            ref[1] = ref[4] = y
+            ref["start_p"][X] = ref["goal_p"][X] = x
+            ref["start_p"][Y] = ref["goal_p"][Y] = y
             xy = st.views["search_xy"]
             xy[0], xy[1] = srch.ox, srch.oy
             st.plan["search_m"] = srch.path_m
         elif phase == Phase.IN_HOLE and before != phase:
             # stop where the tip is, the task's own stiffness and push
             p = law.tcp_p
-            ref[0] = ref[3] = float(p[0])
-            ref[1] = ref[4] = float(p[1])
+            ref["start_p"][X] = ref["goal_p"][X] = float(p[0])
+            ref["start_p"][Y] = ref["goal_p"][Y] = float(p[1])
             gains[...] = st.gains0
-            cmd[8] = st.goal_z_n
+            cmd["goal_wrench"][Z] = st.goal_z_n
             st.views["wrench_goal"][2] = st.goal_z_n
             if before != Phase.DESCENT:
                 # the yaw stays as soft as the search had it: a stiffer yaw
                 # now would snap back whatever the walls turned (a jolt at
                 # the wrist); a peg that met nothing before the bottom keeps
                 # the task's own law throughout
-                gains[5] = srch.p.yaw_stiffness_nm_rad
+                gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad
                 # the peg is falling in: free space again along z (no spring
                 # wound up, no goal force fed forward), down the hole at the
                 # search's descent speed to a little above its bottom as drawn
@@ -553,16 +553,16 @@ class SscWorker(Worker):
         elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.fast_z:
             # deep enough not to be a slip: down fast (what meets the tool
             # higher up meets it at the law's own speed)
-            gains[V_MAX] = srch.p.descent_m_s
-            gains[A_MAX] = DESCENT_ACCEL_M_S2
+            gains["v_max"] = srch.p.descent_m_s
+            gains["a_max"] = DESCENT_ACCEL_M_S2
             st.fast_z = -math.inf
         elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.slow_z:
             # near the bottom: the law's own speed (braking at the descent's
             # acceleration; the law's own comes back at the bottom's contact)
-            gains[V_MAX] = st.gains0[V_MAX]
+            gains["v_max"] = st.gains0["v_max"]
             st.slow_z = -math.inf
-        elif phase == Phase.IN_HOLE and law.contact and gains[A_MAX] != st.gains0[A_MAX]:
-            gains[A_MAX] = st.gains0[A_MAX]
+        elif phase == Phase.IN_HOLE and law.contact and gains["a_max"] != st.gains0["a_max"]:
+            gains["a_max"] = st.gains0["a_max"]
         elif phase == Phase.NOT_FOUND and before != phase:
             gains[...] = st.gains0
             self._fail(st, plan, t, srch.why)

@@ -6,10 +6,14 @@ import numpy as np
 import pytest
 
 from redistro.control.cartesian import (
+    ArmNow,
     ForceParams,
     HybridState,
     ImpedanceGains,
+    LawParams,
+    Reference,
     TaskFrameCommand,
+    Tick,
     applied_wrench_task,
     hybrid_update,
     matrix_to_rotvec,
@@ -41,21 +45,12 @@ def _step(
 ) -> np.ndarray:
     """One update at rest at Q0, reference orientation = the current one."""
     tau, _ = hybrid_update(
-        _gains(),
-        fp or ForceParams(),
+        LawParams(_gains(), fp or ForceParams()),
         st,
         cmd,
-        kin,
-        Q0,
-        np.zeros(7),
-        g,
-        p_ref,
-        kin.R,
-        np.zeros(6),
-        np.zeros(6) if wrench is None else wrench,
-        Q0,
-        t_s,
-        0.005,
+        ArmNow(kin, Q0, np.zeros(7), g, np.zeros(6) if wrench is None else wrench),
+        Reference(p_ref, kin.R, np.zeros(6), Q0),
+        Tick(t_s, 0.005),
     )
     return tau
 
@@ -155,9 +150,14 @@ def test_the_inertia_feedforward_gives_the_reference_acceleration(arm: ArmModel)
     cmd = TaskFrameCommand(np.concatenate([kin.p, matrix_to_rotvec(kin.R)]))
     g = arm.gravity(Q0)
     a6 = np.array([0.0, 0.3, -0.2, 0.0, 0.0, 0.1])
-    common = (_gains(), ForceParams(), start_state(cmd, kin), cmd, kin, Q0, np.zeros(7), g)
-    rest = (kin.p, kin.R, np.zeros(6), np.zeros(6), Q0, 0.0, 0.005)
-    tau, _ = hybrid_update(*common, *rest, a_ref=a6, inertia=inertia)
+    tau, _ = hybrid_update(
+        LawParams(_gains()),
+        start_state(cmd, kin),
+        cmd,
+        ArmNow(kin, Q0, np.zeros(7), g, np.zeros(6), inertia),
+        Reference(kin.p, kin.R, np.zeros(6), Q0, a6),
+        Tick(0.0, 0.005),
+    )
     # at rest on target: gravity plus J^T Lambda a, and M^-1 of it accelerates the TCP by a
     assert np.allclose(tau - g, kin.J.T @ lam @ a6, atol=1e-9)
     import pinocchio as pin

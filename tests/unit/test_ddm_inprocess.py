@@ -307,9 +307,9 @@ def test_over_sockets_the_kernels_receive_admit_and_send(
         ex = esc.ddm.ex[0]
         assert ex["updates"] == 10 and ex["dropped"] == 0
         fast = esc.ddm.fast
-        assert fast is not None and int(fast.state[1]) >= 9  # admitted by the kernel
+        assert fast is not None and int(fast.state["taken"]) >= 9  # admitted by the kernel
         assert int(fast.send_fds[0]) >= 0  # sent by ddm_send, on the peer's socket
-    assert ssc.ddm.fast is not None and int(ssc.ddm.fast.state[1]) >= 18
+    assert ssc.ddm.fast is not None and int(ssc.ddm.fast.state["taken"]) >= 18
     # a forged record, then a replay of a sound one, on the pinned connection
     esc = escs["r2"]
     gid = esc.ddm.gid["r2"]

@@ -70,15 +70,17 @@ class ShmBackplane(Backplane):
         for a in addrs:
             self._in_block(a)  # checks the address
         bank = self.bank
-        table = kernels.offsets(
-            *(
+        table = kernels.table(
+            "seq_read",
+            "table",
+            [
                 (
                     *bank.board_offsets(a, "in")[:2],
                     views[a].nbytes,
                     kernels.address_in(image, views[a]),
                 )
                 for a in addrs
-            )
+            ],
         )
         torn = np.zeros(len(addrs), dtype=np.int64)
         p = kernels.plan("seq_read", src=bank.raw, dst=image, table=table, torn=torn)
@@ -123,11 +125,13 @@ class ShmBackplane(Backplane):
         for a in records:
             if a not in bank.index:
                 raise IOFault(f"no board at address {a} in the chassis")
-        table = kernels.offsets(
-            *(
+        table = kernels.table(
+            "seq_write",
+            "table",
+            [
                 (*bank.board_offsets(a, "out")[:2], rec.nbytes, kernels.address_in(image, rec))
                 for a, rec in records.items()
-            )
+            ],
         )
         p = kernels.plan("seq_write", dst=bank.raw, src=image, table=table)
         write = kernels.KERNELS.seq_write
@@ -202,11 +206,13 @@ class ShmPort(BoardPort):
 
         if image is not None and kernels.AVAILABLE:  # every board in one call
             bank = self.bank
-            table = kernels.offsets(
-                *(
+            table = kernels.table(
+                "seq_write",
+                "table",
+                [
                     (*bank.board_offsets(a, "in")[:2], rec.nbytes, kernels.address_in(image, rec))
                     for a, rec in records.items()
-                )
+                ],
             )
             p = kernels.plan("seq_write", dst=bank.raw, src=image, table=table)
             write = kernels.KERNELS.seq_write
@@ -230,11 +236,13 @@ class ShmPort(BoardPort):
 
         if image is not None and kernels.AVAILABLE:  # every board in one call
             bank = self.bank
-            table = kernels.offsets(
-                *(
+            table = kernels.table(
+                "seq_read",
+                "table",
+                [
                     (*bank.board_offsets(a, "out")[:2], v.nbytes, kernels.address_in(image, v))
                     for a, v in views.items()
-                )
+                ],
             )
             torn = np.zeros(len(views), dtype=np.int64)
             self._kernel_torn = torn
