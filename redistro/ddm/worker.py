@@ -212,7 +212,11 @@ class Ddm(Worker):
         # into Local Data as they come)
         self.encrypt = self.cfg.ddm.encrypt
         self.cipher = wire.cipher_key(self.key) if self.encrypt and self.kind != "esc" else b""
-        if KERNELS is not None and self.hooks is None and not self.encrypt:
+        # (a fault harness's hooks keep it: their transport wrappers hand the
+        # records over one by one, and a command fault corrupts what the
+        # kernel admitted, _corrupt_command)
+        self.corrupting = self.hooks is not None and self.hooks.corrupts_commands
+        if KERNELS is not None and not self.encrypt:
             self._plan_fast(ld)
         for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
             ex["feedback_wanted"] = 1
@@ -559,6 +563,16 @@ class Ddm(Worker):
             }
         )
 
+    def _corrupt_command(self, i: int) -> None:
+        """The fault harness's command fault on what the kernel just
+        admitted into robot i's block (the same point as the Python path's:
+        after admission, before the node reads it)."""
+        assert self.hooks is not None
+        payload = self.in_blocks[i].read()
+        bad = self.hooks.command(payload)
+        if bad is not payload:
+            self.in_blocks[i].publish(bad)
+
     def _check_links(self) -> None:
         """Robots whose link alone was lost (the SSC's side): their data go
         stale (the manager's starving check), the others' exchange goes on,
@@ -601,9 +615,13 @@ class Ddm(Worker):
         keyless = not self.handshake.run_key  # an ESC before the SSC's proof
         for raw in received:
             self.dirty = True
-            if fast is not None and fast.admit_call(fast.admit_plan, raw) >= 0:
-                taken += 1  # admitted, published and counted (FastPath.admit)
-                continue
+            if fast is not None:
+                i = fast.admit_call(fast.admit_plan, raw)
+                if i >= 0:
+                    taken += 1  # admitted, published and counted (FastPath.admit)
+                    if self.corrupting:
+                        self._corrupt_command(i)
+                    continue
             if (
                 keyless
                 and len(raw) == size

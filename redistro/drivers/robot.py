@@ -108,6 +108,7 @@ class RobotDriver:
         self.tach_scale = R.ADC_FULL_SCALE_V / 32768 / self.tach_v  # [rad/s per code]
         self.torque_scale = R.ADC_FULL_SCALE_V / 32768 / self.torque_v  # [N m per code]
         self.dac_scale = R.DAC_FULL_SCALE_V / 2048 * self.nm_per_volt  # [N m per code]
+        self.volts_per_nm = 1.0 / self.nm_per_volt
         boards: dict[int, BoardType] = {
             b.address: BOARD_NAMES[b.type] for b in hw.io.boards.values()
         }
@@ -241,7 +242,7 @@ class RobotDriver:
             "driver_dac",
             image=regs.image,
             tau=self.tau_cmd,
-            volts_per_nm=1.0 / self.nm_per_volt,
+            volts_per_nm=self.volts_per_nm,
             code_off=at(dac, "out", "code", rows("dac"), chs("dac"), 2),
         )
 
@@ -452,7 +453,7 @@ class RobotDriver:
         bad = np.flatnonzero(~np.isfinite(tau))
         if bad.size:
             return int(bad[0]) + 1
-        volts = tau / self.nm_per_volt
+        volts = tau * self.volts_per_nm  # (as the kernel multiplies: bit for bit)
         for a, (js, ch) in self.dac.items():
             dac = self.modules[a]
             assert isinstance(dac, DacDriver)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from typing import Any
@@ -143,6 +144,58 @@ def check(
     if over.size:
         j = int(over[0])
         raise Violation("commanded torque", j, float(tau_cmd[j]), float(tau_max[j]), "N m")
+
+
+def screen(
+    fb: Any,
+    src: Any,
+    finished: bool,
+    step: int,
+    lim: Any,
+    on: np.ndarray[Any, Any],
+    released: np.ndarray[Any, Any],
+    tau: np.ndarray[Any, Any],
+    trace: np.ndarray[Any, Any],
+    at: np.ndarray[Any, Any],
+) -> int:
+    """The guard's screen of one command (the reference of the
+    ``guard_prepare`` kernel, esc/guard_kernel.c): the joints on and their
+    torques (``on``, ``tau``; none once the session is ``finished``), a
+    trace row (TRACE_ROW: the cycle ``at["cycle"]``, the boards' ``step``),
+    and the flags: bit 1 a figure not finite or over its limit in ``lim``
+    (LIMITS, esc/guard_layout.py; :func:`check` names which), bit 2 the
+    joints on differ from ``released``."""
+    on[...] = (src["joint_on"] != 0) & (not finished)
+    tau[...] = np.where(on, src["tau_nm"], 0.0)
+    row = trace[int(at["rows"]) % len(trace)]
+    at["rows"] += 1
+    q, qd = fb["q_rad"], fb["qd_rad_s"]
+    row["cycle"], row["step"] = at["cycle"], step
+    row["q"], row["qd"], row["tau"], row["tau_cmd"] = q, qd, fb["tau_nm"], tau
+    measured = np.concatenate([q, qd, fb["tau_nm"], tau, fb["wrench"]])
+    stop = q + qd * np.abs(qd) * lim["stop_k"]
+    flags = 0
+    if (
+        not np.isfinite(measured).all()
+        or (q < lim["q_lo"]).any()
+        or (q > lim["q_hi"]).any()
+        or (stop < lim["q_lo"]).any()
+        or (stop > lim["q_hi"]).any()
+        or (np.abs(qd) > lim["qd_max"]).any()
+        or (np.abs(fb["tau_nm"]) > lim["tau_max"]).any()
+        or (np.abs(tau) > lim["tau_max"]).any()
+        or _norm3(fb["wrench"][:3]) > lim["force_max"]
+        or _norm3(fb["wrench"][3:]) > lim["moment_max"]
+    ):
+        flags |= 1
+    if (on != released).any():
+        flags |= 2
+    return flags
+
+
+def _norm3(v: Any) -> float:
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    return math.sqrt(x * x + y * y + z * z)  # (as the kernel sums: bit for bit)
 
 
 class Sender(Worker):
@@ -302,39 +355,13 @@ class Sender(Worker):
             self.stamp_block.publish(self.stamp.bytes)
 
     def _prepare_numpy(self) -> int:
-        """The arithmetic of the ``guard_prepare`` kernel (see it)."""
-        fb = self.fb.array
+        """The arithmetic of the ``guard_prepare`` kernel: :func:`screen`."""
         src = self.cmd.array if self.from_ssc else self.ctl.array
         finished = self.from_ssc and int(src["session_status"]) == SessionStatus.FINISHED
-        on, tau = self.on, self.tau_cmd
-        on[...] = (src["joint_on"] != 0) & (not finished)
-        tau[...] = np.where(on, src["tau_nm"], 0.0)
-        at = self.trace_at
-        row = self.trace[int(at["rows"]) % TRACE_CYCLES]
-        at["rows"] += 1
-        row["cycle"], row["step"] = at["cycle"], self.home["step"]
-        q, qd = fb["q_rad"], fb["qd_rad_s"]
-        row["q"], row["qd"], row["tau"], row["tau_cmd"] = q, qd, fb["tau_nm"], tau
-        measured = np.concatenate([q, qd, fb["tau_nm"], tau, fb["wrench"]])
-        lim = self.guard_limits
-        stop = q + qd * np.abs(qd) * lim["stop_k"]
-        flags = 0
-        if (
-            not np.isfinite(measured).all()
-            or (q < lim["q_lo"]).any()
-            or (q > lim["q_hi"]).any()
-            or (stop < lim["q_lo"]).any()
-            or (stop > lim["q_hi"]).any()
-            or (np.abs(qd) > lim["qd_max"]).any()
-            or (np.abs(fb["tau_nm"]) > lim["tau_max"]).any()
-            or (np.abs(tau) > lim["tau_max"]).any()
-            or np.linalg.norm(fb["wrench"][:3]) > lim["force_max"]
-            or np.linalg.norm(fb["wrench"][3:]) > lim["moment_max"]
-        ):
-            flags |= 1
-        if (on != self.released).any():
-            flags |= 2
-        return flags
+        return screen(
+            self.fb.array, src, finished, int(self.home["step"]), self.guard_limits,
+            self.on, self.released, self.tau_cmd, self.trace, self.trace_at,
+        )  # fmt: skip
 
     def _trip(self, cycle: int, v: Violation) -> None:
         self.driver.freeze()

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from redistro.faults import inject
-from redistro.faults.wire import POINTS, InjectedTransport
+from redistro.faults.wire import POINTS, InjectedTransport, Relay
 from redistro.localdata.layout import COMMAND
 
 STUCK = {"home-stuck-on": True, "home-stuck-off": False}
@@ -80,10 +80,18 @@ class DdmFaults:
         self.wire = [inj for p in POINTS if (inj := inject.injection(p, node)) is not None]
 
     def transport(self, transport: Any, names: dict[int, str]) -> Any:
-        """The transport with the armed link and record faults around it."""
+        """The transport with the armed link and record faults around it
+        (and, for a command fault, a relay: every command then comes to the
+        ddm's step, where the corruption is applied after admission)."""
         for inj in self.wire:
             transport = InjectedTransport(transport, inj, names)
+        if self.command_injection is not None and not self.wire:
+            transport = Relay(transport)
         return transport
+
+    @property
+    def corrupts_commands(self) -> bool:
+        return self.command_injection is not None
 
     def command(self, payload: Any) -> Any:
         """The command to write: from the trigger on, ``arg`` (NaN, inf or a

@@ -83,13 +83,67 @@ def _resealed(record: bytes, source: bytes | None = None, tau: float | None = No
 REPLAY_BACK = 100
 
 
-class InjectedTransport(Transport):
-    def __init__(self, inner: Transport, inj: Injection, robot_ids: dict[int, str]) -> None:
+class Relay(Transport):
+    """A transport that forwards everything to ``inner``: what a fault
+    wrapper is built on. It has none of the optional accelerations (the
+    ddm's kernels then admit and seal record by record, as the wrapper
+    hands them over: the compiled path, with the fault in the way)."""
+
+    def __init__(self, inner: Transport) -> None:
         self.inner = inner
+        self.closed = False
+
+    def send(self, record: bytes, robot: int) -> None:
+        if self.closed:
+            raise TransportError("link closed (injected fault)")
+        self.inner.send(record, robot)
+
+    def flush(self) -> None:
+        if not self.closed:
+            self.inner.flush()
+
+    def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
+        if self.closed:
+            raise TransportError("link closed (injected fault)")
+        return self.inner.receive(ready)
+
+    def lost_links(self) -> dict[int, str]:
+        return {} if self.closed else self.inner.lost_links()
+
+    def authenticated(self, robot: int | None = None) -> None:
+        self.inner.authenticated(robot)
+
+    def drop_unauthenticated(self) -> None:
+        self.inner.drop_unauthenticated()
+
+    def refused(self) -> int:
+        return self.inner.refused()
+
+    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
+        return self.inner.verify_with(check)
+
+    def can_send(self, robot: int) -> bool:
+        return self.inner.can_send(robot)
+
+    @property
+    def replies(self) -> bool:  # type: ignore[override]
+        return self.inner.replies
+
+    def fds(self) -> list[int]:
+        return [] if self.closed else self.inner.fds()
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.inner.close()
+
+
+class InjectedTransport(Relay):
+    def __init__(self, inner: Transport, inj: Injection, robot_ids: dict[int, str]) -> None:
+        super().__init__(inner)
         self.inj = inj
         self.what = inj.point.split(".", 1)[1]
         self.robot_ids = robot_ids  # group-wide robot id -> name
-        self.closed = False
         self.bad_left = int(inj.arg) or 50
         self.delayed: collections.deque[tuple[int, bytes, int]] = collections.deque()
         self.history: collections.deque[tuple[bytes, int]] = collections.deque(maxlen=REPLAY_BACK)
@@ -183,42 +237,8 @@ class InjectedTransport(Transport):
         if sent:
             self.inner.flush()  # (sent outside a step of the ddm's)
 
-    def flush(self) -> None:
-        if not self.closed:
-            self.inner.flush()
-
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         if self.closed:
             raise TransportError("link closed (injected fault)")
         self._flush_delayed()
         return self.inner.receive(ready)
-
-    def lost_links(self) -> dict[int, str]:
-        return {} if self.closed else self.inner.lost_links()
-
-    def authenticated(self, robot: int | None = None) -> None:
-        self.inner.authenticated(robot)
-
-    def drop_unauthenticated(self) -> None:
-        self.inner.drop_unauthenticated()
-
-    def refused(self) -> int:
-        return self.inner.refused()
-
-    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
-        return self.inner.verify_with(check)
-
-    def can_send(self, robot: int) -> bool:
-        return self.inner.can_send(robot)
-
-    @property
-    def replies(self) -> bool:  # type: ignore[override]
-        return self.inner.replies
-
-    def fds(self) -> list[int]:
-        return [] if self.closed else self.inner.fds()
-
-    def close(self) -> None:
-        if not self.closed:
-            self.closed = True
-            self.inner.close()
