@@ -38,9 +38,18 @@ def bench_cycle(rate: str, workers: str, seconds: str, out: Path | str) -> list[
     ]
 
 
-def run_cli(*args: str, timeout: float = 120, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
+def run_cli(
+    *args: str, timeout: float = 120, cwd: Path = ROOT, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """The CLI run to its end (``env``: more environment for it)."""
     return subprocess.run(
-        [*REDISTRO, *args], capture_output=True, text=True, timeout=timeout, cwd=cwd, check=False
+        [*REDISTRO, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=cwd,
+        check=False,
+        env={**os.environ, **env} if env else None,
     )
 
 

@@ -9,8 +9,9 @@ exits are seen at once (SIGCHLD, reaped through waitpid and watched through
 pidfds). Cleanup ends the workers, reaps them, writes the result and removes
 every IPC object the node created.
 
-Past the house's ~400 lines: the four states and the fault reaction are
-one sequence, read top to bottom; the bookkeeping is in ``books.py``.
+The states and their moves are :class:`~redistro.process.states.Lifecycle`'s
+table; the worker processes are :mod:`redistro.process.children`'s; the
+bookkeeping over Local Data is ``books.py``'s.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import logging
 import os
 import signal
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,9 +37,16 @@ from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, MSG_TEXT
 from redistro.process import hooks
 from redistro.process.books import NodeBooks, node_local_data
+from redistro.process.children import (
+    Child,
+    describe_status,
+    end_workers,
+    reap_workers,
+    spawn_workers,
+)
 from redistro.process.result import NodeResult
-from redistro.process.spawn import spawn
 from redistro.process.spec import EXIT_FAILED, NodeSpec
+from redistro.process.states import Event, Lifecycle, State
 from redistro.process.stats import Samples
 from redistro.process.worker import IDLE_GUARD_NS
 
@@ -53,41 +62,31 @@ RELAY_FILE = "estop"  # in the session folder, estop.<node>: a faulted node asks
 START_WAIT = frozenset({signals.SIG_ORPHAN, signals.SIG_ESTOP}) | signals.STOP_SIGNALS
 
 
-def describe_status(status: int) -> str:
-    if os.WIFSIGNALED(status):
-        return f"killed by {signal.Signals(os.WTERMSIG(status)).name}"
-    if os.WIFEXITED(status):
-        return f"exited with code {os.WEXITSTATUS(status)}"
-    return f"status {status:#x}"
-
-
 def iso_time(t: float) -> str:
     """UNIX time as ISO 8601 UTC with milliseconds."""
     return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t)) + f".{int(t % 1 * 1000):03d}Z"
 
 
-class _Child:
-    def __init__(self, name: str, pid: int, pidfd: int) -> None:
-        self.name = name
-        self.pid = pid
-        self.pidfd = pidfd
-        self.status: int | None = None
+@dataclass
+class Timing:
+    """What the manager measures of its own cycles (into the result)."""
+
+    lateness: Samples = field(default_factory=Samples)
+    tick_work: Samples = field(default_factory=Samples)
+    missed_ticks: int = 0
+    overruns: int = 0
+    torn_ticks: int = 0  # ticks whose on_tick could not read a block consistently
+    idle_slices: int = 0  # slices of Idle work between ticks (message boxes first)
+    routine: tuple[float, float] = (0.0, 0.0)  # its start and end, monotonic [s]
+    cpu: tuple[float, float] = (0.0, 0.0)  # the process's CPU time then [s]
 
     @property
-    def alive(self) -> bool:
-        return self.status is None
+    def routine_s(self) -> float:
+        return max(0.0, self.routine[1] - self.routine[0])
 
-    def sync(self) -> None:
-        """The tick's sync signal: run a cycle."""
-        signals.send(self.pidfd, signals.SIG_SYNC)
-
-    def reap(self, wait: bool = False) -> bool:
-        """Collect the exit status if the process has exited (or wait for it)."""
-        if self.alive:
-            pid, status = os.waitpid(self.pid, 0 if wait else os.WNOHANG)
-            if pid:
-                self.status = status
-        return not self.alive
+    @property
+    def cpu_s(self) -> float:
+        return max(0.0, self.cpu[1] - self.cpu[0])
 
 
 class Manager:
@@ -98,21 +97,18 @@ class Manager:
         self.spec_path = spec_path
         self.timer = IntervalTimer(spec.rate_hz)
         self.cycle = 0
-        self.result = NodeResult(node=spec.node, kind=spec.kind, session_id=spec.session_id)
-        self.children: list[_Child] = []
-        self.on_cycle: list[_Child] = []  # the children the sync signal goes to
-        self.lateness = Samples()
-        self.tick_work = Samples()
-        self.missed_ticks = 0
-        self.overruns = 0
-        self.torn_ticks = 0  # ticks whose on_tick could not read a block consistently
+        from redistro import kernels
+
+        self.result = NodeResult(
+            node=spec.node, kind=spec.kind, session_id=spec.session_id, kernels=kernels.AVAILABLE
+        )
+        self.life = Lifecycle(self._state_changed)
+        self.children: list[Child] = []
+        self.on_cycle: list[Child] = []  # the children the sync signal goes to
+        self.timing = Timing()
         self.ld: LocalData | None = None
         self.books = NodeBooks(spec)
         self.sems: list[Semaphore] = []
-        self._routine_start = 0.0
-        self._routine_end = 0.0
-        self._cpu_start = 0.0
-        self._cpu_end = 0.0
         self.granted: sched.Granted | None = None
         self.block: Block | None = None
         self.mine = Record(MANAGER)  # the manager's own block, published whole each tick
@@ -120,7 +116,6 @@ class Manager:
         self._tick_ns = 0
         self._estop = False
         self.wake_fd = -1
-        self.idle_slices = 0  # slices of Idle work between ticks (message boxes first)
         self.cpu_latency_fd: int | None = None  # the PM QoS request, held while the node runs
         self.ring: Any = None  # the session log's ring, when the node logs
         self.capture: Any = None
@@ -129,6 +124,16 @@ class Manager:
     def last_error(self) -> dict[str, str]:
         """Worker name -> its last ERROR message."""
         return self.books.last_error
+
+    def _state_changed(self, old: State, new: State) -> None:
+        """The state into the manager's block: at once when the node starts
+        or ends its routine; the cycle's Routine and Idle ride in the block
+        each tick publishes."""
+        self.mine["state"] = new.value
+        if self.block is not None and new in (State.ROUTINE, State.CLEANUP) and old != State.IDLE:
+            with self.block.write() as d:
+                d["state"] = new.value
+            self.block.read_into(self.mine.bytes)
 
     # -- hooks --
 
@@ -166,10 +171,12 @@ class Manager:
             self.books.msg_file = files.open_append(self.spec.messages_path)
         try:
             self._initialization()
+            self.life.process(Event.READY)
             # a developer's profile of the manager (tools/profile.py NODE/manager)
             profiled = hooks.profile(f"{self.spec.node}/manager")
             with profiled if profiled is not None else contextlib.nullcontext():
                 self._routine()
+            self.life.process(Event.DONE)
         except NodeFault as fault:
             self._fault(fault.reason, str(fault))
         except Exception as exc:
@@ -195,25 +202,13 @@ class Manager:
         spec = self.spec
         manifest = Manifest.for_session(spec.session_id)
         ld = self.open_local_data(manifest)
-        self.ready = Semaphore.create(
-            names.object_name(spec.session_id, spec.node, "ready"), manifest
-        )
-        self.sems.append(self.ready)
-        for j in range(len(spec.workers)):
-            self.sems.append(
-                Semaphore.create(names.object_name(spec.session_id, spec.node, f"go{j}"), manifest)
-            )
+        node_semaphores(spec, manifest, self.sems)  # ready, then each worker's go
+        self.ready = self.sems[0]
+        self.ring = log_ring(spec, manifest)
+        if self.ring is not None:  # every cycle's logged blocks, for the logging worker
+            from redistro.log.ring import Capture
 
-        from redistro.log.recorder import log_topics
-
-        topics = log_topics(spec)
-        if topics:  # every cycle's logged blocks into the ring, for the logging worker
-            from redistro.log.ring import Capture, LogRing, RingLayout
-
-            layout = RingLayout.of(topics, len(spec.workers))
-            self.ring = LogRing.create(spec.session_id, spec.node, layout, manifest=manifest)
             self.capture = Capture(self.ring, ld)
-
         self.initialize()
         # real-time priority for the routine only: the set-up above (imports,
         # opening drivers) must not hold off the plant or other nodes; the
@@ -230,24 +225,9 @@ class Manager:
         # beside its sockets; a producer (or this manager, on a fault) writes it
         self.wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         pass_fds = ((int(lock_fd),) if lock_fd else ()) + (self.wake_fd,)
-        for j, w in enumerate(spec.workers):
-            proc = spawn(
-                [
-                    "worker",
-                    "--spec",
-                    self.spec_path,
-                    "--index",
-                    str(j),
-                    "--manager-pid",
-                    str(os.getpid()),
-                    "--wake-fd",
-                    str(self.wake_fd),
-                ],
-                pass_fds=pass_fds,
-            )
-            self.children.append(_Child(w.name, proc.pid, os.pidfd_open(proc.pid)))
-            self.books.pids[j] = proc.pid
-            proc.returncode = 0  # reaped by _Child.reap, not by Popen
+        self.children = spawn_workers(spec, self.spec_path, self.wake_fd, pass_fds)
+        for j, child in enumerate(self.children):
+            self.books.pids[j] = child.pid
         self.on_cycle = [c for c, w in zip(self.children, spec.workers, strict=True) if w.on_cycle]
         self._wait_ready()
 
@@ -263,9 +243,9 @@ class Manager:
             if info is not None and info.si_signo == signals.SIG_ESTOP:
                 # another node faulted while this one started: its robot
                 # stays frozen, and the node ends on the group's e-stop
-                raise NodeFault("estop", self._relayed_estop() + " during start-up")
+                raise NodeFault("estop", relayed_estop(self.spec) + " during start-up")
             if info is not None:
-                raise NodeFault("abnormal", self._stop_text(info.si_signo) + " during start-up")
+                raise NodeFault("abnormal", stop_text(info.si_signo) + " during start-up")
             self.books.drain_messages()
             if time.monotonic() > deadline:
                 late = [
@@ -279,51 +259,53 @@ class Manager:
                 )
 
     def _routine(self) -> None:
-        block = self.block
-        assert block is not None  # created in Initialization
+        """Routine and Idle, cycle after cycle, until the node's work is
+        done (returns) or a fault (raises NodeFault)."""
         tick_timeout = max(0.5, 100 * self.timer.period_s)
-        with block.write() as d:
-            d["state"] = ProcState.ROUTINE
-        # Hot path on local records: the manager's own block is kept locally
-        # and published whole each tick; worker rows are snapshot into records.
-        block.read_into(self.mine.bytes)
         import gc
 
         gc.collect()
         gc.freeze()
         gc.disable()
-        self._routine_start = time.monotonic()
-        self._cpu_start = time.process_time()
+        t = self.timing
+        t.routine, t.cpu = (time.monotonic(), 0.0), (time.process_time(), 0.0)
         self.timer.start()
+        life = self.life
         try:
             while True:
                 info = signals.wait(ROUTINE_WAIT, tick_timeout)
                 if info is None:
                     raise NodeFault("abnormal", f"no timer tick for {tick_timeout} s")
-                sig = info.si_signo
-                if sig == signal.SIGCHLD:
-                    self._check_children()
+                if info.si_signo != signal.SIGALRM:
+                    self._between_ticks(info.si_signo)
                     continue
-                if sig == signals.SIG_ESTOP:  # the session owner relays a node's e-stop
-                    raise NodeFault("estop", self._relayed_estop())
-                if sig == signals.SIG_WAKE:
-                    # a worker's e-stop or trip: act now, not at the next tick
-                    self.books.check_failed()
-                    self.books.check_estop_requests()
-                    with contextlib.suppress(TornReadTimeout):  # the tick looks again
-                        self.on_wake()
-                    continue
-                if sig != signal.SIGALRM:
-                    raise NodeFault("abnormal", self._stop_text(sig))
+                if life.state is State.IDLE:
+                    life.process(Event.TICK)
                 if self.tick(time.monotonic_ns()):
                     return
+                life.process(Event.SYNCED)
                 # Idle: what need not hold the cycle back, after the syncs
                 self._idle(self._due_ns + self.timer.period_ns - IDLE_GUARD_NS)
         finally:
             self.timer.stop()
-            self._routine_end = time.monotonic()
-            self._cpu_end = time.process_time()
+            t.routine, t.cpu = (t.routine[0], time.monotonic()), (t.cpu[0], time.process_time())
             gc.enable()
+
+    def _between_ticks(self, sig: int) -> None:
+        """A signal other than the timer's: a worker exited, the session
+        owner relays an e-stop, a worker woke the manager (its e-stop or a
+        trip: acted on now, not at the next tick), or a stop."""
+        if sig == signal.SIGCHLD:
+            self._check_children()
+        elif sig == signals.SIG_ESTOP:
+            raise NodeFault("estop", relayed_estop(self.spec))
+        elif sig == signals.SIG_WAKE:
+            self.books.check_failed()
+            self.books.check_estop_requests()
+            with contextlib.suppress(TornReadTimeout):  # the tick looks again
+                self.on_wake()
+        else:
+            raise NodeFault("abnormal", stop_text(sig))
 
     def tick(self, now: int) -> bool:
         """One timer tick taken at ``now`` (CLOCK_MONOTONIC ns): the cycle
@@ -333,10 +315,11 @@ class Manager:
         work is done, or its cycle count reached). A fault raises
         :class:`NodeFault`."""
         due, late, missed = self.timer.due(now)
-        self.lateness.add(late)
+        t = self.timing
+        t.lateness.add(late)
         if missed:
-            self.overruns += 1
-            self.missed_ticks += missed
+            t.overruns += 1
+            t.missed_ticks += missed
         if self.cycle:
             if self.capture is not None:  # the cycle that ended, for the session log
                 self.capture(self.cycle, self._due_ns, self._tick_ns, self._estop)
@@ -350,21 +333,21 @@ class Manager:
             # a worker held off inside its write (a host stall): no
             # consistent view this tick; the next tick looks again (a
             # writer that stays stuck misses its heartbeats)
-            self.torn_ticks += 1
+            t.torn_ticks += 1
         self.cycle += 1
         mine = self.mine
         mine["cycle"] = self.cycle
         mine["tick_due_ns"] = due
         mine["tick_ns"] = now
-        mine["overruns"] = self.overruns
-        mine["missed_ticks"] = self.missed_ticks
+        mine["overruns"] = t.overruns
+        mine["missed_ticks"] = t.missed_ticks
         assert self.block is not None
         self.block.publish(mine.bytes)
         for child in self.on_cycle:
             child.sync()
         self._due_ns = due
         self._tick_ns = now
-        self.tick_work.add(time.monotonic_ns() - now)
+        t.tick_work.add(time.monotonic_ns() - now)
         return False
 
     def idle(self, deadline_ns: int) -> bool:
@@ -378,33 +361,13 @@ class Manager:
         own idle work in slices, until the deadline or the next tick (pending,
         it is taken by the wait that follows)."""
         self.books.drain_messages()
-        self.idle_slices += 1
+        self.timing.idle_slices += 1
         clock = time.monotonic_ns
         while clock() < deadline_ns and signal.SIGALRM not in signal.sigpending():
             more = self.idle(deadline_ns)
-            self.idle_slices += 1
+            self.timing.idle_slices += 1
             if not more:
                 return
-
-    def _relayed_estop(self) -> str:
-        source = "another node"
-        if self.spec.result_path:
-            # the faulted nodes' relay files name them
-            mine = f"{RELAY_FILE}.{self.spec.node}"
-            with contextlib.suppress(OSError):
-                folder = Path(self.spec.result_path).parent
-                found = sorted(
-                    p.name.removeprefix(f"{RELAY_FILE}.")
-                    for p in folder.glob(f"{RELAY_FILE}.*")
-                    if p.name != mine
-                )
-                source = ", ".join(found) or source
-        return f"e-stop from {source} (relayed by the session owner)"
-
-    def _stop_text(self, sig: int) -> str:
-        if sig == signals.SIG_ORPHAN:
-            return "session owner died"
-        return f"interrupted by {signal.Signals(sig).name}"
 
     # -- checks --
 
@@ -437,6 +400,7 @@ class Manager:
             return  # the first fault is the cause; later ones are consequences
         r.result, r.reason = reason, message
         r.fault_monotonic_ns, r.fault_cycle = time.monotonic_ns(), self.cycle
+        self.life.process(Event.FAULT)
         # act first (e-stop for the workers, the ESC freezes its robot), then tell
         self._estop = True
         if self.block is not None:
@@ -451,17 +415,8 @@ class Manager:
             self.on_fault(reason, message)  # the ESC's robot: frozen now
         except Exception:
             log.exception("on_fault hook failed")
-        if reason != "estop" and self.spec.owner_pid:
-            # ... and the session owner relays it to the nodes it has not
-            # reached within a part of a cycle (at once when this node has no
-            # DDM to carry it): a SIGCHLD sent by kill (SI_USER) asks for that
-            # (an owner that does not expect it ignores it); the relay file
-            # says whether this node's door is down
-            with contextlib.suppress(OSError):
-                if self.spec.result_path:
-                    relay = Path(self.spec.result_path).parent / f"{RELAY_FILE}.{self.spec.node}"
-                    relay.write_text("no door\n" if self.books.no_door else "door\n")
-                os.kill(self.spec.owner_pid, signal.SIGCHLD)
+        if reason != "estop":
+            ask_for_relay(self.spec, self.books.no_door)
         # the reaction is out; what is left (the workers' end, the results)
         # must not hold the simulated plant off the CPUs while it applies
         # the group's freezes
@@ -471,6 +426,8 @@ class Manager:
     # -- cleanup --
 
     def _cleanup(self, started: float) -> None:
+        if self.life.state is not State.CLEANUP:  # (an interrupt: no fault said so)
+            self.life.process(Event.FAULT)
         try:
             self.timer.stop()
             try:
@@ -478,9 +435,6 @@ class Manager:
             except Exception as exc:
                 log.exception("before_end hook failed")
                 self._fault("abnormal", f"cleanup error: {exc!r}")
-            if self.block is not None:
-                with self.block.write() as d:
-                    d["state"] = ProcState.CLEANUP
             # the robot is frozen (before_end); what is left is bookkeeping
             sched.leave_real_time()
             self._end_workers()
@@ -512,82 +466,121 @@ class Manager:
             self._write_result()
             if self.books.msg_file is not None:
                 self.books.msg_file.close()
+            self.life.process(Event.CLEANED)
 
     def _end_workers(self) -> None:
-        for j, child in enumerate(self.children):
-            if child.alive:
-                # A hung worker gets no chance to clean up: it would not take it.
-                signals.send(
-                    child.pidfd, signal.SIGKILL if j in self.books.hung else signals.SIG_END
-                )
+        end_workers(self.children, self.books.hung)
         for sem in self.sems[1:]:  # wake workers waiting at a collecting point
             sem.release()
-        deadline = time.monotonic() + self.spec.shutdown_timeout_s
-        while any(c.alive for c in self.children):
-            for child in self.children:
-                child.reap()
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            signals.wait(frozenset({signal.SIGCHLD}), min(remaining, 0.05))
-        for child in self.children:
-            if child.alive:
-                self._message(
-                    "manager", logging.WARNING, f"worker {child.name} did not end in time; killed"
-                )
-                signals.send(child.pidfd, signal.SIGKILL)
-                child.reap(wait=True)
+
+        def warn(text: str) -> None:
+            self._message("manager", logging.WARNING, text)
+
+        reap_workers(self.children, self.spec.shutdown_timeout_s, warn)
 
     def _collect(self, started: float) -> None:
-        books = self.books
-        books.drain_messages()
-        routine_s = max(0.0, self._routine_end - self._routine_start)
-        manager_cpu_s = max(0.0, self._cpu_end - self._cpu_start)
-        exits = [
-            describe_status(c.status) if c.status is not None else "unknown" for c in self.children
-        ]
-        exits += ["unknown"] * (len(self.spec.workers) - len(exits))
-        workers = books.worker_results(routine_s, exits) if books.rows else []
-        cpu_s = manager_cpu_s + sum(w.cpu_s for w in workers)
-        r = self.result
-        r.started, r.ended = iso_time(started), iso_time(time.time())
-        r.rate_hz = self.spec.rate_hz
-        r.period_us = self.timer.period_ns / 1e3
-        r.cycles = self.cycle
-        r.routine_s = round(routine_s, 3)
-        r.manager_overruns = self.overruns
-        r.missed_ticks = self.missed_ticks
-        r.worker_overruns = sum(w.overruns for w in workers)
-        r.worker_skipped = sum(w.skipped for w in workers)
-        r.late_heartbeats = books.late_heartbeats
-        r.missed_heartbeats = books.missed_heartbeats
-        r.deadline_misses = books.deadline_misses
-        r.incomplete_cycles = books.incomplete_cycles
-        r.torn_ticks = self.torn_ticks
-        r.idle_slices = self.idle_slices
-        # timer periods without a completed cycle: finished late, unfinished
-        # at the next tick, or a tick never taken
-        r.overruns = books.deadline_misses + books.incomplete_cycles + self.missed_ticks
-        r.lateness_us = self.lateness.summary_us()
-        r.makespan_us = books.makespan.summary_us()
-        r.manager_work_us = self.tick_work.summary_us()
-        r.cpu_s = round(cpu_s, 3)
-        r.cpu_percent = round(100 * cpu_s / routine_s, 1) if routine_s else 0.0
-        r.manager = {
-            "pid": os.getpid(),
-            "scheduling": self.granted.as_dict() if self.granted else {},
-            "cpu_s": round(manager_cpu_s, 3),
-            "cpu_percent": round(100 * manager_cpu_s / routine_s, 2) if routine_s else 0.0,
-            "tick_work_us": self.tick_work.summary_us(),
-        }
-        r.workers = workers
-        r.messages = books.messages
-        r.messages_lost = books.messages_lost
+        self.books.drain_messages()
+        collect(self.result, self, started)
 
     def _write_result(self) -> None:
         if not self.spec.result_path:
             return
         files.replace(self.spec.result_path, json.dumps(self.result.as_dict(), indent=1))
+
+
+def collect(r: NodeResult, m: Manager, started: float) -> None:
+    """The node's figures into its result, at the end of Cleanup."""
+    books, t = m.books, m.timing
+    routine_s, manager_cpu_s = t.routine_s, t.cpu_s
+    exits = [c.exit for c in m.children]
+    exits += ["unknown"] * (len(m.spec.workers) - len(exits))
+    workers = books.worker_results(routine_s, exits) if books.rows else []
+    cpu_s = manager_cpu_s + sum(w.cpu_s for w in workers)
+    r.started, r.ended = iso_time(started), iso_time(time.time())
+    r.rate_hz, r.period_us = m.spec.rate_hz, m.timer.period_ns / 1e3
+    r.cycles, r.routine_s = m.cycle, round(routine_s, 3)
+    r.manager_overruns, r.missed_ticks = t.overruns, t.missed_ticks
+    r.worker_overruns = sum(w.overruns for w in workers)
+    r.worker_skipped = sum(w.skipped for w in workers)
+    r.late_heartbeats, r.missed_heartbeats = books.late_heartbeats, books.missed_heartbeats
+    r.deadline_misses, r.incomplete_cycles = books.deadline_misses, books.incomplete_cycles
+    r.torn_ticks, r.idle_slices = t.torn_ticks, t.idle_slices
+    # timer periods without a completed cycle: finished late, unfinished
+    # at the next tick, or a tick never taken
+    r.overruns = books.deadline_misses + books.incomplete_cycles + t.missed_ticks
+    r.lateness_us = t.lateness.summary_us()
+    r.makespan_us = books.makespan.summary_us()
+    r.manager_work_us = t.tick_work.summary_us()
+    r.cpu_s = round(cpu_s, 3)
+    r.cpu_percent = round(100 * cpu_s / routine_s, 1) if routine_s else 0.0
+    r.manager = {
+        "pid": os.getpid(),
+        "scheduling": m.granted.as_dict() if m.granted else {},
+        "cpu_s": round(manager_cpu_s, 3),
+        "cpu_percent": round(100 * manager_cpu_s / routine_s, 2) if routine_s else 0.0,
+        "tick_work_us": t.tick_work.summary_us(),
+    }
+    r.workers = workers
+    r.messages, r.messages_lost = books.messages, books.messages_lost
+
+
+def node_semaphores(spec: NodeSpec, manifest: Manifest, into: list[Semaphore]) -> None:
+    """The node's semaphores, into ``into`` as each is made (Cleanup removes
+    what was made): its workers' ready, then each worker's go."""
+    for n in ["ready"] + [f"go{j}" for j in range(len(spec.workers))]:
+        into.append(Semaphore.create(names.object_name(spec.session_id, spec.node, n), manifest))
+
+
+def log_ring(spec: NodeSpec, manifest: Manifest) -> Any:
+    """The ring the manager captures each cycle's logged blocks into (None:
+    the node logs nothing)."""
+    from redistro.log.recorder import log_topics
+
+    topics = log_topics(spec)
+    if not topics:
+        return None
+    from redistro.log.ring import LogRing, RingLayout
+
+    layout = RingLayout.of(topics, len(spec.workers))
+    return LogRing.create(spec.session_id, spec.node, layout, manifest=manifest)
+
+
+def stop_text(sig: int) -> str:
+    if sig == signals.SIG_ORPHAN:
+        return "session owner died"
+    return f"interrupted by {signal.Signals(sig).name}"
+
+
+def relayed_estop(spec: NodeSpec) -> str:
+    """What a relayed e-stop says: the nodes that faulted (their relay
+    files in the session folder name them)."""
+    source = "another node"
+    if spec.result_path:
+        mine = f"{RELAY_FILE}.{spec.node}"
+        with contextlib.suppress(OSError):
+            folder = Path(spec.result_path).parent
+            found = sorted(
+                p.name.removeprefix(f"{RELAY_FILE}.")
+                for p in folder.glob(f"{RELAY_FILE}.*")
+                if p.name != mine
+            )
+            source = ", ".join(found) or source
+    return f"e-stop from {source} (relayed by the session owner)"
+
+
+def ask_for_relay(spec: NodeSpec, no_door: bool) -> None:
+    """A faulted node asks the session owner to relay its e-stop to the
+    nodes its DDM has not reached within a part of a cycle (at once when it
+    has no DDM): a SIGCHLD sent by kill (SI_USER) asks for that (an owner
+    that does not expect it ignores it); the relay file says whether this
+    node's door is down."""
+    if not spec.owner_pid:
+        return
+    with contextlib.suppress(OSError):
+        if spec.result_path:
+            relay = Path(spec.result_path).parent / f"{RELAY_FILE}.{spec.node}"
+            relay.write_text("no door\n" if no_door else "door\n")
+        os.kill(spec.owner_pid, signal.SIGCHLD)
 
 
 def run_manager(spec_path: str) -> int:

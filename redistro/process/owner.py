@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 from redistro.ipc import signals
 from redistro.ipc.session import Session
 from redistro.localdata.view import NodeView
-from redistro.process.manager import describe_status
+from redistro.process.children import describe_status
 from redistro.process.result import NodeResult
 from redistro.process.spawn import spawn
 from redistro.process.spec import NodeSpec

@@ -75,6 +75,7 @@ class NodeResult:
     kind: str = ""
     result: str = "ok"
     reason: str = ""
+    kernels: bool = False  # the compiled kernels ran (not turned off, REDISTRO_KERNELS=0)
     session_id: str = ""
     started: str = ""
     ended: str = ""

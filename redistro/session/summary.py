@@ -63,6 +63,7 @@ def _first_fault(results: list[NodeResult]) -> NodeResult | None:
 NODE_FIGURES = (
     "result",
     "reason",
+    "kernels",
     "rate_hz",
     "cycles",
     "overruns",
@@ -215,6 +216,7 @@ def build_summary(
         for k in (
             "state",
             "error",
+            "kernels",
             "steps",
             "rtf",
             "late_steps",

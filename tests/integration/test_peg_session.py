@@ -83,7 +83,10 @@ def _check_log(run: Path, summary: dict[str, Any]) -> None:
 def test_peg_insertion_over_each_transport(
     calibrated: Path, tmp_path: Path, transport: str
 ) -> None:
-    """Over sockets through ``redistro bench group`` (the session, measured)."""
+    """Over sockets through ``redistro bench group`` (the session, measured);
+    over the reflective memory with the compiled kernels off
+    (``REDISTRO_KERNELS=0``): every node and the plant on the Python path,
+    the same session, the same result."""
     runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     figures = tmp_path / "group.json"
@@ -91,13 +94,17 @@ def test_peg_insertion_over_each_transport(
     if transport == "socket":
         done = run_cli(*common, "bench", "group", SHORT, "--json", str(figures), timeout=600)
     else:
-        done = run_cli(*common, "session", SHORT, "--out", str(out), timeout=600)
+        off = {"REDISTRO_KERNELS": "0"}
+        done = run_cli(*common, "session", SHORT, "--out", str(out), timeout=600, env=off)
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-3000:]
     if transport == "socket":
         bench = load_json(figures)
         out = Path(bench["run_dir"])
         _check_bench(bench)
     summary = load_json(out / "summary.json")
+    compiled = transport == "socket"
+    assert summary["plant"]["kernels"] is compiled
+    assert all(n["kernels"] is compiled for n in summary["nodes"].values()), summary["nodes"]
     _check_peg(summary)
     _check_log(out, summary)
     print({s["name"]: s for s in summary["segments"]})

@@ -92,15 +92,15 @@ def test_every_tick_publishes_the_cycle_and_syncs_every_worker(
     assert books.late_heartbeats == books.missed_heartbeats == 0
     assert books.deadline_misses == books.incomplete_cycles == 0
     assert books.makespan.count == 19  # every cycle that ended, its last stage's span
-    assert m.lateness.summary_us()["p50"] == pytest.approx(50.0)
-    assert m.overruns == m.missed_ticks == 0
+    assert m.timing.lateness.summary_us()["p50"] == pytest.approx(50.0)
+    assert m.timing.overruns == m.timing.missed_ticks == 0
 
 
 def test_a_late_tick_counts_the_ticks_it_missed(node: tuple[Manager, list[FakeWorker]]) -> None:
     m, _ = node
     _ticks(m, 1, 3)
     m.tick(6 * PERIOD_NS + 1000)  # ticks 4 and 5 never came
-    assert m.missed_ticks == 2 and m.overruns == 1 and m.cycle == 4
+    assert m.timing.missed_ticks == 2 and m.timing.overruns == 1 and m.cycle == 4
 
 
 def test_a_hung_worker_ends_the_node_at_its_limit(node: tuple[Manager, list[FakeWorker]]) -> None:
