@@ -30,22 +30,27 @@ from typing import Any
 import numpy as np
 
 from redistro import kernels
-from redistro.config.hardware import RobotHardware
+from redistro.config.hardware import RobotHardware, SensorsConfig
 from redistro.config.model import Config
 from redistro.drivers.io import registers as R
 from redistro.drivers.io.bank import TRUTH
 from redistro.drivers.io.image import RegisterImage
 from redistro.drivers.io.registers import BOARD_NAMES, BoardType
 from redistro.plant import chassis_layout
+from redistro.plant.chassis_plans import plan_kernels, truth_table
+from redistro.plant.chassis_reference import apply_numpy, sample_numpy
 from redistro.plant.devices import Encoders, HomeSwitches, Motors, WristSensors
 from redistro.plant.disturbance import Disturbance
-from redistro.plant.world import BRAKE_STOPPED_RAD_S, Arm, World
+from redistro.plant.watchdog import AmplifierWatchdog
+from redistro.plant.world import Arm, World
 
 DOF = 7
 _AMPS_PER_CODE = R.DAC_FULL_SCALE_V / 2048  # volts per DAC code
 _ADC_CODES_PER_V = 32768 / R.ADC_FULL_SCALE_V
 count = np.count_nonzero  # on the hot path: a third of what ndarray.any() costs
 HOME_AS_SWITCH, HOME_STUCK_OFF, HOME_STUCK_ON = 0, 1, 2
+# the wires each joint has, by kind (fields of the hardware's joint wiring)
+WIRE_KINDS = ("encoder", "dac", "home", "brake", "torque", "tach")
 
 
 @dataclass(frozen=True)
@@ -88,7 +93,83 @@ class RobotRig:
     tool_rot: np.ndarray = field(default_factory=lambda: np.eye(3))
 
 
+# The register fields each step reads or writes, by board type and bank
+# (views made once: a field lookup per step costs as much as the operation).
+REGISTERS: tuple[tuple[str, BoardType, str, str], ...] = (
+    ("enc_counter", BoardType.ENCODER, "in", "counter"),
+    ("enc_home", BoardType.ENCODER, "in", "home"),
+    ("enc_latch", BoardType.ENCODER, "in", "latch"),
+    ("enc_latch_count", BoardType.ENCODER, "in", "latch_count"),
+    ("enc_latch_edge", BoardType.ENCODER, "in", "latch_edge"),
+    ("enc_preset_ack", BoardType.ENCODER, "in", "preset_ack"),
+    ("enc_preset_value", BoardType.ENCODER, "out", "preset_value"),
+    ("enc_latch_mode", BoardType.ENCODER, "out", "latch_mode"),
+    ("dac_code", BoardType.DAC, "out", "code"),
+    ("dac_watchdog", BoardType.DAC, "out", "watchdog"),
+    ("dac_readback", BoardType.DAC, "in", "readback"),
+    ("dio_outputs", BoardType.DIO, "out", "outputs"),
+    ("dio_readback", BoardType.DIO, "in", "outputs_readback"),
+    ("dio_inputs", BoardType.DIO, "in", "inputs"),
+    ("adc_code", BoardType.ADC, "in", "code"),
+    ("ft_strain", BoardType.FORCE, "in", "strain"),
+    ("ft_sample", BoardType.FORCE, "in", "sample"),
+    ("ft_calibration", BoardType.FORCE, "in", "calibration"),
+)
+
+
+class Registers:
+    """The chassis' view of its boards' registers (REGISTERS), and the
+    encoder boards' request words: preset_req and latch_req lie side by
+    side, one (boards, 8) view of both, with the requests last seen."""
+
+    enc_counter: np.ndarray
+    enc_home: np.ndarray
+    enc_latch: np.ndarray
+    enc_latch_count: np.ndarray
+    enc_latch_edge: np.ndarray
+    enc_preset_ack: np.ndarray
+    enc_preset_value: np.ndarray
+    enc_latch_mode: np.ndarray
+    dac_code: np.ndarray
+    dac_watchdog: np.ndarray
+    dac_readback: np.ndarray
+    dio_outputs: np.ndarray
+    dio_readback: np.ndarray
+    dio_inputs: np.ndarray
+    adc_code: np.ndarray
+    ft_strain: np.ndarray
+    ft_sample: np.ndarray
+    ft_calibration: np.ndarray
+
+    def __init__(self, banks: RegisterImage) -> None:
+        for attr, board, side, name in REGISTERS:
+            setattr(self, attr, (banks.inp if side == "in" else banks.out)[board][name])
+        o_enc = banks.out[BoardType.ENCODER]
+        fields = o_enc.dtype.fields
+        assert fields is not None
+        off = int(fields["preset_req"][1])
+        assert int(fields["latch_req"][1]) == off + 4 * R.ENC_AXES
+        self.enc_requests = np.ndarray(
+            (len(o_enc), 2 * R.ENC_AXES),
+            dtype="<u4",
+            buffer=banks.image,
+            offset=banks.base[(BoardType.ENCODER, "out")] + off,
+            strides=(o_enc.dtype.itemsize, 4),
+        )
+        self.requests_seen = np.zeros(self.enc_requests.shape, dtype="<u4")
+        self.req_changed = np.zeros(self.enc_requests.shape, dtype=bool)
+        self.steps_in = [banks.inp[t]["step"] for t in banks.inp if len(banks.inp[t])]
+
+
 class Chassis:
+    """The simulated I/O chassis (see the module's text)."""
+
+    wrists: WristSensors
+    ft_rows: np.ndarray
+    _wrist_rigs: list[tuple[RobotRig, int]]
+    _rot9: list[np.ndarray]
+    _strain: np.ndarray
+
     def __init__(
         self,
         cfg: Config,
@@ -103,6 +184,27 @@ class Chassis:
         (:mod:`redistro.plant.disturbance`; none normally)."""
         self.world = world
         self.kernels = kernels.AVAILABLE if use_kernels is None else use_kernels
+        self.disturbance = disturbance
+        names = list(hardware)
+        self.n = n = DOF * len(names)
+        wrists = self._boards(cfg, hardware, names)
+        self._state(n, len(wrists), [hardware[r].sensors for r in names])
+        wires = self._robots(hardware, names, world)
+        fit_wrist_sensors(self, cfg, wrists)
+        self._wiring(wires, [hardware[r].sensors for r in names])
+        self.reg = Registers(self.banks)
+        self._step_buffers(cfg)
+        plans: tuple[Any, Any, Any] = plan_kernels(self) if self.kernels else (None, None, None)
+        self._apply_plan, self._sample_plan, self._truth_plan = plans
+        for rig in self.rigs:  # brakes on at power-up: the arms hold until released
+            world.set_brakes(rig.arm, np.ones(DOF, dtype=bool), rig.brake_torque_nm)
+        self.sample()
+
+    def _boards(
+        self, cfg: Config, hardware: dict[str, RobotHardware], names: list[str]
+    ) -> list[tuple[int, int, Any, str]]:
+        """The boards' register image, the joints' devices; the wrists:
+        (robot, force board row, calibration, name) each."""
         self.boards: dict[int, BoardType] = {}
         for hw in hardware.values():
             for b in hw.io.boards.values():
@@ -110,9 +212,6 @@ class Chassis:
         self.banks = banks = RegisterImage(self.boards)
         self.image = banks.image
         self.inp = banks.rec_in  # address -> the board's in bank (0-d record)
-        names = list(hardware)
-        n = DOF * len(names)
-        self.n = n
         sensors = [hardware[r].sensors for r in names]
         q0 = np.concatenate(
             [np.asarray(cfg.robots[r].initial_q_rad, dtype=np.float64) for r in names]
@@ -130,8 +229,11 @@ class Chassis:
                 wrists.append(
                     (i, banks.row[w.address], hardware[name].sensors.ft_calibration, name)
                 )
-        # the chassis' state: one buffer (the truth is copied out of it in one call)
-        st = self.state = kernels.Arena(64 * n + 1024 + 160 * len(wrists))
+        return wrists
+
+    def _state(self, n: int, n_wrists: int, sensors: list[SensorsConfig]) -> None:
+        """The chassis' state: one buffer (the truth is copied out of it in one call)."""
+        st = self.state = kernels.Arena(64 * n + 1024 + 160 * n_wrists)
         self.step_rec = st.take("step", chassis_layout.STEP, ())  # the plant's step
         self.step_now = self.step_rec["step"]
         self.q = st.take("q", np.float64, n)
@@ -150,16 +252,22 @@ class Chassis:
         switch[...] = self.homes.state
         self.homes.state = switch
         self.home = st.take("home", np.bool_, n)  # the levels on the wires (faults may force them)
-        self.wrenches = st.take("wrenches", np.float64, (len(wrists), 6))
-        self.tool_xyz = st.take("tool_xyz", np.float64, (len(wrists), 3))
-        self.tool_rot = st.take("tool_rot", np.float64, (len(wrists), 3, 3))
+        self.wrenches = st.take("wrenches", np.float64, (n_wrists, 6))
+        self.tool_xyz = st.take("tool_xyz", np.float64, (n_wrists, 3))
+        self.tool_rot = st.take("tool_rot", np.float64, (n_wrists, 3, 3))
         self.brake_torque_nm = np.concatenate(
             [np.asarray(s.brake_torque_nm, dtype=np.float64) for s in sensors]
         )
         self._last_home = np.zeros(n, dtype=bool)
         self._home_force = np.zeros(n, dtype=np.uint8)  # HOME_AS_SWITCH, or a stuck switch
-        enc, dac, home, brake, torque, tach = ([] for _ in range(6))
-        ft = banks.inp[BoardType.FORCE]
+
+    def _robots(
+        self, hardware: dict[str, RobotHardware], names: list[str], world: World
+    ) -> dict[str, list[tuple[int, ...]]]:
+        """Each robot's rig (its arm's state in the chassis' vectors), and
+        every joint's wires of each kind (WIRE_KINDS), in joint order."""
+        banks = self.banks
+        wires: dict[str, list[tuple[int, ...]]] = {kind: [] for kind in WIRE_KINDS}
         self.rigs: list[RobotRig] = []
         for i, name in enumerate(names):
             hw = hardware[name]
@@ -173,12 +281,8 @@ class Chassis:
             arm.brake_torque_nm = self.brake_torque_nm[sl].copy()
             js = hw.joints
             first = DOF * i
-            enc += banks.wires([w.encoder for w in js], first)
-            dac += banks.wires([w.dac for w in js], first)
-            home += banks.wires([w.home for w in js], first)
-            brake += banks.wires([w.brake for w in js], first)
-            torque += banks.wires([w.torque for w in js], first)
-            tach += banks.wires([w.tach for w in js], first)
+            for kind, got in wires.items():
+                got += banks.wires([getattr(w, kind) for w in js], first)
             self.rigs.append(
                 RobotRig(
                     name=name,
@@ -196,25 +300,16 @@ class Chassis:
                     wrist=hw.wrist is not None,
                 )
             )
-        # the wrist sensors, one row each
-        self.wrists = WristSensors(
-            np.array([w[2] for w in wrists]).reshape(-1, 6, 6),
-            np.array([cfg.plant.ft_bias.get(w[3], [0.0] * 6) for w in wrists]).reshape(-1, 6),
-            cfg.plant.ft_noise_n,
-            cfg.plant.ft_noise_nm,
-            cfg.plant.seed,
-        )
-        self.ft_rows = np.array([w[1] for w in wrists], dtype=np.int64)
-        self._wrist_rigs: list[tuple[RobotRig, int]] = []
-        self._rot9 = []
-        for k, (i, row, cal, _) in enumerate(wrists):
-            rig = self.rigs[i]
-            rig.ft_row, rig.wrench = row, self.wrenches[k]
-            rig.tool_xyz, rig.tool_rot = self.tool_xyz[k], self.tool_rot[k]
-            self._rot9.append(self.tool_rot[k].reshape(9))  # a view: filled in place each step
-            ft[row]["calibration"] = np.asarray(cal)
-            self._wrist_rigs.append((rig, k))
-        self._strain = np.zeros((len(wrists), 6), dtype=np.int32)
+        return wires
+
+    def _wiring(
+        self, wires: dict[str, list[tuple[int, ...]]], sensors: list[SensorsConfig]
+    ) -> None:
+        """The wires as index arrays; the ADC's sources and scales; the DIO
+        boards' home words."""
+        n, banks = self.n, self.banks
+        enc, dac, home, brake = (wires[k] for k in ("encoder", "dac", "home", "brake"))
+        torque, tach = wires["torque"], wires["tach"]
         # every joint has an encoder axis, a DAC channel, a home bit and a
         # brake bit (the config checks it): those wires are in joint order
         self.enc, self.dac, self.home_w, self.brake_w = (
@@ -245,36 +340,11 @@ class Chassis:
             self._home_weights[r, j] = float(1 << c)
         self._homef = np.zeros(n)
         self._dio_word = np.zeros(dio_n)
-        # field views (made once: a field lookup per step costs as much as the op)
-        i_enc, o_enc = banks.inp[BoardType.ENCODER], banks.out[BoardType.ENCODER]
-        self.enc_counter, self.enc_home = i_enc["counter"], i_enc["home"]
-        self.enc_latch, self.enc_latch_count = i_enc["latch"], i_enc["latch_count"]
-        self.enc_latch_edge, self.enc_preset_ack = i_enc["latch_edge"], i_enc["preset_ack"]
-        self.enc_preset_value, self.enc_latch_mode = o_enc["preset_value"], o_enc["latch_mode"]
-        # preset_req and latch_req lie side by side: one (boards, 8) view of both
-        fields = o_enc.dtype.fields
-        assert fields is not None
-        off = int(fields["preset_req"][1])
-        assert int(fields["latch_req"][1]) == off + 4 * R.ENC_AXES
-        self.enc_requests = np.ndarray(
-            (len(o_enc), 2 * R.ENC_AXES),
-            dtype="<u4",
-            buffer=self.image,
-            offset=banks.base[(BoardType.ENCODER, "out")] + off,
-            strides=(o_enc.dtype.itemsize, 4),
-        )
-        self._requests_seen = np.zeros(self.enc_requests.shape, dtype="<u4")
-        self._req_changed = np.zeros(self.enc_requests.shape, dtype=bool)
-        i_dac, o_dac = banks.inp[BoardType.DAC], banks.out[BoardType.DAC]
-        self.dac_code, self.dac_watchdog = o_dac["code"], o_dac["watchdog"]
-        self.dac_readback = i_dac["readback"]
-        self.dio_outputs = banks.out[BoardType.DIO]["outputs"]
-        self.dio_readback = banks.inp[BoardType.DIO]["outputs_readback"]
-        self.dio_inputs = banks.inp[BoardType.DIO]["inputs"]
-        self.adc_code = banks.inp[BoardType.ADC]["code"]
-        self.ft_strain, self.ft_sample = ft["strain"], ft["sample"]
-        self.ft_calibration = ft["calibration"]
-        self.steps_in = [banks.inp[t]["step"] for t in banks.inp if len(banks.inp[t])]
+
+    def _step_buffers(self, cfg: Config) -> None:
+        """Per-step work buffers, the amplifiers' watchdog, the freezes and
+        the truth."""
+        n, banks = self.n, self.banks
         # per-step buffers
         self._cur = np.zeros(n)
         self._word = np.zeros(n, dtype=np.uint32)
@@ -293,187 +363,21 @@ class Chassis:
         }
         # the amplifiers' watchdog: per DAC board, its last value and when it moved
         self.watchdog_ns = round(cfg.plant.output_watchdog_ms * 1e6)
-        n_dac = len(o_dac)
-        self._wd_values = [0] * n_dac  # each DAC board's watchdog register, last seen
-        self._wd_ns = [0] * n_dac  # when it last moved
-        self._dac_rows = [np.unique(self.dac.rows[rig.sl]).tolist() for rig in self.rigs]
-        self._joint_cut = np.zeros(n, dtype=bool)
-        self._wd_due = 0  # when the earliest armed board's watchdog runs out (0: none armed)
-        self._any_cut = False
-        self.watchdog_tripped = [False] * len(self.rigs)
-        self.watchdog_trips: list[dict[str, Any]] = []  # robot, monotonic_ns, step
+        robot_boards = [np.unique(self.dac.rows[rig.sl]).tolist() for rig in self.rigs]
+        n_dac = len(banks.out[BoardType.DAC])
+        self.watchdog = AmplifierWatchdog(self.watchdog_ns, n_dac, robot_boards, n)
+        self._joint_cut = self.watchdog.joint_cut
+        self.watchdog_trips = self.watchdog.trips
         # every time an arm becomes fully braked (a freeze): robot, step, time
         self.freezes: list[dict[str, Any]] = []
         self._all_braked = [True] * len(self.rigs)
         # the simulation's ground truth per robot (the bank publishes it; no driver reads it)
         self.truth = np.zeros(len(self.rigs), dtype=TRUTH)
         self.truth_image = self.truth.view(np.uint8)
-        self._truth_copy = self._truth_table()
+        self._truth_copy = truth_table(self)
         self._contact = [
             (rig, self.truth[self.rigs.index(rig)]["contact_world"]) for rig, _ in self._wrist_rigs
         ]
-        self.disturbance = disturbance
-        if self.kernels:
-            self._plans()
-        for rig in self.rigs:  # brakes on at power-up: the arms hold until released
-            world.set_brakes(rig.arm, np.ones(DOF, dtype=bool), rig.brake_torque_nm)
-        self.sample()
-
-    # -- the kernels' plans --
-
-    def _plans(self) -> None:
-        b = self.banks
-        enc, dac, adc, dio, force = (
-            BoardType.ENCODER,
-            BoardType.DAC,
-            BoardType.ADC,
-            BoardType.DIO,
-            BoardType.FORCE,
-        )
-        e, d, h, br = self.enc, self.dac, self.home_w, self.brake_w
-
-        at = b.offsets
-
-        def every(t: BoardType) -> range:
-            return range(len(b.inp[t]))
-
-        copy = [  # the readbacks: what the DAC and DIO boards drive
-            (
-                b.offset(dac, "out", r, "code"),
-                b.offset(dac, "in", r, "readback"),
-                2 * R.DAC_CHANNELS,
-                0,
-            )
-            for r in every(dac)
-        ] + [
-            (
-                b.offset(dio, "out", r, "outputs"),
-                b.offset(dio, "in", r, "outputs_readback"),
-                4,
-                R.DIO_MASK,
-            )
-            for r in every(dio)
-        ]
-        self._apply_plan = kernels.plan(
-            "chassis_apply",
-            image=self.image,
-            brake_off=at(dio, "out", "outputs", br.rows),
-            brake_bit=br.ch.astype(np.int64),
-            dac_off=at(dac, "out", "code", d.rows, d.ch, 2),
-            cut=self._joint_cut,
-            amps_per_code=_AMPS_PER_CODE * self.motors.amps_per_volt,
-            max_current=self.motors.max_current_a,
-            nm_per_amp=self.motors.nm_per_amp,
-            motor_tau=self.motor_tau,
-            brake=self._brake,
-            braked=self.braked,
-            copy=kernels.table("chassis_apply", "copy", copy),
-            req_off=at(enc, "out", "preset_req", every(enc)),
-            req_seen=self._requests_seen.view(np.uint8).reshape(-1),
-        )
-        self._sample_plan = kernels.plan(
-            "chassis_sample",
-            image=self.image,
-            q=self.q,
-            qd=self.qd,
-            tau=self.tau,
-            applied=self.applied,
-            motor_tau=self.motor_tau,
-            braked=self.braked,
-            held=self.held,
-            stopped=self._stopped,
-            counts_per_rad=self.encoders.counts_per_rad,
-            enc_offset=self.encoders.offset,
-            counts=self.counts,
-            counter_off=at(enc, "in", "counter", e.rows, e.ch, 4),
-            home_center=self.homes.center,
-            home_on=self.homes.on_within,
-            home_off=self.homes.off_beyond,
-            switch=self.homes.state,
-            force=self._home_force,
-            home=self.home,
-            last_home=self._last_home,
-            edges=self._edges,
-            home_reg_off=at(enc, "in", "home", e.rows, e.ch, 1),
-            dio_clear=at(dio, "in", "inputs", every(dio)),
-            home_word=at(dio, "in", "inputs", h.rows),
-            home_bit=h.ch.astype(np.int64),
-            adc_src=self.adc_src.astype(np.int64),
-            adc_scale=np.ascontiguousarray(self.adc_scale),
-            adc_off=at(adc, "in", "code", self.adc_rows, self.adc_ch, 2),
-            wrench=self.wrenches,
-            inverse=self.wrists.inverse,
-            noise=self.wrists.noise,
-            noise_at=self.wrists.noise_at,
-            strain_off=at(force, "in", "strain", self.ft_rows),
-            sample_off=at(force, "in", "sample", self.ft_rows),
-            step_off=np.concatenate([at(t, "in", "step", every(t)) for t in b.inp]),
-            step=self.step_rec,
-        )
-        self._truth_plan = kernels.plan(
-            "copy", src=self.state.buffer, dst=self.truth_image, table=self._truth_copy
-        )
-
-    def _truth_table(self) -> np.ndarray[Any, Any]:
-        """What the truth records copy from the state: (src, dst, size) rows."""
-        st, f = self.state, TRUTH.fields
-        assert f is not None
-        rows: list[tuple[int, int, int]] = []
-        wrist_of = {rig.name: k for rig, k in self._wrist_rigs}
-        for i, rig in enumerate(self.rigs):
-            at = i * TRUTH.itemsize
-            rows.append((st.offset("step"), at + int(f["step"][1]), 8))
-            for name, src, size in (
-                ("q_rad", "q", 8),
-                ("qd_rad_s", "qd", 8),
-                ("tau_nm", "tau", 8),
-                ("braked", "braked", 1),
-                ("home", "switch", 1),
-                ("encoder_offset_counts", "enc_offset", 8),
-            ):
-                rows.append((st.offset(src) + size * DOF * i, at + int(f[name][1]), size * DOF))
-            k = wrist_of.get(rig.name)
-            if k is not None:
-                rows.append((st.offset("wrenches") + 48 * k, at + int(f["wrench_sensor"][1]), 48))
-                rows.append((st.offset("tool_xyz") + 24 * k, at + int(f["tool_xyz_m"][1]), 24))
-                rows.append((st.offset("tool_rot") + 72 * k, at + int(f["tool_rot"][1]), 72))
-        return kernels.copy_table(rows)
-
-    # -- controller -> boards --
-
-    def _watchdog(self, now_ns: int) -> bool:
-        """Cut the amplifiers of every robot whose DAC boards' watchdog
-        registers (when armed, non-zero) have not moved for the watchdog time;
-        True while any robot is cut (``self._joint_cut`` says which joints).
-        Per step it only looks for moved registers (a chassis has a few DAC
-        boards: plain ints); the rest runs when the earliest armed board's
-        time is up, or while a robot is cut."""
-        values = self.dac_watchdog.tolist()
-        if values != self._wd_values:
-            moved = self._wd_ns
-            for b, (v, old) in enumerate(zip(values, self._wd_values, strict=True)):
-                if v != old:
-                    moved[b] = now_ns
-            self._wd_values = values
-            armed = [t for t, v in zip(moved, values, strict=True) if v]
-            self._wd_due = min(armed) + self.watchdog_ns if armed else 0
-        if not (self._wd_due and now_ns > self._wd_due) and not self._any_cut:
-            return False
-        cut = [
-            bool(v) and now_ns - t > self.watchdog_ns
-            for t, v in zip(self._wd_ns, values, strict=True)
-        ]
-        self._joint_cut[:] = False
-        for i, rig in enumerate(self.rigs):
-            tripped = any(cut[b] for b in self._dac_rows[i])
-            if tripped and not self.watchdog_tripped[i] and len(self.watchdog_trips) < 1000:
-                self.watchdog_trips.append(
-                    {"robot": rig.name, "step": self.step_count + 1, "monotonic_ns": now_ns}
-                )
-            self.watchdog_tripped[i] = tripped
-            self._joint_cut[rig.sl] = tripped
-        self._any_cut = any(self.watchdog_tripped)
-        return self._any_cut
 
     @property
     def step_count(self) -> int:
@@ -496,50 +400,21 @@ class Chassis:
                 self.banks.rec_out[a][...] = rec
         now_ns = now_ns or time.monotonic_ns()
         if self.watchdog_ns > 0:
-            self._watchdog(now_ns)
+            self.watchdog.check(self.reg.dac_watchdog, now_ns, self.rigs, self.step_count + 1)
         if self.kernels:
             flags = kernels.KERNELS.chassis_apply(self._apply_plan)
             if flags & 2:
-                np.not_equal(self.enc_requests, self._requests_seen, out=self._req_changed)
+                np.not_equal(
+                    self.reg.enc_requests, self.reg.requests_seen, out=self.reg.req_changed
+                )
                 self._encoder_commands()
             if flags & 1:
                 np.not_equal(self._brake, self.braked, out=self._changed)
                 self._brakes_changed(self._brake, now_ns)
         else:
-            self._apply_numpy(now_ns)
+            apply_numpy(self, now_ns)
         for rig in self.rigs:
             self.world.apply_motor_torques(rig.arm)
-
-    def _apply_numpy(self, now_ns: int) -> None:
-        # fail-safe brakes: engaged unless their release output is on
-        brake = self._brake
-        word = self._word
-        self.dio_outputs.take(self.brake_w.rows, out=word)
-        np.right_shift(word, self._brake_bits, out=word)
-        np.bitwise_and(word, 1, out=word)
-        np.equal(word, 0, out=brake)
-        np.logical_or(brake, self._joint_cut, out=brake)  # the watchdog's relay drops them too
-        # the amplifiers: DAC code -> current (saturated) -> joint torque;
-        # inhibited while the joint's brake is on (interlock)
-        d = self.dac
-        cur = self._cur
-        cur[...] = self.dac_code[d.rows, d.ch]
-        np.multiply(cur, _AMPS_PER_CODE * self.motors.amps_per_volt, out=cur)
-        m = self.motors
-        np.minimum(cur, m.max_current_a, out=cur)
-        np.maximum(cur, m.min_current_a, out=cur)
-        np.multiply(cur, m.nm_per_amp, out=self.motor_tau)
-        np.copyto(self.motor_tau, 0.0, where=brake)
-        # what the boards say they drive
-        self.dac_readback[...] = self.dac_code
-        np.bitwise_and(self.dio_outputs, R.DIO_MASK, out=self.dio_readback)
-        # encoder commands (presets, software latches): rare
-        np.not_equal(self.enc_requests, self._requests_seen, out=self._req_changed)
-        if count(self._req_changed):
-            self._encoder_commands()
-        np.not_equal(brake, self.braked, out=self._changed)
-        if count(self._changed):
-            self._brakes_changed(brake, now_ns)
 
     def _brakes_changed(self, brake: np.ndarray[Any, Any], now_ns: int) -> None:
         self._loose_any = True  # newly braked joints are held once they stop
@@ -558,21 +433,21 @@ class Chassis:
 
     def _encoder_commands(self) -> None:
         """New preset or software-latch requests (sequence-numbered commands)."""
-        for row, k in zip(*np.nonzero(self._req_changed), strict=True):
+        for row, k in zip(*np.nonzero(self.reg.req_changed), strict=True):
             row, k = int(row), int(k)
-            req = int(self.enc_requests[row, k])
-            self._requests_seen[row, k] = req
+            req = int(self.reg.enc_requests[row, k])
+            self.reg.requests_seen[row, k] = req
             axis = k % R.ENC_AXES
             j = self._enc_joint.get((row, axis))
             if j is None:
                 continue  # an axis wired to no joint
             if k < R.ENC_AXES:  # preset: load the value now
-                self.encoders.preset(j, float(self.q[j]), int(self.enc_preset_value[row, axis]))
-                self.enc_preset_ack[row, axis] = req
-                self.enc_counter[row, axis] = int(self.encoders.counts(self.q)[j])
-            elif int(self.enc_latch_mode[row, axis]) == R.LATCH_SOFTWARE:
-                self.enc_latch[row, axis] = self.enc_counter[row, axis]
-                self.enc_latch_count[row, axis] += 1
+                self.encoders.preset(j, float(self.q[j]), int(self.reg.enc_preset_value[row, axis]))
+                self.reg.enc_preset_ack[row, axis] = req
+                self.reg.enc_counter[row, axis] = int(self.encoders.counts(self.q)[j])
+            elif int(self.reg.enc_latch_mode[row, axis]) == R.LATCH_SOFTWARE:
+                self.reg.enc_latch[row, axis] = self.reg.enc_counter[row, axis]
+                self.reg.enc_latch_count[row, axis] += 1
 
     # -- physics --
 
@@ -601,7 +476,7 @@ class Chassis:
         """The wrist receiver's calibration memory gives NaN (from the next sample)."""
         row = self.rigs[robot].ft_row
         if row >= 0:
-            self.ft_calibration[row, 0, 0] = np.nan
+            self.reg.ft_calibration[row, 0, 0] = np.nan
 
     def step_physics(self) -> None:
         """PyBullet's step alone (a disturbance acting on the devices first)."""
@@ -631,7 +506,7 @@ class Chassis:
             if flags & 4:
                 self.wrists.refill()
         else:
-            self._sample_numpy()
+            sample_numpy(self)
         if self.disturbance is not None:
             self.disturbance.after_sample(self)
 
@@ -641,69 +516,23 @@ class Chassis:
             if count(self._stopped[rig.sl]):
                 self.world.settle_brakes(rig.arm, rig.q, rig.qd)
 
-    def _sample_numpy(self) -> None:
-        q, qd, n = self.q, self.qd, self.n
-        # PyBullet reports a braked joint's torque (its brake motor's), not a
-        # torque-controlled one's: there the motor's is the joint's
-        np.copyto(self.tau, self.motor_tau)
-        np.copyto(self.tau, self.applied, where=self.braked)
-        # braked joints that have stopped: their brakes hold the angle from now
-        # on (looked for only while a braked joint is not held yet)
-        if self._loose_any:
-            np.abs(qd, out=self._slow)
-            np.less(self._slow, BRAKE_STOPPED_RAD_S, out=self._stopped)
-            np.greater(self.braked, self.held, out=self._loose)  # braked, not yet held
-            np.logical_and(self._stopped, self._loose, out=self._stopped)
-            if count(self._stopped):
-                self._settle()
-            self._loose_any = bool(count(np.greater(self.braked, self.held, out=self._loose)))
-        counts = self.encoders.counts(q)
-        self.counts[...] = counts
-        home = self.home
-        np.copyto(home, self.homes.update(q))
-        stuck = self._home_force != HOME_AS_SWITCH
-        if count(stuck):
-            home[stuck] = self._home_force[stuck] == HOME_STUCK_ON
-        e = self.enc
-        self.enc_counter[e.rows, e.ch] = counts
-        np.not_equal(home, self._last_home, out=self._edges)
-        if count(self._edges):  # a home input changed: its registers, its latches
-            self._home_edges(counts, registers=True)
-        # torque sensors and tachometers -> ADC codes (rounded, saturated)
-        src = self._adc_in
-        src[:n] = self.tau
-        src[n:] = qd
-        v = self._adc_v
-        src.take(self.adc_src, out=v)
-        np.multiply(v, self.adc_scale, out=v)
-        np.rint(v, out=v)
-        np.minimum(v, 32767, out=v)
-        np.maximum(v, -32768, out=v)
-        self.adc_code[self.adc_rows, self.adc_ch] = v
-        if self._wrist_rigs:
-            self.wrists.gauges_into(self.wrenches, self._strain)
-            self.ft_strain[self.ft_rows] = self._strain
-            self.ft_sample[self.ft_rows] += 1
-        for steps in self.steps_in:
-            steps[...] = self.step_count
-
     def _home_edges(self, counts: np.ndarray[Any, Any], registers: bool) -> None:
         """Home inputs that changed (rare: a switch edge): the encoder boards'
         home levels and the DIO input words (unless the kernel wrote them), and
         the counters of the axes that latch on home edges."""
         e, home = self.enc, self.home
         if registers:
-            self.enc_home[e.rows, e.ch] = home
+            self.reg.enc_home[e.rows, e.ch] = home
             # each DIO word is the sum of its wired bits
             np.copyto(self._homef, home)
             np.matmul(self._home_weights, self._homef, out=self._dio_word)
-            self.dio_inputs[...] = self._dio_word
+            self.reg.dio_inputs[...] = self._dio_word
         for j in np.flatnonzero(self._edges).tolist():
             row, axis = int(e.rows[j]), int(e.ch[j])
-            if int(self.enc_latch_mode[row, axis]) == R.LATCH_HOME_EDGES:
-                self.enc_latch[row, axis] = counts[j]
-                self.enc_latch_count[row, axis] += 1
-                self.enc_latch_edge[row, axis] = R.EDGE_RISING if home[j] else R.EDGE_FALLING
+            if int(self.reg.enc_latch_mode[row, axis]) == R.LATCH_HOME_EDGES:
+                self.reg.enc_latch[row, axis] = counts[j]
+                self.reg.enc_latch_count[row, axis] += 1
+                self.reg.enc_latch_edge[row, axis] = R.EDGE_RISING if home[j] else R.EDGE_FALLING
         self._last_home[...] = home
 
     # -- the simulation's truth --
@@ -721,3 +550,26 @@ class Chassis:
         """Every brake on (the plant stops: the arms stay where they are)."""
         for rig in self.rigs:
             self.world.set_brakes(rig.arm, np.ones(DOF, dtype=bool), rig.brake_torque_nm)
+
+
+def fit_wrist_sensors(ch: Chassis, cfg: Config, wrists: list[tuple[int, int, Any, str]]) -> None:
+    """The wrist sensors, one row each, and their rigs' views."""
+    ft = ch.banks.inp[BoardType.FORCE]
+    ch.wrists = WristSensors(
+        np.array([w[2] for w in wrists]).reshape(-1, 6, 6),
+        np.array([cfg.plant.ft_bias.get(w[3], [0.0] * 6) for w in wrists]).reshape(-1, 6),
+        cfg.plant.ft_noise_n,
+        cfg.plant.ft_noise_nm,
+        cfg.plant.seed,
+    )
+    ch.ft_rows = np.array([w[1] for w in wrists], dtype=np.int64)
+    ch._wrist_rigs = []
+    ch._rot9 = []
+    for k, (i, row, cal, _) in enumerate(wrists):
+        rig = ch.rigs[i]
+        rig.ft_row, rig.wrench = row, ch.wrenches[k]
+        rig.tool_xyz, rig.tool_rot = ch.tool_xyz[k], ch.tool_rot[k]
+        ch._rot9.append(ch.tool_rot[k].reshape(9))  # a view: filled in place each step
+        ft[row]["calibration"] = np.asarray(cal)
+        ch._wrist_rigs.append((rig, k))
+    ch._strain = np.zeros((len(wrists), 6), dtype=np.int32)

@@ -184,7 +184,7 @@ def test_the_plants_faults_act_through_the_chassis_points(tmp_path: Path) -> Non
         assert (chassis._home_force[chassis.rigs[1 - r2].sl] == HOME_AS_SWITCH).all()
         chassis.disturbance = PlantFaults(_armed(tmp_path, "plant.sensor-nan"))
         chassis.step()
-        assert np.isnan(chassis.ft_calibration[chassis.rigs[r2].ft_row, 0, 0])
+        assert np.isnan(chassis.reg.ft_calibration[chassis.rigs[r2].ft_row, 0, 0])
         assert (chassis._home_force == HOME_AS_SWITCH).all()  # the switch works again
     finally:
         world.close()

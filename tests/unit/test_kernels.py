@@ -85,7 +85,7 @@ def test_the_chassis_kernels_match_the_numpy_chassis(twins: list[Chassis]) -> No
         assert np.array_equal(fast.truth_image, ref.truth_image), f"step {k}: truth differs"
     moved = np.abs(fast.q - np.concatenate([CFG.robots[r].initial_q_rad for r in HW])).max()
     assert moved > 0.05  # the arms really moved
-    assert fast.enc_latch_count.sum() > 0  # and latched on their home switches
+    assert fast.reg.enc_latch_count.sum() > 0  # and latched on their home switches
 
 
 def test_the_driver_kernels_match_the_numpy_driver() -> None:
