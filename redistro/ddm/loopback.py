@@ -17,7 +17,7 @@ import os
 from collections import deque
 from collections.abc import Collection
 
-from redistro.ddm.transport import Transport
+from redistro.ddm.transport import Links, Transport
 from redistro.errors import TransportError
 
 
@@ -33,6 +33,7 @@ class Loopback(Transport):
         self.lost: dict[int, str] = {}
         self.closed = False
         self.dropped = 0
+        self.links = _Links(self)
 
     @classmethod
     def group(cls, robots: Collection[int]) -> tuple[Loopback, dict[int, Loopback]]:
@@ -78,9 +79,6 @@ class Loopback(Transport):
     def fds(self) -> list[int]:
         return [] if self.closed else [self._r]
 
-    def lost_links(self) -> dict[int, str]:
-        return dict(self.lost) if len(self.lost) < len(self.peers) else {}
-
     def close(self) -> None:
         if self.closed:
             return
@@ -92,3 +90,14 @@ class Loopback(Transport):
                     os.write(peer._w, b"\0")
         os.close(self._r)
         os.close(self._w)
+
+
+class _Links(Links):
+    """An end's links: a robot's is lost when its peer end closed."""
+
+    def __init__(self, end: Loopback) -> None:
+        self.end = end
+
+    def lost_links(self) -> dict[int, str]:
+        end = self.end
+        return dict(end.lost) if len(end.lost) < len(end.peers) else {}

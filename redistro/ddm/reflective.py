@@ -31,7 +31,7 @@ from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING
 
 from redistro.ddm.record import SIZE
-from redistro.ddm.transport import Transport
+from redistro.ddm.transport import Links, Transport
 from redistro.errors import IPCError, TransportError
 from redistro.ipc.session import Manifest
 from redistro.ipc.sysv import Card
@@ -101,7 +101,8 @@ class ReflectiveTransport(Transport):
         self.card = Card.create_new(KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
         self.pending: list[bytes] = []  # written this step, not yet sent (flush)
-        self.check: Callable[[bytes], bool] | None = None  # (verify_with)
+        self.check: Callable[[bytes], bool] | None = None  # (links.verify_with)
+        self.links = _Links(self)
         try:
             # no peers on other hosts: only the group's datagrams on loopback
             # are received (bound to the group address, joined on lo)
@@ -113,10 +114,6 @@ class ReflectiveTransport(Transport):
             self.card.close()
             self.card.remove()
             raise TransportError(f"reflective memory network: {exc.strerror or exc}") from None
-
-    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
-        self.check = check
-        return True
 
     @staticmethod
     def _slot(record: bytes, robot: int) -> int:
@@ -149,12 +146,12 @@ class ReflectiveTransport(Transport):
 
     def send(self, record: bytes, robot: int) -> None:
         """Write ``record`` to this node's card (a hello has no slot); it goes
-        out to the others' with the step's other writes, at :meth:`flush`."""
+        out to the others' with the step's other writes, at ``links.flush``."""
         if 1 <= record[6] <= KINDS:
             self._write_card(self._slot(record, robot), record)
         self.pending.append(record)
 
-    def flush(self) -> None:
+    def _flush(self) -> None:
         pending = self.pending
         for at in range(0, len(pending), BATCH):
             datagram = b"".join(pending[at : at + BATCH])
@@ -256,3 +253,18 @@ def _on_loopback(s: socket.socket) -> None:
     s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
     s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
     s.setblocking(False)
+
+
+class _Links(Links):
+    """The card's links: authentic records are stored (``verify_with``), a
+    step's writes go out together (``flush``)."""
+
+    def __init__(self, t: ReflectiveTransport) -> None:
+        self.t = t
+
+    def verify_with(self, check: Callable[[bytes], bool]) -> bool:
+        self.t.check = check
+        return True
+
+    def flush(self) -> None:
+        self.t._flush()

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from redistro.ddm.record import SIZE
-from redistro.ddm.transport import Transport
+from redistro.ddm.transport import Accelerator, Links, Transport
 from redistro.errors import TransportError
 
 if TYPE_CHECKING:
@@ -95,7 +95,9 @@ class SocketTransport(Transport):
         if (listen is None) == (peers is None):
             raise ValueError("a socket transport either listens or connects to peers")
         self.server: socket.socket | None = None
-        self.links: dict[int, _Link] = {}  # robot -> link (client side)
+        self.conns: dict[int, _Link] = {}  # robot -> link (client side)
+        self.links = _SocketLinks(self)
+        self.accel = self.accelerator = _SocketAccelerator(self)
         self.peer: _Link | None = None  # the one peer (server side)
         self.peer_since = 0.0  # when it connected
         self.pinned = False  # it has authenticated
@@ -121,8 +123,6 @@ class SocketTransport(Transport):
         self._receives = 0
         self.generation = 0  # bumped whenever a peer or a link comes or goes
         self.closed = False
-        self._admit: tuple[Any, Any, Any] | None = None  # the ddm_recv kernel, its plan, state
-        self._got: int | None = None  # a recv ddm_reply made that the next receive takes on
         self.rx = bytearray(MAX_RECORDS * SIZE)  # the listening side's usual receive
         self.rx_view = memoryview(self.rx)
         self.dropped_unconnected = 0
@@ -197,7 +197,7 @@ class SocketTransport(Transport):
                 if writable:
                     err = p.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
                     if err == 0:
-                        link = self.links[robot] = _Link(p.sock, p.name)
+                        link = self.conns[robot] = _Link(p.sock, p.name)
                         del self.pending[robot]
                         self.generation += 1
                         if self.hello:
@@ -229,29 +229,15 @@ class SocketTransport(Transport):
             self.peer_since = time.monotonic()
             self.pinned = not self.authenticate
 
-    def authenticated(self, robot: int | None = None) -> None:
-        if self.server is not None and self.peer is not None:
-            self.pinned = True
-        elif robot is not None:
-            self.proven.add(robot)
-
-    def drop_unauthenticated(self) -> None:
+    def _drop_unauthenticated(self) -> None:
         if self.server is not None and self.peer is not None and not self.pinned:
             self.peer.close()
             self.peer = None
             self.generation += 1
             self.refused_count += 1
 
-    def refused(self) -> int:
-        return self.refused_count
-
-    def can_send(self, robot: int) -> bool:
-        if self.server is not None:
-            return self.peer is not None
-        return robot in self.links
-
     def send(self, record: bytes, robot: int) -> None:
-        link = self.peer if self.server is not None else self.links.get(robot)
+        link = self.peer if self.server is not None else self.conns.get(robot)
         if link is None:
             if self.server is None and robot not in self.lost_robots:
                 self.dropped_unconnected += 1
@@ -272,78 +258,6 @@ class SocketTransport(Transport):
         elif sent != size:  # a partial record would desynchronise the stream
             raise TransportError(f"link to {link.name}: short send ({sent} of {size})")
 
-    # -- the compiled common case (Transport's) --
-
-    def admit_with(self, call: Any, plan: Any, state: Any) -> bool:
-        self._admit = (call, plan, state)
-        return True
-
-    def send_fd(self, robot: int) -> int:
-        link = self.peer if self.server is not None else self.links.get(robot)
-        return -1 if link is None or self.closed else link.fd
-
-    def send_result(self, robot: int, result: int) -> None:
-        link = self.peer if self.server is not None else self.links.get(robot)
-        if link is not None:
-            self._sent(link, result, SIZE)
-
-    def reply_fd(self, ready: Collection[int] | None) -> int:
-        """The pinned peer's socket when this receive is the usual one (a
-        listening side whose peer sent whole records so far, woken by it):
-        the ddm may take the whole step in one kernel call (``ddm_reply``;
-        counted as this transport's receive) and hand back what it did not
-        take whole (:meth:`received`); else -1."""
-        peer = self.peer
-        if (
-            self.lost is None
-            and peer is not None
-            and self.pinned
-            and (self._receives + 1) & 63
-            and not peer.buf
-            and (ready is None or peer.fd in ready)
-        ):
-            self._receives += 1
-            return peer.fd
-        return -1
-
-    def received(self, got: int) -> bool:
-        """What ``ddm_reply`` received from the peer of :meth:`reply_fd`
-        (into ``rx``, its whole records offered to the admitting kernel):
-        True when the receive is done with (whole records, every one
-        admitted); else the next :meth:`receive` takes it on, as if it had
-        made that recv itself."""
-        state = self._admit[2]  # type: ignore[index]
-        whole = got > 0 and got % SIZE == 0 and got < len(self.rx)
-        if whole and int(state["mask"]) == (1 << (got // SIZE)) - 1:
-            return True
-        self._receives -= 1  # (the next receive counts itself)
-        self._got = got
-        return False
-
-    def _kernel_recv(self, link: _Link, out: list[bytes]) -> int:
-        """One recv from ``link`` by the admitting kernel, its whole records
-        admitted (counted in ``taken``) or put in ``out``. Returns the
-        bytes received (0: closed) or -errno; a part record, or a full
-        buffer (more to come), goes into ``link.buf`` for the general path.
-        A recv ``ddm_reply`` made (:meth:`received`) is taken instead."""
-        call, plan, state = self._admit  # type: ignore[misc]
-        got: int | None = self._got
-        if got is None:
-            got = call(plan, self.rx, link.fd)
-        else:
-            self._got = None
-        if got > 0 and got % SIZE == 0 and got < len(self.rx):
-            n, mask = got // SIZE, int(state["mask"])
-            if mask == (1 << n) - 1:
-                self.taken += n
-            else:
-                self.taken += bin(mask).count("1")
-                rx = self.rx_view
-                out += [bytes(rx[k * SIZE : (k + 1) * SIZE]) for k in range(n) if not mask >> k & 1]
-        elif got > 0:
-            link.buf += self.rx_view[:got]
-        return got
-
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         """Every whole record that arrived. A link that failed or was closed
         still delivers what came before the end (the last record a peer sends
@@ -354,107 +268,126 @@ class SocketTransport(Transport):
         link is lost."""
         if self.lost is not None:
             raise TransportError(self.lost)
-        self.taken = 0
+        self.accel.taken = 0
         peer = self.peer
         if peer is not None and self.pinned and (self._receives + 1) & 63 and not peer.buf:
-            # the usual case of a listening side: its pinned peer sent whole
-            # records (one recv into a buffer kept for it, no link to find)
-            self._receives += 1
-            if ready is not None and peer.fd not in ready:
-                return []  # woken by something else: nothing came
-            if self._admit is not None:
-                fast: list[bytes] = []
-                got = self._kernel_recv(peer, fast)  # (a part record went into peer.buf)
-                if got == -errno.EAGAIN or got > 0:
-                    if not peer.buf:
-                        return fast
-                    self.taken = 0  # (a part record: the general path, below, has them all)
-                else:
-                    self._receives -= 1  # the general path sees the end or the error itself
+            usual = self._receive_usual(peer, ready)
+            if usual is not None:
+                return usual
+        out: list[bytes] = []
+        for robot, link in self._links_to_read(ready).items():
+            why = self._read(link, out)
+            if why is not None:
+                self._link_lost(robot, link, why)
+        lost = self._lost_now()  # (a link's loss, just now)
+        if lost is not None and not out:
+            raise TransportError(lost)
+        return out
+
+    def _lost_now(self) -> str | None:
+        return self.lost
+
+    def _receive_usual(self, peer: _Link, ready: Collection[int] | None) -> list[bytes] | None:
+        """The usual case of a listening side: its pinned peer sent whole
+        records (one recv into a buffer kept for it, no link to find). None:
+        the general path takes the receive on."""
+        self._receives += 1
+        if ready is not None and peer.fd not in ready:
+            return []  # woken by something else: nothing came
+        if self.accel.admit is not None:
+            fast: list[bytes] = []
+            got = self.accel.kernel_recv(peer, fast)  # (a part record went into peer.buf)
+            if got == -errno.EAGAIN or got > 0:
+                if not peer.buf:
+                    return fast
+                self.accel.taken = 0  # (a part record: the general path has them all)
             else:
-                try:
-                    got = peer.sock.recv_into(self.rx)
-                except BlockingIOError:
-                    return []
-                except OSError:
-                    got = -1
-                if got > 0 and got % SIZE == 0 and got < len(self.rx):
-                    rx = self.rx_view
-                    return [bytes(rx[at : at + SIZE]) for at in range(0, got, SIZE)]
-                if got > 0:  # a part record, or more to come: the general path
-                    peer.buf += self.rx_view[:got]
-                else:
-                    self._receives -= 1  # the general path sees the end or the error itself
-        if self.server is not None:
-            self._receives += 1
-            if (
-                self.peer is not None
-                and not self.pinned
-                and time.monotonic() - self.peer_since > HANDSHAKE_S
-            ):
-                self.drop_unauthenticated()  # silent, or never proved the key
-            if self.peer is None or not self._receives & 63 or not self.pinned:
-                self._accept()  # a connection waiting
-            links = {0: self.peer} if self.peer is not None else {}
+                self._receives -= 1  # the general path sees the end or the error itself
+            return None
+        try:
+            got = peer.sock.recv_into(self.rx)
+        except BlockingIOError:
+            return []
+        except OSError:
+            got = -1
+        if got > 0 and got % SIZE == 0 and got < len(self.rx):
+            rx = self.rx_view
+            return [bytes(rx[at : at + SIZE]) for at in range(0, got, SIZE)]
+        if got > 0:  # a part record, or more to come: the general path
+            peer.buf += self.rx_view[:got]
         else:
+            self._receives -= 1  # the general path sees the end or the error itself
+        return None
+
+    def _links_to_read(self, ready: Collection[int] | None) -> dict[int, _Link]:
+        """The links this receive reads (a listening side: its one peer,
+        after any connection waiting; a connecting side: those ready)."""
+        if self.server is None:
             if self.pending:
                 self._progress()
-            links = {r: link for r, link in self.links.items() if ready is None or link.fd in ready}
-        out: list[bytes] = []
+            return {r: link for r, link in self.conns.items() if ready is None or link.fd in ready}
+        self._receives += 1
+        silent = time.monotonic() - self.peer_since > HANDSHAKE_S
+        if self.peer is not None and not self.pinned and silent:
+            self._drop_unauthenticated()  # silent, or never proved the key
+        if self.peer is None or not self._receives & 63 or not self.pinned:
+            self._accept()  # a connection waiting
+        return {0: self.peer} if self.peer is not None else {}
+
+    def _read(self, link: _Link, out: list[bytes]) -> str | None:
+        """What came on ``link``, its whole records into ``out``: None, or
+        why the link is lost (what came before the end is delivered)."""
+        why = None
+        if self.accel.admit is not None and not link.buf:
+            # the usual case: whole records, admitted by the kernel as they come
+            got = self.accel.kernel_recv(link, out)
+            if got == -errno.EAGAIN or (got > 0 and not link.buf):
+                return None
+            if got == 0:
+                why = f"link to {link.name} lost: closed by the peer"
+            elif got < 0:
+                why = f"link to {link.name} lost: {os.strerror(-got)}"
         budget = MAX_RECORDS * SIZE
-        for robot, link in links.items():
-            why = None
-            if self._admit is not None and not link.buf:
-                # the usual case: whole records, admitted by the kernel as they come
-                got = self._kernel_recv(link, out)
-                if got == -errno.EAGAIN or (got > 0 and not link.buf):
-                    continue
-                if got == 0:
-                    why = f"link to {link.name} lost: closed by the peer"
-                elif got < 0:
-                    why = f"link to {link.name} lost: {os.strerror(-got)}"
-            while why is None:
-                room = budget - len(link.buf)
-                if room <= 0:
-                    break  # the rest waits in the socket for the next receive
-                try:
-                    chunk = link.sock.recv(min(RECV_BYTES, room))
-                except BlockingIOError:
-                    break
-                except OSError as exc:
-                    why = f"link to {link.name} lost: {exc.strerror or exc}"
-                    break
-                if not chunk:
-                    why = f"link to {link.name} lost: closed by the peer"
-                    break
-                link.buf += chunk
-                if len(chunk) < min(RECV_BYTES, room):
-                    break  # all there was (the ddm's poll wakes it again for more)
-            n = len(link.buf) // SIZE
-            out += [bytes(link.buf[i * SIZE : (i + 1) * SIZE]) for i in range(n)]
-            del link.buf[: n * SIZE]
-            if why is not None:
-                if self.server is not None and not self.pinned:
-                    link.close()
-                    self.peer = None  # an unauthenticated connection went: no loss
-                    self.generation += 1
-                elif self.server is not None:
-                    self.lost = why
-                elif robot not in self.proven and time.monotonic() < self.deadline:
-                    old = self.links.pop(robot)
-                    old.close()
-                    self.generation += 1
-                    addr, name = self.addresses[robot]
-                    self.pending[robot] = _Pending(addr, name, next_try=time.monotonic() + RETRY_S)
-                else:
-                    self.links.pop(robot).close()
-                    self.generation += 1
-                    self.lost_robots[robot] = why
-                    if not self.links and not self.pending:
-                        self.lost = "; ".join(self.lost_robots.values())
-        if self.lost is not None and not out:
-            raise TransportError(self.lost)
-        return out
+        while why is None:
+            room = budget - len(link.buf)
+            if room <= 0:
+                break  # the rest waits in the socket for the next receive
+            try:
+                chunk = link.sock.recv(min(RECV_BYTES, room))
+            except BlockingIOError:
+                break
+            except OSError as exc:
+                why = f"link to {link.name} lost: {exc.strerror or exc}"
+                break
+            if not chunk:
+                why = f"link to {link.name} lost: closed by the peer"
+                break
+            link.buf += chunk
+            if len(chunk) < min(RECV_BYTES, room):
+                break  # all there was (the ddm's poll wakes it again for more)
+        n = len(link.buf) // SIZE
+        out += [bytes(link.buf[i * SIZE : (i + 1) * SIZE]) for i in range(n)]
+        del link.buf[: n * SIZE]
+        return why
+
+    def _link_lost(self, robot: int, link: _Link, why: str) -> None:
+        if self.server is not None and not self.pinned:
+            link.close()
+            self.peer = None  # an unauthenticated connection went: no loss
+            self.generation += 1
+        elif self.server is not None:
+            self.lost = why
+        elif robot not in self.proven and time.monotonic() < self.deadline:
+            self.conns.pop(robot).close()
+            self.generation += 1
+            addr, name = self.addresses[robot]
+            self.pending[robot] = _Pending(addr, name, next_try=time.monotonic() + RETRY_S)
+        else:
+            self.conns.pop(robot).close()
+            self.generation += 1
+            self.lost_robots[robot] = why
+            if not self.conns and not self.pending:
+                self.lost = "; ".join(self.lost_robots.values())
 
     @property
     def replies(self) -> bool:  # type: ignore[override]
@@ -472,16 +405,13 @@ class SocketTransport(Transport):
             if self.peer is not None:
                 out.append(self.peer.fd)
         else:
-            out += [link.fd for link in self.links.values()]
+            out += [link.fd for link in self.conns.values()]
         return out
-
-    def lost_links(self) -> dict[int, str]:
-        return self.lost_robots
 
     def close(self) -> None:
         self.closed = True
         self.generation += 1
-        for link in self.links.values():
+        for link in self.conns.values():
             link.close()
         for p in self.pending.values():
             if p.sock is not None:
@@ -492,3 +422,128 @@ class SocketTransport(Transport):
         if self.server is not None:
             with contextlib.suppress(OSError):
                 self.server.close()
+
+
+class _SocketLinks(Links):
+    """The socket transport's connections (see the module's text)."""
+
+    def __init__(self, t: SocketTransport) -> None:
+        self.t = t
+
+    def authenticated(self, robot: int | None = None) -> None:
+        t = self.t
+        if t.server is not None and t.peer is not None:
+            t.pinned = True
+        elif robot is not None:
+            t.proven.add(robot)
+
+    def drop_unauthenticated(self) -> None:
+        self.t._drop_unauthenticated()
+
+    def refused(self) -> int:
+        return self.t.refused_count
+
+    def can_send(self, robot: int) -> bool:
+        t = self.t
+        if t.server is not None:
+            return t.peer is not None
+        return robot in t.conns
+
+    def lost_links(self) -> dict[int, str]:
+        return self.t.lost_robots
+
+
+class _SocketAccelerator(Accelerator):
+    """The ddm's kernels on this transport's sockets: each whole record
+    admitted as it arrives (ddm_recv), sent (ddm_send), an ESC's step in
+    one call (ddm_reply)."""
+
+    def __init__(self, t: SocketTransport) -> None:
+        self.t = t
+        self.admit: tuple[Any, Any, Any] | None = None  # the ddm_recv kernel, its plan, state
+        self.got: int | None = None  # a recv ddm_reply made that the next receive takes on
+        self.taken = 0
+
+    @property
+    def generation(self) -> int:
+        return self.t.generation
+
+    @property
+    def rx(self) -> Any:
+        return self.t.rx
+
+    def admit_with(self, call: Any, plan: Any, state: Any) -> bool:
+        self.admit = (call, plan, state)
+        return True
+
+    def send_fd(self, robot: int) -> int:
+        t = self.t
+        link = t.peer if t.server is not None else t.conns.get(robot)
+        return -1 if link is None or t.closed else link.fd
+
+    def send_result(self, robot: int, result: int) -> None:
+        t = self.t
+        link = t.peer if t.server is not None else t.conns.get(robot)
+        if link is not None:
+            t._sent(link, result, SIZE)
+
+    def reply_fd(self, ready: Collection[int] | None) -> int:
+        """The pinned peer's socket when this receive is the usual one (a
+        listening side whose peer sent whole records so far, woken by it):
+        the ddm may take the whole step in one kernel call (``ddm_reply``;
+        counted as this transport's receive) and hand back what it did not
+        take whole (:meth:`received`); else -1."""
+        t = self.t
+        peer = t.peer
+        if (
+            t.lost is None
+            and peer is not None
+            and t.pinned
+            and (t._receives + 1) & 63
+            and not peer.buf
+            and (ready is None or peer.fd in ready)
+        ):
+            t._receives += 1
+            return peer.fd
+        return -1
+
+    def received(self, got: int) -> bool:
+        """What ``ddm_reply`` received from the peer of :meth:`reply_fd`
+        (into ``rx``, its whole records offered to the admitting kernel):
+        True when the receive is done with (whole records, every one
+        admitted); else the next receive takes it on, as if it had made
+        that recv itself."""
+        assert self.admit is not None
+        state = self.admit[2]
+        whole = got > 0 and got % SIZE == 0 and got < len(self.t.rx)
+        if whole and int(state["mask"]) == (1 << (got // SIZE)) - 1:
+            return True
+        self.t._receives -= 1  # (the next receive counts itself)
+        self.got = got
+        return False
+
+    def kernel_recv(self, link: _Link, out: list[bytes]) -> int:
+        """One recv from ``link`` by the admitting kernel, its whole records
+        admitted (counted in ``taken``) or put in ``out``. Returns the
+        bytes received (0: closed) or -errno; a part record, or a full
+        buffer (more to come), goes into ``link.buf`` for the general path.
+        A recv ``ddm_reply`` made (:meth:`received`) is taken instead."""
+        assert self.admit is not None
+        call, plan, state = self.admit
+        t = self.t
+        got: int | None = self.got
+        if got is None:
+            got = call(plan, t.rx, link.fd)
+        else:
+            self.got = None
+        if got > 0 and got % SIZE == 0 and got < len(t.rx):
+            n, mask = got // SIZE, int(state["mask"])
+            if mask == (1 << n) - 1:
+                self.taken += n
+            else:
+                self.taken += bin(mask).count("1")
+                rx = t.rx_view
+                out += [bytes(rx[k * SIZE : (k + 1) * SIZE]) for k in range(n) if not mask >> k & 1]
+        elif got > 0:
+            link.buf += t.rx_view[:got]
+        return got

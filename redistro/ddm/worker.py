@@ -57,8 +57,10 @@ from redistro.ddm.fast import FastPath
 from redistro.ddm.handshake import Handshake
 from redistro.ddm.transport import (
     ANSWERED,
+    NO_ACCELERATOR,
     NOT_TAKEN,
     OWED,
+    Accelerator,
     Transport,
     transport_class,
 )
@@ -205,7 +207,9 @@ class Ddm(Worker):
         if self.hooks is not None:
             names = {g: r for r, g in self.gid.items()}
             self.transport = self.hooks.transport(self.transport, names)
-        self.transport.verify_with(self._authentic)
+        self.links = self.transport.links  # (what the links do beside carrying records)
+        self.accel: Accelerator = self.transport.accelerator or NO_ACCELERATOR
+        self.links.verify_with(self._authentic)
         self.replying = self.kind == "esc" and self.transport.replies
         self.answer_gid = self.gid[self.robots[0]]
         # encrypted payloads take the Python path (the kernels copy payloads
@@ -252,7 +256,7 @@ class Ddm(Worker):
         # a transport on stream sockets: the records received and admitted,
         # and sent, by the kernels, without the interpreter between the
         # system calls and the records (ddm_recv, ddm_send)
-        self.socket_kernels = self.transport.admit_with(fast.recv_call, fast.admit_plan, fast.state)
+        self.socket_kernels = self.accel.admit_with(fast.recv_call, fast.admit_plan, fast.state)
         self.send_generation = -1
         # an ESC that replies on a stream socket: its usual step is one
         # kernel call (ddm_reply: the command received and admitted, the
@@ -267,7 +271,7 @@ class Ddm(Worker):
                 _, manager_at, _ = ld.block_offsets("manager")
                 self.estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
                 compiled = self._compiled_answer
-            self.answering = self.transport.answer_with(self._answer, compiled)
+            self.answering = self.accel.answer_with(self._answer, compiled)
             self._open_gate()
 
     @property
@@ -383,7 +387,7 @@ class Ddm(Worker):
         # every 64 steps, a change of state at once
         if self.dirty and (self.kind != "esc" or self.urgent or not self.steps & 63):
             self._publish()
-        every = self.transport.status_every
+        every = self.links.status_every
         steps = self.steps
         if self.gate is not None and self.kind == "esc":
             steps += int(self.gate["answered"])
@@ -400,12 +404,12 @@ class Ddm(Worker):
         waiting = False
         for i, g in enumerate(self.gid[r] for r in self.robots):
             if self.ex[i]["updates"]:
-                self.transport.authenticated(g)  # (its link brought this run's records)
+                self.links.authenticated(g)  # (its link brought this run's records)
                 continue
             waiting = True
-            if self.handshake.due(i, now) and self.transport.can_send(g):
+            if self.handshake.due(i, now) and self.links.can_send(g):
                 self.transport.send(self.handshake.hello(g), g)
-        self.transport.flush()
+        self.links.flush()
         self.greeted = not waiting
 
     def _hello(self, raw: bytes, robot: int) -> None:
@@ -420,11 +424,11 @@ class Ddm(Worker):
                 self.stale_seen = stale
                 self.dirty = True
                 if self.kind == "esc":
-                    self.transport.drop_unauthenticated()  # not our SSC of this run
+                    self.links.drop_unauthenticated()  # not our SSC of this run
             return
         if reply.send:
             self.transport.send(reply.send, reply.gid)
-            self.transport.flush()
+            self.links.flush()
         if reply.run_key:
             self._take_run_key(reply.run_key)
         self.shaken = self.handshake.done
@@ -449,7 +453,7 @@ class Ddm(Worker):
             enc.rekey(key)
         if self.fast is not None:
             self.fast.rekey(key)
-        self.transport.authenticated()
+        self.links.authenticated()
         self.post("handshake done: this run's key taken from the SSC's proof", logging.DEBUG)
         self.urgent = self.dirty = True
 
@@ -461,15 +465,14 @@ class Ddm(Worker):
         exchange counted, the starving index paid back, the latency taken by
         the kernel). Else the general path takes the step on, with what the
         call received."""
-        transport = self.transport
-        fd = transport.reply_fd(self.ready_fds)
+        fd = self.accel.reply_fd(self.ready_fds)
         if fd < 0:
             return False
         fast = self.fast
         assert fast is not None
-        if transport.generation != self.send_generation:
+        if self.accel.generation != self.send_generation:
             self._refresh_send_fds()
-        got = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, transport.rx, fd)
+        got = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, self.accel.rx, fd)
         if got == REPLIED:
             self.dirty = True
             return True
@@ -524,13 +527,13 @@ class Ddm(Worker):
         """What ddm_reply did not take whole: the reply's trouble (a torn
         read of the feedback, a send not made whole), or a receive the
         general path takes on."""
-        fast, transport = self.fast, self.transport
+        fast = self.fast
         assert fast is not None
-        if not transport.received(got):
+        if not self.accel.received(got):
             return False
         self.dirty = True
         if fast.reply["trouble"]:
-            transport.send_result(self.gid[self.robots[0]], int(fast.send_status[0]))
+            self.accel.send_result(self.gid[self.robots[0]], int(fast.send_status[0]))
         elif fast.reply["emitted"] == -1:  # a torn read of the feedback: read it again
             self._send(False)
         return True
@@ -539,9 +542,9 @@ class Ddm(Worker):
         """Each robot's socket for the send kernels (a peer came or went)."""
         fast = self.fast
         assert fast is not None
-        self.send_generation = self.transport.generation
+        self.send_generation = self.accel.generation
         for i, robot in enumerate(self.gid[r] for r in self.robots):
-            fast.send_fds[i] = self.transport.send_fd(robot)
+            fast.send_fds[i] = self.accel.send_fd(robot)
 
     def _status(self, estop: bool) -> None:
         """The node's status for viewers on other hosts (off the hot path:
@@ -549,7 +552,7 @@ class Ddm(Worker):
         import os
         import socket
 
-        self.transport.status(
+        self.links.status(
             {
                 "node": self.spec.node,
                 "kind": self.kind,
@@ -577,7 +580,7 @@ class Ddm(Worker):
         """Robots whose link alone was lost (the SSC's side): their data go
         stale (the manager's starving check), the others' exchange goes on,
         the group's e-stop included."""
-        for robot, why in self.transport.lost_links().items():
+        for robot, why in self.links.lost_links().items():
             i = self.local.get(robot)
             if i is None or self.ex[i]["link_lost"]:
                 continue
@@ -601,10 +604,10 @@ class Ddm(Worker):
         """Admit what came; the number of fresh records."""
         fresh = 0
         received = self.transport.receive(self.ready_fds)
-        taken = self.transport.taken  # (admitted as they came: ddm_recv)
+        taken = self.accel.taken  # (admitted as they came: ddm_recv)
         if taken:
             self.dirty = True
-        refused = self.transport.refused()
+        refused = self.links.refused()
         if refused != self.refused_seen:
             for ex in self.ex:
                 ex["foreign"] += refused - self.refused_seen
@@ -643,7 +646,7 @@ class Ddm(Worker):
                 if field == "forged" and self.kind == "esc":
                     # not the SSC: whoever holds the link goes (a new
                     # connection may take it: the SSC reconnecting)
-                    self.transport.drop_unauthenticated()
+                    self.links.drop_unauthenticated()
                 continue
             if kind == wire.KIND_HELLO:
                 self._hello(raw, robot)
@@ -660,7 +663,7 @@ class Ddm(Worker):
                 ex[why] += 1
                 ex["dropped"] += 1
                 continue
-            self.transport.authenticated()
+            self.links.authenticated()
             now = time.monotonic_ns()
             if estop and not ex["estop_in"]:
                 self.urgent = True
@@ -700,7 +703,7 @@ class Ddm(Worker):
                     else:
                         self.latency.add(now - stamp)
         if taken:
-            self.transport.authenticated()
+            self.links.authenticated()
         return fresh + taken
 
     def _send(self, estop: bool) -> None:
@@ -721,7 +724,7 @@ class Ddm(Worker):
                         for i, robot in self.send_orders[self.sends & 1]:
                             if mask >> i & 1:
                                 self.transport.send(bytes(views[i]), robot)
-                        self.transport.flush()
+                        self.links.flush()
                     self.dirty = True
                 return
         for i, (block, rec) in enumerate(zip(self.out_blocks, self.out_recs, strict=True)):
@@ -735,7 +738,7 @@ class Ddm(Worker):
                 continue
             self._send_one(i, rec, estop)
             self.last_out[i] = produced
-        self.transport.flush()
+        self.links.flush()
         if estop:
             self.estop_sent = True
 
@@ -745,7 +748,7 @@ class Ddm(Worker):
         fast = self.fast
         assert fast is not None
         transport = self.transport
-        if transport.generation != self.send_generation:  # a peer came or went
+        if self.accel.generation != self.send_generation:  # a peer came or went
             self._refresh_send_fds()
         trouble = fast.send_call(fast.send_plan, mask, self.sends & 1)
         if trouble:
@@ -755,7 +758,7 @@ class Ddm(Worker):
                     if result == 0:  # no socket: the transport's own send counts it
                         transport.send(bytes(fast.wire_views[i]), robot)
                     else:
-                        transport.send_result(robot, result)
+                        self.accel.send_result(robot, result)
 
     def _send_one(self, i: int, rec: Record, estop: bool) -> None:
         self.seq[i] += 1
@@ -788,7 +791,7 @@ class Ddm(Worker):
                     if self.handshake.proven[i]:
                         block.read_into(rec.bytes)
                         self._send_one(i, rec, True)
-                self.transport.flush()
+                self.links.flush()
         if self.fast is not None:
             self.latency.count = self.fast.latency_count()
         lat = self.latency.summary_us()

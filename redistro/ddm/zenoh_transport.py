@@ -44,7 +44,7 @@ from collections.abc import Callable, Collection, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from redistro.ddm.transport import ANSWERED, OWED, Transport
+from redistro.ddm.transport import ANSWERED, OWED, Accelerator, Links, Transport
 from redistro.errors import TransportError
 
 if TYPE_CHECKING:
@@ -371,7 +371,9 @@ class ZenohTransport(Transport):
             else {alive_key(group, "ssc"): robots[0]}
         )
         self.pubs: dict[int, Any] = {}
-        self.answer: Callable[[bytes], int] | None = None  # (answer_with)
+        self.links = _ZenohLinks(self)
+        self.accelerator = _ZenohAccelerator(self)
+        self.answer: Callable[[bytes], int] | None = None  # (accelerator.answer_with)
         self.compiled: Callable[..., Any] | None = None  # ... made compiled
         self.answerer: Any = None  # the compiled answer, once made
         self.kept: set[int] = set()  # zenoh's threads that keep a Python thread state
@@ -413,7 +415,7 @@ class ZenohTransport(Transport):
             # (its callback stays in zenoh-python's own thread: in the RX
             # thread it would hold the group's network while the ddm, sending
             # the commands, holds the interpreter)
-            take = self._taker(None)  # (the SSC's answer puts no reply)
+            take = self._record_handler(None)  # (the SSC's answer puts no reply)
             self.subs = [s.declare_subscriber(feedback_key(group, "*"), take)]
         else:
             r = robots[0]
@@ -422,12 +424,12 @@ class ZenohTransport(Transport):
             # and answered in the RX thread that read it, without the hand-off
             # to zenoh-python's callback thread and the ddm's wake; by the
             # ddm's compiled answer when it has one (this path its fallback)
-            take = self._taker(self.pubs[gids[r]].put)
+            take = self._record_handler(self.pubs[gids[r]].put)
             if self.answer is not None:
                 take = zenoh.handlers.Callback(take, indirect=False)
             self.subs = [s.declare_subscriber(command_key(group, r), take)]
         self.status_pub = s.declare_publisher(status_key(group, self.node))
-        self.status_every = STATUS_EVERY
+        self.links.status_every = STATUS_EVERY
         self.token = s.liveliness().declare_token(alive_key(group, self.node))
         self.alive = [
             s.liveliness().declare_subscriber(key, self._liveliness, history=True)
@@ -476,7 +478,7 @@ class ZenohTransport(Transport):
 
     # -- zenoh's threads --
 
-    def _taker(self, put: Any) -> Any:
+    def _record_handler(self, put: Any) -> Any:
         """What the subscriber hands each sample to: the ddm's compiled
         answer, made now (``put`` sends its reply), else :meth:`_take`."""
         if self.compiled is None:
@@ -509,17 +511,6 @@ class ZenohTransport(Transport):
             # record still there, so the ddm, which empties the inbox, has
             # not yet finished taking it and takes this one too
             self._wake()
-
-    def answer_with(
-        self,
-        answer: Callable[[bytes], int],
-        compiled: Callable[[Any, Any, Any, Any], Callable[[Any], None]] | None = None,
-    ) -> bool:
-        if self.session is not None:
-            return False  # (the subscriber is declared at the opening)
-        self.answer = answer
-        self.compiled = compiled
-        return True
 
     def _wake(self) -> None:
         if not self.closed:  # (the eventfd closes after the session)
@@ -587,16 +578,6 @@ class ZenohTransport(Transport):
     def fds(self) -> list[int]:
         return [] if self.closed else [self.efd]
 
-    def status(self, doc: dict[str, object]) -> None:
-        if not self.closed and self.session is not None:
-            self.status_pub.put(json.dumps(doc, separators=(",", ":")))
-
-    def lost_links(self) -> dict[int, str]:
-        if self.kind != "ssc" or set(self.lost) >= set(self.peer_of.values()):
-            return {}
-        gid = {r: g for g, r in self.names.items()}
-        return {gid[r]: w for r, w in self.lost.items()}
-
     def connected(self) -> bool:
         """Every peer's liveliness token seen (tests and tools)."""
         if self.session is None and not self._open():
@@ -613,6 +594,44 @@ class ZenohTransport(Transport):
             with contextlib.suppress(Exception):
                 self.session.close()
         os.close(self.efd)
+
+
+class _ZenohLinks(Links):
+    """The peers' liveliness, and the node's status for viewers."""
+
+    def __init__(self, t: ZenohTransport) -> None:
+        self.t = t
+
+    def status(self, doc: dict[str, object]) -> None:
+        t = self.t
+        if not t.closed and t.session is not None:
+            t.status_pub.put(json.dumps(doc, separators=(",", ":")))
+
+    def lost_links(self) -> dict[int, str]:
+        t = self.t
+        if t.kind != "ssc" or set(t.lost) >= set(t.peer_of.values()):
+            return {}
+        gid = {r: g for g, r in t.names.items()}
+        return {gid[r]: w for r, w in t.lost.items()}
+
+
+class _ZenohAccelerator(Accelerator):
+    """Records come on zenoh's threads: the ddm answers there."""
+
+    def __init__(self, t: ZenohTransport) -> None:
+        self.t = t
+
+    def answer_with(
+        self,
+        answer: Callable[[bytes], int],
+        compiled: Callable[[Any, Any, Any, Any], Callable[[Any], None]] | None = None,
+    ) -> bool:
+        t = self.t
+        if t.session is not None:
+            return False  # (the subscriber is declared at the opening)
+        t.answer = answer
+        t.compiled = compiled
+        return True
 
 
 # -- viewers --

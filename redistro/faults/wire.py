@@ -38,7 +38,7 @@ import collections
 import time
 from collections.abc import Callable, Collection
 
-from redistro.ddm.transport import Transport
+from redistro.ddm.transport import Links, Transport
 from redistro.errors import TransportError
 from redistro.faults.inject import Injection
 
@@ -85,30 +85,53 @@ REPLAY_BACK = 100
 
 class Relay(Transport):
     """A transport that forwards everything to ``inner``: what a fault
-    wrapper is built on. It has none of the optional accelerations (the
-    ddm's kernels then admit and seal record by record, as the wrapper
-    hands them over: the compiled path, with the fault in the way)."""
+    wrapper is built on. It has no accelerator (the ddm's kernels then
+    admit and seal record by record, as the wrapper hands them over: the
+    compiled path, with the fault in the way)."""
 
     def __init__(self, inner: Transport) -> None:
         self.inner = inner
         self.closed = False
+        self.links = _RelayLinks(self)
 
     def send(self, record: bytes, robot: int) -> None:
         if self.closed:
             raise TransportError("link closed (injected fault)")
         self.inner.send(record, robot)
 
-    def flush(self) -> None:
-        if not self.closed:
-            self.inner.flush()
-
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         if self.closed:
             raise TransportError("link closed (injected fault)")
         return self.inner.receive(ready)
 
+    @property
+    def replies(self) -> bool:  # type: ignore[override]
+        return self.inner.replies
+
+    def fds(self) -> list[int]:
+        return [] if self.closed else self.inner.fds()
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.inner.close()
+
+
+class _RelayLinks(Links):
+    """The inner transport's links, as long as the relay is open."""
+
+    def __init__(self, relay: Relay) -> None:
+        self.relay = relay
+
+    @property
+    def inner(self) -> Links:
+        return self.relay.inner.links
+
+    def can_send(self, robot: int) -> bool:
+        return self.inner.can_send(robot)
+
     def lost_links(self) -> dict[int, str]:
-        return {} if self.closed else self.inner.lost_links()
+        return {} if self.relay.closed else self.inner.lost_links()
 
     def authenticated(self, robot: int | None = None) -> None:
         self.inner.authenticated(robot)
@@ -122,20 +145,9 @@ class Relay(Transport):
     def verify_with(self, check: Callable[[bytes], bool]) -> bool:
         return self.inner.verify_with(check)
 
-    def can_send(self, robot: int) -> bool:
-        return self.inner.can_send(robot)
-
-    @property
-    def replies(self) -> bool:  # type: ignore[override]
-        return self.inner.replies
-
-    def fds(self) -> list[int]:
-        return [] if self.closed else self.inner.fds()
-
-    def close(self) -> None:
-        if not self.closed:
-            self.closed = True
-            self.inner.close()
+    def flush(self) -> None:
+        if not self.relay.closed:
+            self.inner.flush()
 
 
 class InjectedTransport(Relay):
@@ -215,8 +227,8 @@ class InjectedTransport(Relay):
         import contextlib
         import socket
 
-        links = getattr(self.inner, "links", {})
-        link = links.get(robot)
+        conns = getattr(self.inner, "conns", {})
+        link = conns.get(robot)
         if link is None:
             return
         forged = _resealed(record, tau=150.0)
@@ -235,7 +247,7 @@ class InjectedTransport(Relay):
             self.inner.send(record, robot)
             sent = True
         if sent:
-            self.inner.flush()  # (sent outside a step of the ddm's)
+            self.inner.links.flush()  # (sent outside a step of the ddm's)
 
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         if self.closed:

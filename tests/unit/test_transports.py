@@ -101,7 +101,7 @@ def _zenoh_pair(
     ssc = side("ssc", "ssc", list(robots))
     esc = side(f"esc.{robots[0]}", "esc", [robots[0]])
     if answer is not None:
-        assert esc.answer_with(answer)
+        assert esc.accelerator.answer_with(answer)
     try:
         # the sessions open at their first look (as a ddm's at its first
         # receive) and read the users file then: it stays until they met
@@ -164,11 +164,11 @@ def test_send_receive_reply(pair: Pair) -> None:
     hold them until then: reflective memory sends them together)."""
     ssc, esc = pair
     ssc.send(_command(1), 0)
-    ssc.flush()
+    ssc.links.flush()
     got = _collect(esc, 1)
     assert [decode(r).payload["tau_nm"][0] for r in got] == [1.0]
     esc.send(_feedback(1), 0)
-    esc.flush()
+    esc.links.flush()
     got = _collect(ssc, 1)
     assert [decode(r).source for r in got] == ["esc.r1"]
 
@@ -183,7 +183,7 @@ def test_a_stream_of_records_arrives_in_order(pair: Pair) -> None:
     for seq in range(1, 101):
         ssc.send(_command(seq), 0)
         if seq % 10 == 0:
-            ssc.flush()
+            ssc.links.flush()
     if esc.latest_only:  # a memory: each receive hands over a slot's latest record
         got = []
         deadline = time.monotonic() + 2.0
@@ -204,7 +204,7 @@ def test_reflective_cards_hold_the_latest_record() -> None:
         for seq in (1, 2, 3):
             ssc.send(_command(seq), 0)
         assert ssc.read_card(KIND_COMMAND, 0) == _command(3)  # type: ignore[attr-defined]
-        ssc.flush()
+        ssc.links.flush()
         _collect(esc, 3)
         assert esc.read_card(KIND_COMMAND, 0) == _command(3)  # type: ignore[attr-defined]
     finally:
@@ -229,14 +229,14 @@ def test_a_reflective_step_goes_out_as_one_datagram_and_never_comes_back() -> No
         ssc.send(_command(1), 0)
         ssc.send(_command(2), 1)
         assert not ep.poll(0.05)  # held until the step's flush
-        ssc.flush()
+        ssc.links.flush()
         assert ep.poll(2.0)
         datagram = os.read(esc.fds()[0], 8 * SIZE)  # (what receive would take)
         assert len(datagram) == 2 * SIZE  # both robots' commands, one datagram
         assert ssc.receive() == []  # its own writes: not back
         for seq in range(3, 3 + BATCH + 1):
             ssc.send(_command(seq), 0)
-        ssc.flush()
+        ssc.links.flush()
         assert ep.poll(2.0)
         datagram = os.read(esc.fds()[0], 8 * SIZE)
         assert len(datagram) == BATCH * SIZE  # at most BATCH records a datagram
@@ -269,7 +269,7 @@ def test_a_closed_end_is_a_lost_link_once_its_records_are_in(kind: str) -> None:
             while time.monotonic() < deadline:
                 got += ssc.receive()
                 if got:
-                    ssc.authenticated(0)
+                    ssc.links.authenticated(0)
                 time.sleep(0.001)  # polling a non-blocking receive, to a deadline
         assert [decode(r).seq for r in got] == [1, 2]
     finally:
@@ -292,7 +292,7 @@ def test_the_loopback_fds_wake_a_waiting_ddm() -> None:
         assert escs[0].receive() == [] and escs[1].replies and not ssc.replies
         escs[0].close()  # one robot's link lost: the other's goes on
         ssc.send(_command(2), 0)  # dropped
-        assert ssc.lost_links() == {0: "closed by the peer"} and ssc.receive() == []
+        assert ssc.links.lost_links() == {0: "closed by the peer"} and ssc.receive() == []
         ssc.send(_command(3), 1)
         assert [decode(r).seq for r in escs[1].receive()] == [3]
     finally:
@@ -325,15 +325,15 @@ def test_one_lost_esc_link_leaves_the_other_robot_exchanging() -> None:
         while not (ssc.connected() and esc1.connected() and esc2.connected()):  # type: ignore[attr-defined]
             assert time.monotonic() < deadline
             time.sleep(0.001)  # polling a non-blocking connect, to a deadline
-        ssc.authenticated(0)  # (both links brought records of this run)
-        ssc.authenticated(1)
+        ssc.links.authenticated(0)  # (both links brought records of this run)
+        ssc.links.authenticated(1)
         esc1.close()  # r1's node ends
         deadline = time.monotonic() + 2
-        while 0 not in ssc.lost_links():
+        while 0 not in ssc.links.lost_links():
             assert time.monotonic() < deadline, "the lost link was not noticed"
             ssc.receive()  # no exception: r2's link is alive
             time.sleep(0.001)  # polling a non-blocking receive, to a deadline
-        assert "closed by the peer" in ssc.lost_links()[0]
+        assert "closed by the peer" in ssc.links.lost_links()[0]
         ssc.send(_command(7), 1)  # the group's e-stop still reaches r2
         ssc.send(_command(8), 0)  # dropped: r1's link is gone
         assert [decode(r).seq for r in _collect(esc2, 1)] == [7]
@@ -406,9 +406,9 @@ def _admit(esc: Transport, records: list[bytes]) -> int:
         try:
             check(r, KEY)
         except WireError:
-            esc.drop_unauthenticated()
+            esc.links.drop_unauthenticated()
             continue
-        esc.authenticated()
+        esc.links.authenticated()
         good += 1
     return good
 
@@ -436,7 +436,7 @@ def test_a_new_connection_never_displaces_the_authenticated_peer() -> None:
         for _ in range(64):  # a pinned link looks for newcomers every 64 receives
             esc.receive()
         assert intruder.recv(16) == b""  # refused: closed
-        assert esc.refused() == 1
+        assert esc.links.refused() == 1
         ssc.send(encode(KIND_COMMAND, 0, "ssc", 2, 1002, np.zeros((), COMMAND), key=KEY), 0)
         assert _admit(esc, _collect(esc, 1)) == 1  # the SSC's link goes on
     finally:
@@ -665,15 +665,15 @@ def test_a_connecting_side_given_up_before_the_handshake_connects_again() -> Non
             esc.receive()
             time.sleep(0.001)
         # the SSC sees its link closed, and connects again
-        while not (ssc.links and esc.peer is not None and esc.peer.name != first.name):  # type: ignore[attr-defined]
+        while not (ssc.conns and esc.peer is not None and esc.peer.name != first.name):  # type: ignore[attr-defined]
             assert time.monotonic() < deadline, "the SSC did not connect again"
             ssc.receive()
             esc.receive()
             time.sleep(0.001)
-        assert ssc.lost_links() == {}
-        ssc.authenticated(0)  # records of this run came over it: a loss is now a loss
+        assert ssc.links.lost_links() == {}
+        ssc.links.authenticated(0)  # records of this run came over it: a loss is now a loss
         esc.close()
-        while not ssc.lost_links():
+        while not ssc.links.lost_links():
             assert time.monotonic() < deadline
             with contextlib.suppress(TransportError):
                 ssc.receive()
