@@ -308,7 +308,7 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
         out["taken"] = int(ex[0]["updates"])
     # the records the ddm took whole in its transport's thread (zenoh's),
     # without a step of its own
-    out["answered"] = ddm.answered
+    out["answered"] = ddm.answers.taken
     Path(out_path).write_text(json.dumps(out))
 
 
@@ -342,12 +342,12 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
             stamp_word[0] = stamp()
             publish(record)
 
-    if ddm.answering and ddm.gate is not None:
+    if ddm.answers.on and ddm.answers.gate is not None:
         # a ddm that answers each command in its transport's thread: the
         # fresh sample goes first there, as it does before a step here (the
         # compiled answer runs it first on every record)
-        ddm.before_answer = sample
-    elif ddm.answering:
+        ddm.answers.before = sample
+    elif ddm.answers.on:
         answer = ddm.transport.answer
 
         def answered(raw: bytes) -> int:
@@ -371,7 +371,7 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
     while time.monotonic() < end_by and not ddm.lost:
         # an answering ddm, once commanded, sleeps as a node's does (wait_s:
         # its heartbeat's pace, out of the commands' burst); else 50 ms
-        answering = ddm.answering and ddm.commanded
+        answering = ddm.answers.on and ddm.commanded
         events = poll.wait(ddm.wait_s() if answering else 0.05)
         ddm.ready_fds = [fd for fd, _ in events] or None
         now = time.monotonic()
@@ -432,7 +432,7 @@ def _ssc_loop(
     cycle = 0
 
     def take(measure: bool) -> None:
-        with ddm.step_lock:  # (the sample and its admission's time together)
+        with ddm.answers.lock:  # (the sample and its admission's time together)
             for i, (rd, rec) in enumerate(zip(readers, fbs, strict=True)):
                 rd.read_into(rec.bytes)
                 s = int(rec["seq_src"])

@@ -73,9 +73,9 @@ class FastPath:
     ) -> None:
         assert KERNELS is not None
         n = len(gids)
-        in_dtype, out_dtype = wire.PAYLOADS[in_kind], wire.PAYLOADS[out_kind]
+        out_dtype = wire.PAYLOADS[out_kind]
         # the plans hold this buffer: rekey() changes the key of every kernel
-        self.codec = codec = wire.codec_record(key)
+        self.codec = wire.codec_record(key)
         ld_raw = ld.raw
         # the records both paths share: exchange and out records in arenas
         self.ex_arena = np.zeros(n * EXCHANGE.itemsize, dtype=np.uint8)
@@ -83,6 +83,51 @@ class FastPath:
         self.out_arena = np.zeros(n * out_dtype.itemsize, dtype=np.uint8)
         self.out = [Record(out_dtype, self.out_arena, i * out_dtype.itemsize) for i in range(n)]
 
+        self._plan_admission(ld, gids, in_blocks, in_kind, starving, latency)
+        self._plan_emission(ld, gids, out_blocks, out_kind, source)
+        # sending on stream sockets (a transport that has them): each robot's
+        # socket, refreshed when the transport's peers change; per robot the
+        # bytes sent or -errno; ddm_reply's outcome (the emit's mask, the
+        # send's trouble bits)
+        self.send_fds = np.full(n, -1, dtype=np.int64)
+        self.send_status = np.zeros(n, dtype=np.int64)
+        self.reply = np.zeros((), wire_layout.REPLY)
+        self.send_plan = plan(
+            "ddm_send", wire=self.wire, fds=self.send_fds, status=self.send_status, reply=self.reply
+        )
+        self.admit_call = KERNELS.ddm_admit
+        self.emit_call = KERNELS.ddm_emit
+        self.recv_call = KERNELS.ddm_recv
+        self.send_call = KERNELS.ddm_send
+        self.reply_call = KERNELS.ddm_reply
+        # the exchange records published into Local Data in one call
+        rows = []
+        for i in range(n):
+            seq_off, pay_off, size = ld.block_offsets("exchange", i)
+            rows.append((seq_off, pay_off, size, i * EXCHANGE.itemsize))
+        self.publish_plan = plan(
+            "seq_write", dst=ld_raw, src=self.ex_arena, table=table("seq_write", "table", rows)
+        )
+        self.publish_call = KERNELS.seq_write
+        # the Python path's counters, in the kernels' rows
+        self.seq = self.emit_rows["seq"]
+        self.last_out = self.emit_rows["last_out"]
+        self.mask = self.state["mask"]  # the last ddm_recv's admitted records
+        self.taken = self.state["taken"]  # records the kernels admitted
+
+    def _plan_admission(
+        self,
+        ld: LocalData,
+        gids: list[int],
+        in_blocks: list[tuple[str, int]],
+        in_kind: int,
+        starving: bool,
+        latency: Samples,
+    ) -> None:
+        """ddm_admit's plan: where a record's fields lie, each robot's in
+        block and claiming source, the state both paths share."""
+        n, codec, ld_raw = len(gids), self.codec, ld.raw
+        in_dtype = wire.PAYLOADS[in_kind]
         head = wire.HEADER
         # one row per local robot: its gid, its in block, its claiming source's state
         self.admit_rows = np.zeros(n, wire_layout.ADMIT_ROW)
@@ -116,6 +161,18 @@ class FastPath:
             state=self.state,
         )
 
+    def _plan_emission(
+        self,
+        ld: LocalData,
+        gids: list[int],
+        out_blocks: list[tuple[str, int]],
+        out_kind: int,
+        source: str,
+    ) -> None:
+        """ddm_emit's plan: each robot's out block, its wire record (the
+        header's constant part written once), the fields the kernel sets."""
+        n, codec, ld_raw = len(gids), self.codec, ld.raw
+        out_dtype, head = wire.PAYLOADS[out_kind], wire.HEADER
         self.emit_rows = np.zeros(n, wire_layout.EMIT_ROW)
         for i, (name, index) in enumerate(out_blocks):
             row = self.emit_rows[i]
@@ -144,35 +201,6 @@ class FastPath:
             wire=self.wire,
             ex=self.ex_arena,
         )
-        # sending on stream sockets (a transport that has them): each robot's
-        # socket, refreshed when the transport's peers change; per robot the
-        # bytes sent or -errno; ddm_reply's outcome (the emit's mask, the
-        # send's trouble bits)
-        self.send_fds = np.full(n, -1, dtype=np.int64)
-        self.send_status = np.zeros(n, dtype=np.int64)
-        self.reply = np.zeros((), wire_layout.REPLY)
-        self.send_plan = plan(
-            "ddm_send", wire=self.wire, fds=self.send_fds, status=self.send_status, reply=self.reply
-        )
-        self.admit_call = KERNELS.ddm_admit
-        self.emit_call = KERNELS.ddm_emit
-        self.recv_call = KERNELS.ddm_recv
-        self.send_call = KERNELS.ddm_send
-        self.reply_call = KERNELS.ddm_reply
-        # the exchange records published into Local Data in one call
-        rows = []
-        for i in range(n):
-            seq_off, pay_off, size = ld.block_offsets("exchange", i)
-            rows.append((seq_off, pay_off, size, i * EXCHANGE.itemsize))
-        self.publish_plan = plan(
-            "seq_write", dst=ld_raw, src=self.ex_arena, table=table("seq_write", "table", rows)
-        )
-        self.publish_call = KERNELS.seq_write
-        # the Python path's counters, in the kernels' rows
-        self.seq = self.emit_rows["seq"]
-        self.last_out = self.emit_rows["last_out"]
-        self.mask = self.state["mask"]  # the last ddm_recv's admitted records
-        self.taken = self.state["taken"]  # records the kernels admitted
 
     def rekey(self, key: bytes) -> None:
         """Verify and sign with ``key`` from now on (every plan's codec, in place)."""

@@ -21,10 +21,9 @@ sends what this node produced since:
 Over a transport that delivers records on a thread of its own (zenoh),
 the usual record is taken there, as it arrives, without waking the ddm
 (admitted by the kernel; an ESC's reply emitted and sent): in one compiled
-call (``_compiled_answer``, the C ``_kernels.Answerer``), else by
-``_answer``, its Python reference. The step's state is shared under
-``step_lock``, and whatever the answer does not take whole goes to the
-ddm's own step.
+call (the C ``_kernels.Answerer``), else by its Python reference
+(:mod:`redistro.ddm.answer`). The step's state is shared under one lock,
+and whatever the answer does not take whole goes to the ddm's own step.
 
 Every record carries the node's e-stop: a manager that ended on a fault has
 its ddm say so in every record from then on, and once more at Cleanup. A
@@ -41,10 +40,8 @@ and sends nothing before it.
 from __future__ import annotations
 
 import contextlib
-import errno
 import logging
 import os
-import threading
 import time
 from typing import Any
 
@@ -52,19 +49,19 @@ import numpy as np
 
 from redistro.config import Config
 from redistro.ddm import record as wire
-from redistro.ddm import wire_layout
+from redistro.ddm.admit import PythonAdmission
+from redistro.ddm.answer import ThreadAnswer
 from redistro.ddm.fast import FastPath
+from redistro.ddm.greeting import Greeting
 from redistro.ddm.handshake import Handshake
+from redistro.ddm.socket_steps import SocketSteps
 from redistro.ddm.transport import (
-    ANSWERED,
     NO_ACCELERATOR,
-    NOT_TAKEN,
-    OWED,
     Accelerator,
     Transport,
     transport_class,
 )
-from redistro.errors import TransportError, WireError
+from redistro.errors import TransportError
 from redistro.ipc.session import Manifest
 from redistro.kernels import KERNELS
 from redistro.localdata.block import Record
@@ -73,14 +70,6 @@ from redistro.process import hooks
 from redistro.process.spec import NodeSpec
 from redistro.process.stats import Samples
 from redistro.process.worker import Worker
-
-REPLIED = 1 << 40  # ddm_reply: the usual step done whole
-NOTHING = -errno.EAGAIN  # ... nothing had come
-
-
-def _stamp_of(payload: memoryview) -> int:
-    """The producer's stamp [ns] that starts a (decrypted) payload."""
-    return int.from_bytes(payload[:8], "little", signed=True)
 
 
 def link_id(spec: NodeSpec) -> str:
@@ -121,16 +110,8 @@ class Ddm(Worker):
         super().__init__(spec, index, ld)
         self._given = transport
         # an ESC whose transport delivers on a thread of its own may answer
-        # there (_answer): the step's state is then shared under this lock
-        self.step_lock = threading.Lock()
-        self.answering = False
-        self.owed = False  # an answer's feedback the ddm's own step is to send
-        self.answered_here = 0  # records the Python answer took whole
-        # the compiled answer (``_compiled_answer``): its gate and counts
-        # (GATE, ddm/wire_layout.py), and what runs before each record (a bench's
-        # stand-in for the acquisition; None in a node)
-        self.gate: Any = None
-        self.before_answer: Any = None
+        # there: the step's state is then shared under its lock
+        self.answers = ThreadAnswer(self)
 
     def initialize(self) -> None:
         self.cfg = self.spec.cfg()
@@ -150,20 +131,7 @@ class Ddm(Worker):
         self.socket_kernels = False  # (see _plan_fast)
         self.replies_in_kernel = False
         self.publish_call: Any = None
-        if self.kind == "esc":
-            self.in_kind, self.out_kind = wire.KIND_COMMAND, wire.KIND_FEEDBACK
-            self.in_blocks = [ld.writer("command", 0, role="ddm")]
-            self.out_blocks = [ld.block("feedback", 0)]
-            self.out_recs = [Record(FEEDBACK)]
-            self.sent_block = ld.block("starving_sent")
-            self.delivered_block = ld.writer("starving_delivered", role="ddm")
-            self.sent_rec = Record(COUNTER)
-            self.delivered_rec = Record(COUNTER)
-        else:
-            self.in_kind, self.out_kind = wire.KIND_FEEDBACK, wire.KIND_COMMAND
-            self.in_blocks = [ld.writer("feedback", i, role="ddm") for i in range(n)]
-            self.out_blocks = [ld.block("command", i) for i in range(n)]
-            self.out_recs = [Record(COMMAND) for _ in range(n)]
+        self._ends(n)
         self.last_out: Any = [0] * n  # seq_src of the last record sent, per robot
         self.in_size = wire.PAYLOADS[self.in_kind].itemsize
         self.link_key = link_key(self.cfg, self.spec.session_id)
@@ -188,6 +156,32 @@ class Ddm(Worker):
         self.status_at = 0  # steps when the last status went out
         # the manager's limit on this ddm's silence (wait_s)
         self.heartbeat_cycles = self.me.heartbeat_limit_cycles or self.spec.heartbeat_limit_cycles
+        self._open_transport()
+        for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
+            ex["feedback_wanted"] = 1
+
+    def _ends(self, n: int) -> None:
+        """The Local Data blocks records come into and go out from."""
+        ld = self.ld
+        if self.kind == "esc":
+            self.in_kind, self.out_kind = wire.KIND_COMMAND, wire.KIND_FEEDBACK
+            self.in_blocks = [ld.writer("command", 0, role="ddm")]
+            self.out_blocks = [ld.block("feedback", 0)]
+            self.out_recs = [Record(FEEDBACK)]
+            self.sent_block = ld.block("starving_sent")
+            self.delivered_block = ld.writer("starving_delivered", role="ddm")
+            self.sent_rec = Record(COUNTER)
+            self.delivered_rec = Record(COUNTER)
+        else:
+            self.in_kind, self.out_kind = wire.KIND_FEEDBACK, wire.KIND_COMMAND
+            self.in_blocks = [ld.writer("feedback", i, role="ddm") for i in range(n)]
+            self.out_blocks = [ld.block("command", i) for i in range(n)]
+            self.out_recs = [Record(COMMAND) for _ in range(n)]
+
+    def _open_transport(self) -> None:
+        """This ddm's end of the link (wrapped by a fault harness's hooks),
+        its links and accelerator, and the compiled path over it."""
+        ld = self.ld
         self.transport: Transport = self._given or open_transport(
             self.cfg,
             self.spec.session_id,
@@ -198,7 +192,9 @@ class Ddm(Worker):
             self.link_key,
         )
         self.refused_seen = 0
-        self.stale_seen = 0
+        self.greeting = Greeting(self)
+        self.python_admission = PythonAdmission(self)
+        self.socket_steps = SocketSteps(self)
         self.greeted = self.kind == "esc"  # the SSC's hellos are not all answered yet
         self.shaken = False  # every local robot's handshake done (the usual step's test)
         # what acts on this ddm from outside (the fault harness; none normally)
@@ -209,7 +205,7 @@ class Ddm(Worker):
             self.transport = self.hooks.transport(self.transport, names)
         self.links = self.transport.links  # (what the links do beside carrying records)
         self.accel: Accelerator = self.transport.accelerator or NO_ACCELERATOR
-        self.links.verify_with(self._authentic)
+        self.links.verify_with(self.greeting.authentic)
         self.replying = self.kind == "esc" and self.transport.replies
         self.answer_gid = self.gid[self.robots[0]]
         # encrypted payloads take the Python path (the kernels copy payloads
@@ -222,8 +218,6 @@ class Ddm(Worker):
         self.corrupting = self.hooks is not None and self.hooks.corrupts_commands
         if KERNELS is not None and not self.encrypt:
             self._plan_fast(ld)
-        for ex in self.ex:  # the acquisition wakes this ddm for every sample, until ...
-            ex["feedback_wanted"] = 1
 
     def _plan_fast(self, ld: Any) -> None:
         """The compiled common case (:mod:`redistro.ddm.fast`), over records
@@ -257,7 +251,6 @@ class Ddm(Worker):
         # and sent, by the kernels, without the interpreter between the
         # system calls and the records (ddm_recv, ddm_send)
         self.socket_kernels = self.accel.admit_with(fast.recv_call, fast.admit_plan, fast.state)
-        self.send_generation = -1
         # an ESC that replies on a stream socket: its usual step is one
         # kernel call (ddm_reply: the command received and admitted, the
         # feedback emitted and sent back)
@@ -265,50 +258,7 @@ class Ddm(Worker):
         self.publish_call = fast.publish_call
         self.publish_plan = fast.publish_plan
         if not self.socket_kernels:
-            compiled = None
-            if hasattr(KERNELS, "Answerer"):
-                self.gate = np.zeros((), wire_layout.GATE)
-                _, manager_at, _ = ld.block_offsets("manager")
-                self.estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
-                compiled = self._compiled_answer
-            self.answering = self.accel.answer_with(self._answer, compiled)
-            self._open_gate()
-
-    @property
-    def answered(self) -> int:
-        """Records taken whole in the transport's thread (by either answer)."""
-        return self.answered_here + (0 if self.gate is None else int(self.gate["answered"]))
-
-    def _open_gate(self) -> None:
-        """The compiled answer's gate: open while this ddm answers, was
-        commanded and has its link (the e-stop it reads itself)."""
-        if self.gate is not None:
-            commanded = self.commanded or self.kind != "esc"
-            self.gate["open"] = int(self.answering and commanded and not self.lost)
-
-    def _compiled_answer(self, put: Any, inbox: Any, fallback: Any, wake: Any) -> Any:
-        """The answer in one compiled call (``_kernels.Answerer``), for the
-        transport to hand each record to in its thread: what :meth:`_answer`
-        does, over the same kernels, state and step lock, without the
-        interpreter between them. ``put`` sends an ESC's reply (None: the
-        SSC's side, which replies with nothing); a record it does not take
-        goes to ``fallback(raw)`` (the transport's Python path); ``wake()``
-        when the ddm's own step owes the reply."""
-        fast = self.fast
-        assert fast is not None and KERNELS is not None
-        return KERNELS.Answerer(
-            fast.admit_plan,
-            fast.emit_plan,
-            fast.publish_plan,
-            self.gate,
-            self.estop_at,
-            self.step_lock,
-            put,
-            inbox,
-            fallback,
-            wake,
-            self.before_answer,
-        )
+            self.answers.offer(ld)
 
     # -- one tick --
 
@@ -326,7 +276,7 @@ class Ddm(Worker):
         group's burst, where its step (150-200 µs of a vCPU, woken cold)
         held back the answers of every ESC on the host."""
         period = self.period_ns
-        if not (self.kind == "esc" and self.answering and self.commanded and self.answered):
+        if not (self.kind == "esc" and self.answers.on and self.commanded and self.answers.taken):
             return period / 1e9
         quiet = max(1, self.heartbeat_cycles // 4)
         phase = (time.monotonic_ns() - int(self.ex[0]["last_update_ns"])) % period
@@ -335,8 +285,8 @@ class Ddm(Worker):
         return max(1, (quiet * period + period // 2 - phase) // 1_000_000) / 1e3
 
     def step(self, cycle: int) -> None:
-        if self.answering:
-            with self.step_lock:  # (zenoh's thread may be answering)
+        if self.answers.on:
+            with self.answers.lock:  # (zenoh's thread may be answering)
                 self._step(cycle)
         else:
             self._step(cycle)
@@ -347,16 +297,19 @@ class Ddm(Worker):
         estop = bool(self.estop_flag[0])  # the manager's e-stop, read alone
         try:
             if self.kind == "esc":
-                if self.replies_in_kernel and self.commanded and not estop and self._reply():
+                if (
+                    self.replies_in_kernel
+                    and self.commanded
+                    and not estop
+                    and self.socket_steps.reply()
+                ):
                     self.steps += 1
                     if not self.steps & 63:
                         self._publish()
                     return
                 fresh = self._receive()
                 new_estop = estop and not self.estop_sent
-                owed, self.owed = self.owed, False
-                if self.gate is not None and self.gate["owed"]:
-                    owed, self.gate["owed"] = True, 0
+                owed = self.answers.take_owed()
                 if owed or not (self.replying and self.commanded and not fresh and not new_estop):
                     self._send(estop)  # (replying, feedback goes out with a command only)
             else:
@@ -364,14 +317,14 @@ class Ddm(Worker):
                 # which must not wait behind the feedback's admission
                 self._send(estop)
                 if not self.greeted:
-                    self._greet()
+                    self.greeting.greet()
                 self._receive()
                 self._check_links()  # the connecting side loses one robot's link at a time
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the
             # managers' starving checks end the session within their limits
             self.lost = True
-            self._open_gate()
+            self.answers.open_gate()
             for ex in self.ex:
                 ex["link_lost"] = 1
                 ex["fresh"] = 0
@@ -389,182 +342,18 @@ class Ddm(Worker):
             self._publish()
         every = self.links.status_every
         steps = self.steps
-        if self.gate is not None and self.kind == "esc":
-            steps += int(self.gate["answered"])
+        if self.answers.gate is not None and self.kind == "esc":
+            steps += int(self.answers.gate["answered"])
         if every and steps - self.status_at >= every:
             # (by count: an ESC's answers in the transport's thread step the
             # count too, as the Python answer's do; the SSC's do not)
             self.status_at = steps
             self._status(estop)
 
-    def _greet(self) -> None:
-        """The SSC's side: a hello to each robot whose feedback has not come
-        yet (every ``HELLO_EVERY_S``), until every robot's has."""
-        now = time.monotonic_ns()
-        waiting = False
-        for i, g in enumerate(self.gid[r] for r in self.robots):
-            if self.ex[i]["updates"]:
-                self.links.authenticated(g)  # (its link brought this run's records)
-                continue
-            waiting = True
-            if self.handshake.due(i, now) and self.links.can_send(g):
-                self.transport.send(self.handshake.hello(g), g)
-        self.links.flush()
-        self.greeted = not waiting
-
-    def _hello(self, raw: bytes, robot: int) -> None:
-        """A hello of the handshake, signed with the link's key (checked)."""
-        reply = self.handshake.take(robot, memoryview(raw)[wire.PAYLOAD_AT :])
-        if reply is None:
-            stale = self.handshake.stale
-            if stale != self.stale_seen:
-                for ex in self.ex:
-                    ex["stale"] += stale - self.stale_seen
-                    ex["dropped"] += stale - self.stale_seen
-                self.stale_seen = stale
-                self.dirty = True
-                if self.kind == "esc":
-                    self.links.drop_unauthenticated()  # not our SSC of this run
-            return
-        if reply.send:
-            self.transport.send(reply.send, reply.gid)
-            self.links.flush()
-        if reply.run_key:
-            self._take_run_key(reply.run_key)
-        self.shaken = self.handshake.done
-
-    def _authentic(self, raw: bytes) -> bool:
-        """Whether a record is sound and signed (a hello with the link's key,
-        the rest with this run's)."""
-        hello = len(raw) == wire.SIZE and raw[6] == wire.KIND_HELLO
-        try:
-            wire.check(raw, self.link_key if hello else self.key)
-        except WireError:
-            return False
-        return True
-
-    def _take_run_key(self, key: bytes) -> None:
-        """An ESC's side: the SSC's proof came; its records, and ours, are
-        signed with this run's key from now on, and the link is pinned."""
-        self.key = key
-        if self.encrypt:
-            self.cipher = wire.cipher_key(key)
-        for enc in self.encoders:
-            enc.rekey(key)
-        if self.fast is not None:
-            self.fast.rekey(key)
-        self.links.authenticated()
-        self.post("handshake done: this run's key taken from the SSC's proof", logging.DEBUG)
-        self.urgent = self.dirty = True
-
-    def _reply(self) -> bool:
-        """An ESC's usual step on a stream socket, in one kernel call
-        (``ddm_reply``): the command received and admitted, then the new
-        feedback emitted and sent back as the reply. True when that was the
-        whole step: nothing came, or whole records, every one admitted (the
-        exchange counted, the starving index paid back, the latency taken by
-        the kernel). Else the general path takes the step on, with what the
-        call received."""
-        fd = self.accel.reply_fd(self.ready_fds)
-        if fd < 0:
-            return False
-        fast = self.fast
-        assert fast is not None
-        if self.accel.generation != self.send_generation:
-            self._refresh_send_fds()
-        got = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, self.accel.rx, fd)
-        if got == REPLIED:
-            self.dirty = True
-            return True
-        if got == NOTHING:
-            return True
-        return self._replied(got)
-
-    def _answer(self, raw: bytes) -> int:
-        """The ddm's usual step for one record, made in the transport's
-        thread as it arrives (``Transport.answer_with``): the record
-        admitted by the kernel; in an ESC, the newest feedback emitted and
-        sent back as the reply; in the SSC, the exchange published (its
-        manager watches every robot's updates). Anything else (the ddm
-        stepping now, an ESC's first command, an e-stop, a record to
-        refuse, a lost link) is the ddm's own step's: the record goes to
-        its queue untouched."""
-        if not self.step_lock.acquire(blocking=False):
-            return NOT_TAKEN
-        try:
-            fast = self.fast
-            if not self.answering or self.lost or self.estop_flag[0]:
-                return NOT_TAKEN
-            esc = self.kind == "esc"
-            if esc and not self.commanded:
-                return NOT_TAKEN
-            assert fast is not None
-            if fast.admit_call(fast.admit_plan, raw) < 0:
-                return NOT_TAKEN
-            self.dirty = True
-            self.answered_here += 1
-            if not esc:
-                self._publish()
-                return ANSWERED
-            self.steps += 1
-            mask = fast.emit_call(fast.emit_plan)
-            if mask < 0:  # a torn read of the feedback: the ddm reads it again
-                self.owed = True
-                return OWED
-            if mask:
-                self.sends += 1
-                try:
-                    self.transport.send(bytes(fast.wire_views[0]), self.answer_gid)
-                except TransportError:
-                    return OWED  # (closed: the ddm's receive says so)
-            if not self.steps & 63:
-                self._publish()
-            return ANSWERED
-        finally:
-            self.step_lock.release()
-
-    def _replied(self, got: int) -> bool:
-        """What ddm_reply did not take whole: the reply's trouble (a torn
-        read of the feedback, a send not made whole), or a receive the
-        general path takes on."""
-        fast = self.fast
-        assert fast is not None
-        if not self.accel.received(got):
-            return False
-        self.dirty = True
-        if fast.reply["trouble"]:
-            self.accel.send_result(self.gid[self.robots[0]], int(fast.send_status[0]))
-        elif fast.reply["emitted"] == -1:  # a torn read of the feedback: read it again
-            self._send(False)
-        return True
-
-    def _refresh_send_fds(self) -> None:
-        """Each robot's socket for the send kernels (a peer came or went)."""
-        fast = self.fast
-        assert fast is not None
-        self.send_generation = self.accel.generation
-        for i, robot in enumerate(self.gid[r] for r in self.robots):
-            fast.send_fds[i] = self.accel.send_fd(robot)
-
     def _status(self, estop: bool) -> None:
         """The node's status for viewers on other hosts (off the hot path:
         once in ``status_every`` steps)."""
-        import os
-        import socket
-
-        self.links.status(
-            {
-                "node": self.spec.node,
-                "kind": self.kind,
-                "robots": self.robots,
-                "host": socket.gethostname(),
-                "pid": os.getppid(),  # the node's manager
-                "steps": self.steps,
-                "updates": [int(ex["updates"]) for ex in self.ex],
-                "estop": bool(estop),
-                "lost": self.lost,
-            }
-        )
+        self.links.status(status_doc(self, estop))
 
     def _corrupt_command(self, i: int) -> None:
         """The fault harness's command fault on what the kernel just
@@ -614,8 +403,6 @@ class Ddm(Worker):
             self.refused_seen = refused
             self.dirty = self.urgent = True
         fast = self.fast
-        size, hello, in_kind, gids = wire.SIZE, wire.KIND_HELLO, self.in_kind, self.local
-        keyless = not self.handshake.run_key  # an ESC before the SSC's proof
         for raw in received:
             self.dirty = True
             if fast is not None:
@@ -625,83 +412,7 @@ class Ddm(Worker):
                     if self.corrupting:
                         self._corrupt_command(i)
                     continue
-            if (
-                keyless
-                and len(raw) == size
-                and raw[6] != hello
-                and (raw[6] != in_kind or raw[7] not in gids)
-            ):
-                continue  # another robot's traffic: without the run key, not ours to judge
-            # every record is checked (another node's traffic on a broadcast
-            # medium too: a forgery is counted whoever it claims to be);
-            # hellos are signed with the link's key, the rest with the run's
-            key = self.link_key if len(raw) == size and raw[6] == hello else self.key
-            try:
-                kind, robot, source, seq, stamp, estop = wire.check(raw, key)
-            except WireError as exc:
-                field = "forged" if exc.reason == "auth" else "malformed"
-                for ex in self.ex:
-                    ex[field] += 1
-                    ex["dropped"] += 1
-                if field == "forged" and self.kind == "esc":
-                    # not the SSC: whoever holds the link goes (a new
-                    # connection may take it: the SSC reconnecting)
-                    self.links.drop_unauthenticated()
-                continue
-            if kind == wire.KIND_HELLO:
-                self._hello(raw, robot)
-                continue
-            i = self.local.get(robot)
-            if kind != self.in_kind or i is None:
-                continue  # another node's traffic on a broadcast medium (authentic)
-            ex = self.ex[i]
-            if fast is not None:
-                why = fast.refuse(self.admission, i, source, kind, robot, seq, stamp)
-            else:
-                why = self.admission.refuse(source, kind, robot, seq, stamp)
-            if why:
-                ex[why] += 1
-                ex["dropped"] += 1
-                continue
-            self.links.authenticated()
-            now = time.monotonic_ns()
-            if estop and not ex["estop_in"]:
-                self.urgent = True
-                name = source.rstrip(b"\0")
-                ex["estop_in"] = 1
-                ex.array["estop_source"] = name[:16]
-                self.post(f"e-stop from {name.decode(errors='replace')}", logging.ERROR)
-                self.estop_request = True
-            payload: Any = memoryview(raw)[wire.PAYLOAD_AT : wire.PAYLOAD_AT + self.in_size]
-            if self.cipher:
-                payload = memoryview(wire.crypt(self.cipher, kind, robot, seq, payload))
-            if self.hooks is not None:
-                payload = self.hooks.command(payload)
-            self.in_blocks[i].publish(payload)
-            fresh += 1
-            if not ex["fresh"]:
-                self.urgent = True
-            if not self.commanded:
-                self.commanded = True
-                self._open_gate()
-                if self.replying:  # ... feedback goes out as the replies to commands
-                    ex["feedback_wanted"] = 0
-            ex["updates"] += 1
-            ex["last_update_ns"] = now
-            ex["fresh"] = 1
-            if self.kind == "esc":
-                # a fresh command pays back every command the sender sent on
-                # the strength of the old one
-                self.sent_block.read_into(self.sent_rec.bytes)
-                self.delivered_rec["count"] = self.sent_rec["count"]
-                self.delivered_rec["stamp_ns"] = now
-                self.delivered_block.publish(self.delivered_rec.bytes)
-                stamp = wire.payload_stamp(raw) if not self.cipher else _stamp_of(payload)
-                if 0 < stamp <= now:
-                    if fast is not None:
-                        fast.add_latency(now - stamp)
-                    else:
-                        self.latency.add(now - stamp)
+            fresh += self.python_admission.take(raw)
         if taken:
             self.links.authenticated()
         return fresh + taken
@@ -718,7 +429,7 @@ class Ddm(Worker):
                 if mask:
                     self.sends += 1
                     if self.socket_kernels:
-                        self._send_kernel(mask)
+                        self.socket_steps.send(mask)
                     else:
                         views = self.fast.wire_views
                         for i, robot in self.send_orders[self.sends & 1]:
@@ -742,24 +453,6 @@ class Ddm(Worker):
         if estop:
             self.estop_sent = True
 
-    def _send_kernel(self, mask: int) -> None:
-        """The records emitted (mask) sent on their sockets by ddm_send, the
-        robots in turn; what it could not send whole goes to the transport."""
-        fast = self.fast
-        assert fast is not None
-        transport = self.transport
-        if self.accel.generation != self.send_generation:  # a peer came or went
-            self._refresh_send_fds()
-        trouble = fast.send_call(fast.send_plan, mask, self.sends & 1)
-        if trouble:
-            for i, robot in self.send_orders[0]:
-                if trouble >> i & 1:
-                    result = int(fast.send_status[i])
-                    if result == 0:  # no socket: the transport's own send counts it
-                        transport.send(bytes(fast.wire_views[i]), robot)
-                    else:
-                        self.accel.send_result(robot, result)
-
     def _send_one(self, i: int, rec: Record, estop: bool) -> None:
         self.seq[i] += 1
         payload: Any = rec.bytes
@@ -780,9 +473,9 @@ class Ddm(Worker):
         self.dirty = self.urgent = False
 
     def cleanup(self) -> None:
-        with self.step_lock:
-            self.answering = False  # the transport's thread answers no more
-            self._open_gate()
+        with self.answers.lock:
+            self.answers.on = False  # the transport's thread answers no more
+            self.answers.open_gate()
         with contextlib.suppress(Exception):
             self.manager_block.read_into(self.mgr.bytes)
             if self.mgr["estop"] and not self.lost:
@@ -803,3 +496,20 @@ class Ddm(Worker):
             self._publish()
         with contextlib.suppress(Exception):
             self.transport.close()
+
+
+def status_doc(d: Ddm, estop: bool) -> dict[str, object]:
+    """What viewers (``redistro top --zenoh``) see of a node."""
+    import socket
+
+    return {
+        "node": d.spec.node,
+        "kind": d.kind,
+        "robots": d.robots,
+        "host": socket.gethostname(),
+        "pid": os.getppid(),  # the node's manager
+        "steps": d.steps,
+        "updates": [int(ex["updates"]) for ex in d.ex],
+        "estop": bool(estop),
+        "lost": d.lost,
+    }

@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 from redistro.ddm import record as wire
 from redistro.ddm import worker as ddm_worker
 from redistro.ddm.loopback import Loopback
+from redistro.ddm.socket_steps import REPLIED
 from redistro.kernels import KERNELS
 from redistro.localdata.block import Record
 from redistro.localdata.layout import FEEDBACK
@@ -83,7 +84,7 @@ def _twin(tmp_path: Path, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> Tw
         ssc.ddm.step(cycle)
         esc.ddm.step(cycle)
     assert esc.ddm.handshake.done
-    esc.ddm._take_run_key(RUN_KEY)
+    esc.ddm.greeting.take_run_key(RUN_KEY)
     ssc_end.inbox.clear()
     feedback = esc.ld.writer("feedback", 0, role="acquisition")
     return Twin(esc, ssc_end, esc_ends[gid], feedback, [ssc])
@@ -209,12 +210,12 @@ def answering(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     tmp = tmp_path_factory.mktemp("answer")
     pair = (_twin(tmp / "a", True, mp), _twin(tmp / "b", True, mp))
     for t in pair:
-        t.esc.ddm.answering = True
-        t.esc.ddm._open_gate()
+        t.esc.ddm.answers.on = True
+        t.esc.ddm.answers.open_gate()
     puts: list[list[bytes]] = [[], []]
     fallen: list[list[bytes]] = [[], []]
     ddm_a = pair[0].esc.ddm
-    answer = ddm_a._compiled_answer(puts[0].append, [], fallen[0].append, lambda: None)
+    answer = ddm_a.answers.compiled(puts[0].append, [], fallen[0].append, lambda: None)
     yield pair, answer, puts, fallen, Traffic()
     mp.undo()
     for t in pair:
@@ -239,7 +240,7 @@ def test_the_answerer_answers_as_the_python_answer(
     gid = compiled.esc.ddm.gid["r1"]
     for t in (compiled, python):  # an ESC answers once commanded
         t.esc.ddm.commanded = True
-        t.esc.ddm._open_gate()
+        t.esc.ddm.answers.open_gate()
     for kind, mark, new_feedback in events:
         if new_feedback:
             traffic.produced += 1
@@ -250,7 +251,7 @@ def test_the_answerer_answers_as_the_python_answer(
         raw = _record(kind, traffic, mark, gid)
         answer(raw)
         ddm = python.esc.ddm
-        if ddm._answer(raw) == NOT_TAKEN:
+        if ddm.answers.answer(raw) == NOT_TAKEN:
             fallen[1].append(raw)
         a_cmd = compiled.esc.ld.block("command", 0).read().tobytes()
         b_cmd = python.esc.ld.block("command", 0).read().tobytes()
@@ -274,8 +275,8 @@ def test_the_answerer_answers_as_the_python_answer(
 
 def test_the_answerer_took_its_share_of_that_traffic(answering: Any) -> None:
     (compiled, python), *_ = answering
-    assert int(compiled.esc.ddm.gate["answered"]) > 100
-    assert python.esc.ddm.answered_here == int(compiled.esc.ddm.gate["answered"])
+    assert int(compiled.esc.ddm.answers.gate["answered"]) > 100
+    assert python.esc.ddm.answers.taken_here == int(compiled.esc.ddm.answers.gate["answered"])
 
 
 # -- the stream sockets' kernels against admit and emit --
@@ -341,7 +342,7 @@ def test_recv_and_reply_do_what_recv_admit_emit_and_send_do(
                 got = fast.reply_call(
                     fast.admit_plan, fast.emit_plan, fast.send_plan, rx, a.fileno()
                 )
-                replied = got == ddm_worker.REPLIED
+                replied = got == REPLIED
                 traffic.replied += replied
                 if not cut and set(kinds) == {"next"}:  # the usual step: done whole
                     assert replied, got

@@ -303,7 +303,7 @@ def test_reply_receives_admits_and_sends_back_in_one_call(ld: LocalData) -> None
     import errno
     import socket
 
-    from redistro.ddm.worker import NOTHING, REPLIED
+    from redistro.ddm.socket_steps import NOTHING, REPLIED
 
     fast = _esc_fast(ld, Samples(8))
     fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)

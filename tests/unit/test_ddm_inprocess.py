@@ -340,15 +340,18 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
     commands' arrival. Any other ddm (or one not yet answering) sleeps a
     period."""
     from redistro.ddm import worker as ddm_worker
+    from redistro.ddm.answer import ThreadAnswer
     from redistro.localdata.layout import EXCHANGE
 
     period = 5_000_000
     d = Ddm.__new__(Ddm)  # (only what wait_s reads)
     d.period_ns, d.heartbeat_cycles = period, 25
-    d.kind, d.answering, d.commanded, d.answered_here, d.gate = "esc", True, True, 0, None
+    d.kind, d.commanded = "esc", True
+    d.answers = ThreadAnswer(d)
+    d.answers.on = True
     d.ex = [Record(EXCHANGE)]
     assert d.wait_s() == pytest.approx(0.005)  # nothing answered yet
-    d.answered_here = 1
+    d.answers.taken_here = 1
     now = 10_000 * period + 1_300_000
     monkeypatch.setattr(ddm_worker.time, "monotonic_ns", lambda: now)
     for last in (now - 1_000_000, now - 4_900_000, now - 3 * period - 200_000):
@@ -361,7 +364,7 @@ def test_an_answering_esc_ddm_sleeps_out_of_the_commands_burst(
         assert 5 * period < wake - now <= 7 * period  # 25 // 4 periods, about
     d.kind = "ssc"  # (answering in zenoh's thread too, but woken by its worker)
     assert d.wait_s() == pytest.approx(0.005)
-    d.kind, d.answering = "esc", False  # (a socket ESC)
+    d.kind, d.answers.on = "esc", False  # (a socket ESC)
     assert d.wait_s() == pytest.approx(0.005)
 
 

@@ -1,0 +1,90 @@
+"""A ddm's steps over stream sockets in kernel calls: the records sent by
+``ddm_send`` on each robot's socket, and an ESC's usual step (the command
+received and admitted, the new feedback emitted and sent back as the reply)
+in one ``ddm_reply`` call. What a call does not take whole goes to the
+ddm's general path."""
+
+from __future__ import annotations
+
+import errno
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from redistro.ddm.worker import Ddm
+
+REPLIED = 1 << 40  # ddm_reply: the usual step done whole
+NOTHING = -errno.EAGAIN  # ... nothing had come
+
+
+class SocketSteps:
+    """One ddm's kernel calls on its transport's sockets."""
+
+    def __init__(self, ddm: Ddm) -> None:
+        self.d = ddm
+        self.generation = -1  # the transport's peers the send fds are for
+
+    def reply(self) -> bool:
+        """An ESC's usual step in one kernel call. True when that was the
+        whole step: nothing came, or whole records, every one admitted (the
+        exchange counted, the starving index paid back, the latency taken by
+        the kernel). Else the general path takes the step on, with what the
+        call received."""
+        d = self.d
+        fd = d.accel.reply_fd(d.ready_fds)
+        if fd < 0:
+            return False
+        fast = d.fast
+        assert fast is not None
+        if d.accel.generation != self.generation:
+            self.refresh_fds()
+        got = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, d.accel.rx, fd)
+        if got == REPLIED:
+            d.dirty = True
+            return True
+        if got == NOTHING:
+            return True
+        return self._replied(got)
+
+    def _replied(self, got: int) -> bool:
+        """What ddm_reply did not take whole: the reply's trouble (a torn
+        read of the feedback, a send not made whole), or a receive the
+        general path takes on."""
+        d = self.d
+        fast = d.fast
+        assert fast is not None
+        if not d.accel.received(got):
+            return False
+        d.dirty = True
+        if fast.reply["trouble"]:
+            d.accel.send_result(d.gid[d.robots[0]], int(fast.send_status[0]))
+        elif fast.reply["emitted"] == -1:  # a torn read of the feedback: read it again
+            d._send(False)
+        return True
+
+    def refresh_fds(self) -> None:
+        """Each robot's socket for the send kernels (a peer came or went)."""
+        d = self.d
+        fast = d.fast
+        assert fast is not None
+        self.generation = d.accel.generation
+        for i, robot in enumerate(d.gid[r] for r in d.robots):
+            fast.send_fds[i] = d.accel.send_fd(robot)
+
+    def send(self, mask: int) -> None:
+        """The records emitted (mask) sent on their sockets by ddm_send, the
+        robots in turn; what it could not send whole goes to the transport."""
+        d = self.d
+        fast = d.fast
+        assert fast is not None
+        if d.accel.generation != self.generation:  # a peer came or went
+            self.refresh_fds()
+        trouble = fast.send_call(fast.send_plan, mask, d.sends & 1)
+        if not trouble:
+            return
+        for i, robot in d.send_orders[0]:
+            if trouble >> i & 1:
+                result = int(fast.send_status[i])
+                if result == 0:  # no socket: the transport's own send counts it
+                    d.transport.send(bytes(fast.wire_views[i]), robot)
+                else:
+                    d.accel.send_result(robot, result)
