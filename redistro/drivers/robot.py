@@ -23,6 +23,8 @@ import numpy as np
 from redistro import kernels
 from redistro.config.hardware import RobotHardware, by_board
 from redistro.drivers import driver_layout
+from redistro.drivers.driver_plans import driver_plans
+from redistro.drivers.driver_reference import decode_numpy
 from redistro.drivers.io import registers as R
 from redistro.drivers.io.adc import AdcDriver
 from redistro.drivers.io.backplane import Backplane
@@ -43,16 +45,6 @@ DRIVERS: dict[str, type[ModuleDriver]] = {
     "dio": DioDriver,
     "force": ForceDriver,
 }
-
-
-_HALF = ENC_MODULO // 2
-_MASK = ENC_MODULO - 1
-
-
-def _wrap(delta: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Signed changes between 24-bit counter readings (|change| < 2**23), per element."""
-    out: np.ndarray[Any, Any] = ((delta + _HALF) & _MASK) - _HALF
-    return out
 
 
 @dataclass
@@ -133,7 +125,22 @@ class RobotDriver:
             for kind in ("encoder", "dac", "home", "brake", "torque", "tach")
         }
         self._wire = wire
-        # state and outputs: one arena (the acquisition copies out of it in one call)
+        self._arena(physics_hz)
+        self.tau_cmd = self.arena.take("tau_cmd", np.float64, DOF)  # the torques send() writes
+        self._read: Any = None  # the batch reader and writer: made by open()
+        self._write_dac: Any = None
+        self._dac_watchdog = regs.out[BoardType.DAC]["watchdog"]
+        self._enc_steps = regs.inp[BoardType.ENCODER]["step"]
+        self._decode: Any = lambda: decode_numpy(self)
+        if self.kernels:
+            self._decode_plan, self._dac_plan = driver_plans(self)
+            run, plan = kernels.KERNELS.driver_decode, self._decode_plan
+            self._decode = lambda: run(plan)
+
+    def _arena(self, physics_hz: float) -> None:
+        """State and outputs in one arena (the acquisition copies out of it
+        in one call): the figures, the encoders' unwrapping, what decoding
+        keeps between samples and its parameters (driver_layout.py)."""
         a = self.arena = kernels.Arena(1024)
         self.q = a.take("q", np.float64, DOF)
         self.qd = a.take("qd", np.float64, DOF)
@@ -160,91 +167,6 @@ class RobotDriver:
         pa["has_tach"], pa["has_torque"] = float(self.has_tach), float(self.has_torque)
         self._retry = pa["retry"]  # 0 while an incoherent snapshot is decoded as it is
         self._jump = a.take("jump", driver_layout.JUMP, ())  # a refused counter change
-        self.tau_cmd = a.take("tau_cmd", np.float64, DOF)  # the torques send() writes
-        self._read: Any = None  # the batch reader and writer: made by open()
-        self._write_dac: Any = None
-        self._dac_watchdog = regs.out[BoardType.DAC]["watchdog"]
-        self._enc_steps = regs.inp[BoardType.ENCODER]["step"]
-        self._decode: Any = self._decode_numpy
-        if self.kernels:
-            self._plans()
-            run, plan = kernels.KERNELS.driver_decode, self._decode_plan
-            self._decode = lambda: run(plan)
-
-    # -- the kernels' plans --
-
-    def _plans(self) -> None:
-        regs, w = self.regs, self._wire
-        enc, dac, adc, dio, force = (
-            BoardType.ENCODER,
-            BoardType.DAC,
-            BoardType.ADC,
-            BoardType.DIO,
-            BoardType.FORCE,
-        )
-        at = regs.offsets
-
-        def rows(kind: str) -> Any:
-            return w[kind][:, 1] if len(w[kind]) else []
-
-        def chs(kind: str) -> Any:
-            return w[kind][:, 2] if len(w[kind]) else []
-
-        none = np.full(DOF, -1, dtype=np.int64)
-        # the wrist's strain and calibration registers (-1: no wrist)
-        strain = np.full((), -1, driver_layout.ONE_OFFSET)
-        cal = np.full((), -1, driver_layout.ONE_OFFSET)
-        if self.hw.wrist is not None:
-            wrist_row = [regs.row[self.hw.wrist.address]]
-            strain["at"] = at(force, "in", "strain", wrist_row)[0]
-            cal["at"] = at(force, "in", "calibration", wrist_row)[0]
-        self._decode_plan = kernels.plan(
-            "driver_decode",
-            image=regs.image,
-            step_off=at(enc, "in", "step", sorted(set(rows("encoder")))),
-            counter_off=at(enc, "in", "counter", rows("encoder"), chs("encoder"), 4),
-            latch_off=at(enc, "in", "latch", rows("encoder"), chs("encoder"), 4),
-            latch_count_off=at(enc, "in", "latch_count", rows("encoder"), chs("encoder"), 4),
-            latch_edge_off=at(enc, "in", "latch_edge", rows("encoder"), chs("encoder"), 1),
-            tach_off=at(adc, "in", "code", rows("tach"), chs("tach"), 2) if self.has_tach else none,
-            torque_off=at(adc, "in", "code", rows("torque"), chs("torque"), 2)
-            if self.has_torque
-            else none,
-            readback_off=at(dac, "in", "readback", rows("dac"), chs("dac"), 2),
-            home_word=at(dio, "in", "inputs", rows("home")),
-            home_bit=np.ascontiguousarray(chs("home"), dtype=np.int64),
-            brake_word=at(dio, "in", "outputs_readback", rows("brake")),
-            brake_bit=np.ascontiguousarray(chs("brake"), dtype=np.int64),
-            strain_off=strain,
-            cal_off=cal,
-            counts_per_rad=self.counts_per_rad,
-            tach_scale=self.tach_scale,
-            torque_scale=self.torque_scale,
-            dac_scale=self.dac_scale,
-            raw=self._raw,
-            acc=self._acc,
-            q_ref=self._q_ref,
-            prev_q=self._prev_q,
-            state=self._state,
-            params=self._params,
-            q=self.q,
-            qd=self.qd,
-            tau=self.tau,
-            wrench=self.wrench,
-            home=self.home_levels,
-            brakes=self.brakes,
-            latch_count=self.latch_count.view(np.uint8),
-            latch_edge=self.latch_edge,
-            latch_q=self.latch_q,
-            out=self._jump,
-        )
-        self._dac_plan = kernels.plan(
-            "driver_dac",
-            image=regs.image,
-            tau=self.tau_cmd,
-            volts_per_nm=self.volts_per_nm,
-            code_off=at(dac, "out", "code", rows("dac"), chs("dac"), 2),
-        )
 
     @property
     def jump_limit_rad_s(self) -> float:
@@ -350,70 +272,6 @@ class RobotDriver:
             self.latch_edge.copy(),
             self.latch_q.copy(),
         )
-
-    def _decode_numpy(self) -> int:
-        """The arithmetic of the ``driver_decode`` kernel (see it for the rules)."""
-        regs = self.regs
-        recs = {a: regs.rec_in[a] for a in self.addresses}
-        steps = [int(recs[a]["step"]) for a in self.enc]
-        step = min(steps)
-        st = self._state
-        st["step"], st["coherent"] = step, min(steps) == max(steps)
-        if not st["coherent"] and self._params["retry"]:
-            return -1
-        raw = np.zeros(DOF, dtype=np.int64)
-        latch_raw = np.zeros(DOF, dtype=np.int64)
-        for a, (js, axes) in self.enc.items():
-            rec = recs[a]
-            raw[js] = rec["counter"][axes]
-            latch_raw[js] = rec["latch"][axes]
-            self.latch_count[js] = rec["latch_count"][axes]
-            self.latch_edge[js] = rec["latch_edge"][axes]
-        if not st["have_ref"]:
-            signed = np.where(raw >= ENC_MODULO // 2, raw - ENC_MODULO, raw)
-            self._q_ref[...] = signed / self.counts_per_rad
-            self._acc[:] = 0
-            st["have_ref"] = 1
-        else:
-            delta = _wrap(raw - self._raw)
-            limit_rad_s = self._params["jump_limit_rad_s"]
-            prev = int(st["prev_step"])
-            if limit_rad_s > 0 and prev >= 0:
-                n = max(1, step - prev)
-                limit = limit_rad_s * self.counts_per_rad * n / self.physics_hz + 2
-                bad = np.flatnonzero(np.abs(delta) > limit)
-                if bad.size:
-                    j = int(bad[0])
-                    jump = self._jump
-                    jump["delta"], jump["limit"], jump["steps"] = delta[j], limit[j], n
-                    return j + 1
-            self._acc += delta
-        self._raw[...] = raw
-        self.q[...] = self._q_ref + self._acc / self.counts_per_rad
-        # a latched count is within half the counter's range of the present one
-        self.latch_q[...] = self.q + _wrap(latch_raw - raw) / self.counts_per_rad
-        if self.has_tach:
-            for a, (js, ch) in self.tach.items():
-                self.qd[js] = recs[a]["code"][ch] * self.tach_scale[js]
-        elif st["prev_step"] >= 0 and step > st["prev_step"]:
-            dt = (step - int(st["prev_step"])) / self.physics_hz
-            self.qd[...] = (self.q - self._prev_q) / dt
-        st["prev_step"] = step
-        self._prev_q[...] = self.q
-        if self.has_torque:
-            for a, (js, ch) in self.torque.items():
-                self.tau[js] = recs[a]["code"][ch] * self.torque_scale[js]
-        else:
-            for a, (js, ch) in self.dac.items():
-                self.tau[js] = recs[a]["readback"][ch] * self.dac_scale[js]
-        for a, (js, bits) in self.home.items():
-            self.home_levels[js] = DioDriver.bits(recs[a], bits)
-        for a, (js, bits) in self.brake.items():
-            self.brakes[js] = ~DioDriver.output_bits(recs[a], bits)
-        self.wrench[:] = 0.0
-        if self.hw.wrist is not None:
-            self.wrench[...] = ForceDriver.wrench(recs[self.hw.wrist.address])
-        return 0
 
     def shift_zero(self, offset_rad: np.ndarray[Any, Any]) -> None:
         """Take ``offset_rad`` out of every joint position from now on.

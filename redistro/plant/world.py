@@ -18,6 +18,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from redistro.config.model import Config
+from redistro.plant.truth import HolePose
 from redistro.robotmodel import JOINT_NAMES, SENSOR_JOINT, TOOL_LINK, Peg, write_arm_urdf
 
 GRAVITY = 9.81
@@ -102,6 +103,8 @@ BRAKE_POSITION_GAIN = 0.1
 class World:
     """The simulated scene. ``step()`` advances physics by one time step."""
 
+    hole: HolePose  # where the plant's truth puts the hole (build_table_and_fixture)
+
     def __init__(
         self,
         cfg: Config,
@@ -137,47 +140,16 @@ class World:
             self._tmp = tempfile.TemporaryDirectory(prefix="redistro-urdf-")
             urdf_dir = Path(self._tmp.name)
         try:
-            self.fixture = self._build_table_and_fixture()
+            self.fixture = build_table_and_fixture(self)
         except BaseException:
             pb.disconnect(physicsClientId=cid)
             raise
-        self.arms: dict[str, Arm] = {}
         peg_cfg = cfg.workcell.peg
+        self.arms: dict[str, Arm] = {}
         for name, rc in cfg.robots.items():
             peg = Peg(peg_cfg.side_m, peg_cfg.length_m, peg_cfg.mass_kg) if rc.peg else None
-            path = write_arm_urdf(urdf_dir, name, peg)
-            body = pb.loadURDF(
-                str(path),
-                basePosition=rc.base_xyz_m,
-                useFixedBase=True,
-                flags=pb.URDF_USE_INERTIA_FROM_FILE,
-                physicsClientId=cid,
-            )
-            infos = [self.joint_info(body, j) for j in range(pb.getNumJoints(body, cid))]
-            by_name = {i.name: i for i in infos}
-            joints = [by_name[n].joint for n in JOINT_NAMES]
-            sensor = by_name[SENSOR_JOINT].joint
-            tool_link = next(i.joint for i in infos if i.link_name == TOOL_LINK)
-            dyn = pb.getDynamicsInfo(body, tool_link, physicsClientId=cid)
-            # disable the default velocity motors: joints are torque driven
-            pb.setJointMotorControlArray(
-                body, joints, pb.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid
-            )
             q_start = (start_q or {}).get(name, rc.initial_q_rad)
-            for j, q in zip(joints, q_start, strict=True):
-                pb.resetJointState(body, j, q, 0.0, physicsClientId=cid)
-            pb.enableJointForceTorqueSensor(body, sensor, True, physicsClientId=cid)
-            self.arms[name] = Arm(
-                name=name,
-                body=body,
-                joints=joints,
-                sensor_joint=sensor,
-                tool_link=tool_link,
-                tool_mass_kg=float(dyn[0]),
-                tool_com_m=np.asarray(dyn[3], dtype=np.float64),
-                braked=np.zeros(7, dtype=bool),
-                brake_torque_nm=np.zeros(7),
-            )
+            self.arms[name] = self._load_arm(name, write_arm_urdf(urdf_dir, name, peg), rc, q_start)
         overlap = self.overlap()
         if overlap:
             from redistro.errors import ConfigError
@@ -186,6 +158,41 @@ class World:
             raise ConfigError(
                 f"{cfg.source}: the plant refuses a world whose bodies overlap: {overlap}"
             )
+
+    def _load_arm(self, name: str, path: Path, rc: Any, q_start: list[float]) -> Arm:
+        """One arm loaded from its URDF at its base, torque driven (the
+        default velocity motors off), at ``q_start``, its wrist's sensor on."""
+        pb, cid = self.pb, self.client
+        body = pb.loadURDF(
+            str(path),
+            basePosition=rc.base_xyz_m,
+            useFixedBase=True,
+            flags=pb.URDF_USE_INERTIA_FROM_FILE,
+            physicsClientId=cid,
+        )
+        infos = [self.joint_info(body, j) for j in range(pb.getNumJoints(body, cid))]
+        by_name = {i.name: i for i in infos}
+        joints = [by_name[n].joint for n in JOINT_NAMES]
+        sensor = by_name[SENSOR_JOINT].joint
+        tool_link = next(i.joint for i in infos if i.link_name == TOOL_LINK)
+        dyn = pb.getDynamicsInfo(body, tool_link, physicsClientId=cid)
+        pb.setJointMotorControlArray(
+            body, joints, pb.VELOCITY_CONTROL, forces=[0.0] * 7, physicsClientId=cid
+        )
+        for j, q in zip(joints, q_start, strict=True):
+            pb.resetJointState(body, j, q, 0.0, physicsClientId=cid)
+        pb.enableJointForceTorqueSensor(body, sensor, True, physicsClientId=cid)
+        return Arm(
+            name=name,
+            body=body,
+            joints=joints,
+            sensor_joint=sensor,
+            tool_link=tool_link,
+            tool_mass_kg=float(dyn[0]),
+            tool_com_m=np.asarray(dyn[3], dtype=np.float64),
+            braked=np.zeros(7, dtype=bool),
+            brake_torque_nm=np.zeros(7),
+        )
 
     def overlap(self, tolerance_m: float = 0.002) -> str:
         """Where a robot's base stands in another body (another arm, the
@@ -209,72 +216,6 @@ class World:
         return ""
 
     # -- scene --
-
-    def _box(
-        self,
-        half: list[float],
-        pos: list[float],
-        rgba: list[float],
-        orn: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
-    ) -> int:
-        pb, cid = self.pb, self.client
-        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
-        vis = pb.createVisualShape(
-            pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid
-        )
-        return int(
-            pb.createMultiBody(
-                baseMass=0,
-                baseCollisionShapeIndex=col,
-                baseVisualShapeIndex=vis,
-                basePosition=pos,
-                baseOrientation=orn,
-                physicsClientId=cid,
-            )
-        )
-
-    def _build_table_and_fixture(self) -> list[int]:
-        """The table, and on it the fixture as drawn (``workcell.hole``) but
-        where the plant's truth puts it (``plant.hole``: offset, yaw, tilt)."""
-        from redistro.plant.truth import (
-            FIXTURE_FLOOR_M,
-            TABLE_HALF_XY_M,
-            hole_pose,
-            placement_problem,
-        )
-
-        hole = self.cfg.workcell.hole
-        peg = self.cfg.workcell.peg
-        self.hole = truth = hole_pose(self.cfg)
-        x, y, top = truth.xyz_m
-        side = peg.side_m + hole.clearance_m
-        depth, wall = hole.depth_m, hole.wall_m
-        table_top = top - depth - FIXTURE_FLOOR_M
-        problem = placement_problem(self.cfg)
-        if problem:
-            from redistro.errors import ConfigError
-
-            raise ConfigError(f"{self.cfg.source}: {problem}")
-        grey, steel = [0.6, 0.45, 0.3, 1], [0.5, 0.55, 0.6, 1]
-        hx, hy = TABLE_HALF_XY_M
-        bodies = [self._box([hx, hy, table_top / 2], [x, 0.0, table_top / 2], grey)]
-        # the fixture: a floor plate and four walls around a square hole, in
-        # the fixture's frame (origin at the mouth's centre), then placed
-        orn = truth.quaternion()
-        R = truth.rotation()
-        centre = np.array([x, y, top])
-
-        def place(half: list[float], local: list[float]) -> None:
-            pos = centre + R @ np.asarray(local, dtype=np.float64)
-            bodies.append(self._box(half, [float(v) for v in pos], steel, orn))
-
-        outer = side / 2 + wall
-        place([outer, outer, FIXTURE_FLOOR_M / 2], [0.0, 0.0, -depth - FIXTURE_FLOOR_M / 2])
-        for sx in (-1, 1):  # walls along y, full length
-            place([wall / 2, outer, depth / 2], [sx * (side / 2 + wall / 2), 0.0, -depth / 2])
-        for sy in (-1, 1):  # walls along x, between the others
-            place([side / 2, wall / 2, depth / 2], [0.0, sy * (side / 2 + wall / 2), -depth / 2])
-        return bodies
 
     # -- queries --
 
@@ -505,3 +446,69 @@ class World:
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
+
+
+def _box(
+    w: World,
+    half: list[float],
+    pos: list[float],
+    rgba: list[float],
+    orn: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
+) -> int:
+    pb, cid = w.pb, w.client
+    col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+    vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid)
+    return int(
+        pb.createMultiBody(
+            baseMass=0,
+            baseCollisionShapeIndex=col,
+            baseVisualShapeIndex=vis,
+            basePosition=pos,
+            baseOrientation=orn,
+            physicsClientId=cid,
+        )
+    )
+
+
+def build_table_and_fixture(w: World) -> list[int]:
+    """The table, and on it the fixture as drawn (``workcell.hole``) but
+    where the plant's truth puts it (``plant.hole``: offset, yaw, tilt)."""
+    from redistro.plant.truth import (
+        FIXTURE_FLOOR_M,
+        TABLE_HALF_XY_M,
+        hole_pose,
+        placement_problem,
+    )
+
+    hole = w.cfg.workcell.hole
+    peg = w.cfg.workcell.peg
+    w.hole = truth = hole_pose(w.cfg)
+    x, y, top = truth.xyz_m
+    side = peg.side_m + hole.clearance_m
+    depth, wall = hole.depth_m, hole.wall_m
+    table_top = top - depth - FIXTURE_FLOOR_M
+    problem = placement_problem(w.cfg)
+    if problem:
+        from redistro.errors import ConfigError
+
+        raise ConfigError(f"{w.cfg.source}: {problem}")
+    grey, steel = [0.6, 0.45, 0.3, 1], [0.5, 0.55, 0.6, 1]
+    hx, hy = TABLE_HALF_XY_M
+    bodies = [_box(w, [hx, hy, table_top / 2], [x, 0.0, table_top / 2], grey)]
+    # the fixture: a floor plate and four walls around a square hole, in
+    # the fixture's frame (origin at the mouth's centre), then placed
+    orn = truth.quaternion()
+    R = truth.rotation()
+    centre = np.array([x, y, top])
+
+    def place(half: list[float], local: list[float]) -> None:
+        pos = centre + R @ np.asarray(local, dtype=np.float64)
+        bodies.append(_box(w, half, [float(v) for v in pos], steel, orn))
+
+    outer = side / 2 + wall
+    place([outer, outer, FIXTURE_FLOOR_M / 2], [0.0, 0.0, -depth - FIXTURE_FLOOR_M / 2])
+    for sx in (-1, 1):  # walls along y, full length
+        place([wall / 2, outer, depth / 2], [sx * (side / 2 + wall / 2), 0.0, -depth / 2])
+    for sy in (-1, 1):  # walls along x, between the others
+        place([side / 2, wall / 2, depth / 2], [0.0, sy * (side / 2 + wall / 2), -depth / 2])
+    return bodies

@@ -112,6 +112,42 @@ class Worker:
         self.msgbox.post(text, level)
 
 
+def start_worker(spec: NodeSpec, i: int, ld: LocalData, row: Any, wake_fd: int) -> Worker:
+    """Worker i made and initialized (at the default priority: imports and
+    opening drivers must not hold off the plant or other nodes), the
+    collector's one full pass, then its real-time priority: ready for its
+    Routine (the caller releases ``ready``)."""
+    me = spec.workers[i]
+    with row.write() as d:
+        d["pid"] = os.getpid()
+        d["state"] = ProcState.INITIALIZATION
+    from redistro.process.registry import worker_class
+
+    worker: Worker = worker_class(me.role)(spec, i, ld)
+    worker.wake_fd = wake_fd
+    try:
+        worker.initialize()
+    except Exception as exc:
+        worker.post(f"initialization failed: {exc}", logging.CRITICAL)
+        raise WorkerFailed(str(exc)) from exc
+    # the collector's one full pass, then no more: before ``ready``, at the
+    # default priority (in the SSC worker it takes 10-25 ms, which at 1 kHz
+    # were its first cycles' heartbeats)
+    gc.collect()
+    gc.freeze()
+    gc.disable()  # no collector pauses inside cycles; Routine allocates little
+    granted = sched.apply(me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory)
+    with row.write() as d:
+        d["sched_policy"] = sched.POLICY_CODES[granted.policy]
+        d["sched_priority"] = granted.priority
+        d["nice"] = granted.nice
+        d["cpu_mask"] = sched.cpu_mask(granted.cpus)
+        d["state"] = ProcState.ROUTINE
+    for refusal in granted.refused:
+        ld.msgbox(i).post(f"scheduling: {refusal}", logging.DEBUG)
+    return worker
+
+
 class _Runner:
     """Drives a Worker through its four states."""
 
@@ -164,40 +200,7 @@ class _Runner:
             ready = Semaphore.attach(names.object_name(spec.session_id, spec.node, "ready"))
             sems = [*go, ready]
 
-            with row.write() as d:
-                d["pid"] = os.getpid()
-                d["state"] = ProcState.INITIALIZATION
-
-            from redistro.process.registry import worker_class
-
-            # initialization (imports, opening drivers) runs at the default
-            # priority: real-time priority is for the cycles
-            worker = worker_class(me.role)(spec, i, ld)
-            worker.wake_fd = self.wake_fd
-            try:
-                worker.initialize()
-            except Exception as exc:
-                worker.post(f"initialization failed: {exc}", logging.CRITICAL)
-                raise WorkerFailed(str(exc)) from exc
-            # the collector's one full pass, then no more: before ``ready``,
-            # at the default priority (in the SSC worker it takes 10-25 ms,
-            # which at 1 kHz were its first cycles' heartbeats)
-            gc.collect()
-            gc.freeze()
-            gc.disable()  # no collector pauses inside cycles; Routine allocates little
-            granted = sched.apply(
-                me.priority, me.cpus or spec.cpus, spec.sched_policy, spec.lock_memory
-            )
-            with row.write() as d:
-                d["sched_policy"] = sched.POLICY_CODES[granted.policy]
-                d["sched_priority"] = granted.priority
-                d["nice"] = granted.nice
-                d["cpu_mask"] = sched.cpu_mask(granted.cpus)
-            for refusal in granted.refused:
-                ld.msgbox(i).post(f"scheduling: {refusal}", logging.DEBUG)
-
-            with row.write() as d:
-                d["state"] = ProcState.ROUTINE
+            worker = start_worker(spec, i, ld, row, self.wake_fd)
             ready.release()
 
             # a developer's profile of this process (tools/profile.py; none normally)

@@ -42,18 +42,16 @@ from redistro.control.cartesian import (
 from redistro.control.cartesian_law import CartesianLaw
 from redistro.control.dynamics import ArmModel
 from redistro.control.pid import PidGains, PidLoop, PidState
-from redistro.control.search import DESCENT_ACCEL_M_S2, Phase, SpiralSearch
+from redistro.control.search import Phase, SpiralSearch
 from redistro.control.trajectory import QuinticRef
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
 from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
 from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
+from redistro.ssc.search_steps import steer
 
 DOF = 7
-X, Y, Z, RZ = 0, 1, 2, 5  # Cartesian axes, in the law's 6-vectors
-DEEP_IN = 3.0  # this many search.drop_m below the contact: in the hole for sure
-TOUCH_ABOVE_M = 0.003  # a searching descent slows to search.touch_m_s this far above the mouth
 RETREAT_S = 2.0  # a failed search lifts the tool off in this long [s]
 RETREAT_HOLD_S = 0.5  # ... and holds it there this long before the task ends [s]
 ON = np.ones(DOF, dtype=bool)
@@ -472,101 +470,8 @@ class SscWorker(Worker):
         st.plan["contact"] = 1 if law.contact else 0
 
     def _search(self, st: RobotState, plan: SegmentPlan, seg_t: float, dt: float, t: float) -> None:
-        """The segment's search, before the law: the goal in the hole's
-        plane, the plane's stiffness and the push along z, by phase."""
-        srch = st.search
-        assert srch is not None
-        law = st.law
-        before = srch.phase
-        phase = srch.step(seg_t, dt, law.contact, float(law.tcp_p[2]), -float(law.applied[2]))
-        ref, gains, cmd = law.ref, law.gains, law.cmd
-        if phase == Phase.DESCENT:
-            z = float(law.tcp_p[2])
-            near = abs(z - plan.mouth_z_m) < TOUCH_ABOVE_M
-            # near the mouth as drawn: touch gently; past it, untouched, the
-            # peg is going into the hole: the law's own speed again
-            gains["v_max"] = srch.p.touch_m_s if near else st.gains0["v_max"]
-        elif phase == Phase.SETTLE and before != phase:
-            gains["v_max"] = st.gains0["v_max"]
-            gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad  # in touch: the search's soft yaw
-            cmd["goal_wrench"][Z] = -srch.p.force_n
-            st.views["wrench_goal"][2] = -srch.p.force_n
-            self.post(f"{st.name}: contact off the hole at t={t:.2f} s; searching")
-        elif phase == Phase.SEARCH:
-            if before != phase:
-                gains[...] = st.gains0
-                st.fast_z = st.slow_z = -math.inf
-                gains["k"][X] = gains["k"][Y] = srch.p.stiffness_n_m
-                gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad
-                if before == Phase.IN_HOLE:  # a slip, not the hole: search on
-                    cmd["goal_wrench"][Z] = -srch.p.force_n
-                    st.views["wrench_goal"][2] = -srch.p.force_n
-                    self.post(f"{st.name}: no hole there (t={t:.2f} s); searching on")
-            x, y = plan.pose[0] + srch.ox, plan.pose[1] + srch.oy
-            # the goal leads the tip by at most max_lateral_n / stiffness: a
-            # peg caught on an edge is not loaded up until it snaps free
-            tx, ty = float(law.tcp_p[0]), float(law.tcp_p[1])
-            dx, dy = x - tx, y - ty
-            lead = math.sqrt(dx * dx + dy * dy)
-            cap = srch.p.max_lateral_n / srch.p.stiffness_n_m
-            if lead > cap:
-                x, y = tx + dx * cap / lead, ty + dy * cap / lead
-            ref["start_p"][X] = ref["goal_p"][X] = x
-            ref["start_p"][Y] = ref["goal_p"][Y] = y
-            xy = st.views["search_xy"]
-            xy[0], xy[1] = srch.ox, srch.oy
-            st.plan["search_m"] = srch.path_m
-        elif phase == Phase.IN_HOLE and before != phase:
-            # stop where the tip is, the task's own stiffness and push
-            p = law.tcp_p
-            ref["start_p"][X] = ref["goal_p"][X] = float(p[0])
-            ref["start_p"][Y] = ref["goal_p"][Y] = float(p[1])
-            gains[...] = st.gains0
-            cmd["goal_wrench"][Z] = st.goal_z_n
-            st.views["wrench_goal"][2] = st.goal_z_n
-            if before != Phase.DESCENT:
-                # the yaw stays as soft as the search had it: a stiffer yaw
-                # now would snap back whatever the walls turned (a jolt at
-                # the wrist); a peg that met nothing before the bottom keeps
-                # the task's own law throughout
-                gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad
-                # the peg is falling in: free space again along z (no spring
-                # wound up, no goal force fed forward), down the hole at the
-                # search's descent speed to a little above its bottom as drawn
-                # (below the mouth the search met), then at the law's own speed
-                law.release()
-                st.fast_z = srch.z_contact - DEEP_IN * srch.p.drop_m
-                st.slow_z = srch.z_contact - plan.hole_depth_m + srch.p.slow_above_m
-                self.post(
-                    f"{st.name}: in the hole at t={t:.2f} s, {srch.path_m * 1e3:.1f} mm "
-                    f"of search, {srch.radius_m * 1e3:.2f} mm from the believed centre"
-                )
-        elif (
-            phase == Phase.IN_HOLE
-            and law.contact
-            and srch.t_search is not None
-            and seg_t - srch.t_phase < srch.p.settle_s
-        ):
-            # just dropped, the push still dying away: not a contact yet (else
-            # the goal force is fed forward again and throws the peg down)
-            law.release()
-        elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.fast_z:
-            # deep enough not to be a slip: down fast (what meets the tool
-            # higher up meets it at the law's own speed)
-            gains["v_max"] = srch.p.descent_m_s
-            gains["a_max"] = DESCENT_ACCEL_M_S2
-            st.fast_z = -math.inf
-        elif phase == Phase.IN_HOLE and law.tcp_p[2] < st.slow_z:
-            # near the bottom: the law's own speed (braking at the descent's
-            # acceleration; the law's own comes back at the bottom's contact)
-            gains["v_max"] = st.gains0["v_max"]
-            st.slow_z = -math.inf
-        elif phase == Phase.IN_HOLE and law.contact and gains["a_max"] != st.gains0["a_max"]:
-            gains["a_max"] = st.gains0["a_max"]
-        elif phase == Phase.NOT_FOUND and before != phase:
-            gains[...] = st.gains0
-            self._fail(st, plan, t, srch.why)
-        st.plan["phase"] = phase
+        """The segment's search, before the law (:mod:`redistro.ssc.search_steps`)."""
+        steer(self, st, plan, seg_t, dt, t)
 
     def _fail(self, st: RobotState, plan: SegmentPlan, t: float, why: str) -> None:
         """The task cannot be done (the search found no hole): the robot lifts

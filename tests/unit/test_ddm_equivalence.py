@@ -195,6 +195,8 @@ def test_the_compiled_step_writes_what_the_python_step_writes(
 
 
 def test_the_kernel_took_its_share_of_that_traffic(twins: tuple[Twin, Twin, Traffic]) -> None:
+    if twins[2].seq == 0:
+        pytest.skip("the traffic test above was not run")
     fast = twins[0].esc.ddm.fast
     assert fast is not None and int(fast.taken) > 100
     assert twins[1].esc.ddm.fast is None  # (and the other twin had none)
@@ -274,7 +276,9 @@ def test_the_answerer_answers_as_the_python_answer(
 
 
 def test_the_answerer_took_its_share_of_that_traffic(answering: Any) -> None:
-    (compiled, python), *_ = answering
+    (compiled, python), *_, traffic = answering
+    if traffic.seq == 0:
+        pytest.skip("the answer test above was not run")
     assert int(compiled.esc.ddm.answers.gate["answered"]) > 100
     assert python.esc.ddm.answers.taken_here == int(compiled.esc.ddm.answers.gate["answered"])
 
@@ -389,4 +393,6 @@ def test_recv_and_reply_do_what_recv_admit_emit_and_send_do(
 
 
 def test_reply_made_its_share_of_those_steps_whole(socket_twins: Any) -> None:
+    if socket_twins[2].seq == 1:
+        pytest.skip("the reply test above was not run")
     assert socket_twins[2].replied > 20
