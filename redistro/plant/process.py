@@ -12,6 +12,7 @@ counted; when it falls more than CATCH_UP_STEPS behind it skips ahead
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import logging
 import os
@@ -85,25 +86,8 @@ def run_plant(
             cfg.plant.physics_hz,
             Manifest.for_session(session_id),
         )
-        if shm:
-            port = ShmPort(bank)
-        else:
-            from redistro.drivers.io.can import CanPort, open_bus, plant_key
-
-            c = cfg.plant.can
-            bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only)
-            port = CanPort(chassis.boards, bus, key=plant_key(session_id))
-        from redistro.ipc import sched
-
-        # the lowest real-time priority, below every controller process: the
-        # simulated chassis keeps its 1 kHz beside them and never delays
-        # them; where real time is refused, nice -10
-        policy = cfg.scheduling.policy
-        prio = cfg.scheduling.priorities.get("plant", 1)
-        granted = sched.apply(prio, None, "rr" if policy in ("auto", "rr") else "none")
-        if granted.policy == "default" and policy in ("auto", "nice"):
-            granted = sched.apply(20, None, "nice")
-        result["scheduling"] = granted.as_dict()
+        port = ShmPort(bank) if shm else _can_port(cfg, session_id, chassis)
+        result["scheduling"] = _take_priority(cfg)
         result.update(
             _loop(
                 cfg.plant.physics_hz,
@@ -123,13 +107,7 @@ def run_plant(
         return 1
     finally:
         if chassis is not None:
-            result["final_q_rad"] = {r.name: [float(v) for v in r.q] for r in chassis.rigs}
-            result["encoder_offset_rad"] = {
-                r.name: [float(v) for v in _signed(r.encoder_offset) / r.counts_per_rad]
-                for r in chassis.rigs
-            }
-            if cfg.plant.pose_file:
-                write_pose(cfg.plant.pose_file, result["final_q_rad"])
+            _final_pose(cfg, chassis, result)
         if bank is not None:
             with bank.status.write() as d:
                 d["state"] = (
@@ -145,6 +123,41 @@ def run_plant(
             from redistro import files
 
             files.replace(result_path, json.dumps(result, indent=2) + "\n")
+
+
+def _can_port(cfg: Config, session_id: str, chassis: Any) -> BoardPort:
+    """The boards on a CAN bus (python-can's, as the configuration says)."""
+    from redistro.drivers.io.can import CanPort, open_bus, plant_key
+
+    c = cfg.plant.can
+    bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only)
+    return CanPort(chassis.boards, bus, key=plant_key(session_id))
+
+
+def _take_priority(cfg: Config) -> dict[str, Any]:
+    """The lowest real-time priority, below every controller process: the
+    simulated chassis keeps its 1 kHz beside them and never delays them;
+    where real time is refused, nice -10. What was granted."""
+    from redistro.ipc import sched
+
+    policy = cfg.scheduling.policy
+    prio = cfg.scheduling.priorities.get("plant", 1)
+    granted = sched.apply(prio, None, "rr" if policy in ("auto", "rr") else "none")
+    if granted.policy == "default" and policy in ("auto", "nice"):
+        granted = sched.apply(20, None, "nice")
+    return granted.as_dict()
+
+
+def _final_pose(cfg: Config, chassis: Any, result: dict[str, Any]) -> None:
+    """Where the arms ended (kept for the next power-up in the pose file),
+    and the encoders' true offsets (what a calibration is judged by)."""
+    result["final_q_rad"] = {r.name: [float(v) for v in r.q] for r in chassis.rigs}
+    result["encoder_offset_rad"] = {
+        r.name: [float(v) for v in _signed(r.encoder_offset) / r.counts_per_rad]
+        for r in chassis.rigs
+    }
+    if cfg.plant.pose_file:
+        write_pose(cfg.plant.pose_file, result["final_q_rad"])
 
 
 def _signed(counts: np.ndarray) -> np.ndarray:
@@ -187,6 +200,7 @@ def _loop(
     real-time controller that preempts the plant mid-step does not count):
     PyBullet's ``stepSimulation`` (physics) and everything else the step does
     (chassis: the boards in and out, the device models, the truth, the bank)."""
+    from redistro.ipc import sched
     from redistro.process.stats import Samples
 
     dt_ns = round(1e9 / physics_hz)
@@ -194,47 +208,24 @@ def _loop(
     status = Record(bank.status.data.dtype)
     status["state"] = PlantState.RUNNING
     read_outputs = port.outputs_reader(chassis.outputs_wanted, chassis.image)
-    disturbance = chassis.disturbance
     publish_boards = port.publisher(chassis.inp, chassis.image)
     publish_truth = _truth_publisher(bank, chassis)
-    physics = Samples()
-    whole = Samples()
+    disturbance, physics, whole = chassis.disturbance, Samples(), Samples()
     late = skipped = 0
     max_gap_ns = max_gap_at_ns = 0  # the longest the plant went without a step (a stall)
-    cpu0 = time.process_time()
-    t0 = time.monotonic_ns()
-    from redistro.ipc import sched
-
-    real_time = sched.is_real_time()
-    demoted: dict[str, Any] | None = None  # when the plant left real time
-    duty_cpu0, duty_wall0 = time.thread_time_ns(), t0
-    last_step_ns = t0
-    next_ns = t0
+    cpu0, t0 = time.process_time(), time.monotonic_ns()
+    duty = _DutyWatch(sched.is_real_time(), t0)
+    last_step_ns = next_ns = t0
     stop_set = set(signals.STOP_SIGNALS)
     steps_limit = int(seconds * physics_hz) if seconds > 0 else 0
     why = "signal"
     monotonic_ns = time.monotonic_ns
-    cpu_ns = time.thread_time_ns
-    import gc
-
     gc.collect()
     gc.freeze()
     gc.disable()  # no collector pauses inside steps: a step allocates little
+    io = (read_outputs, publish_truth, publish_boards)
     while True:
-        c0 = cpu_ns()
-        read_outputs()
-        chassis.apply_outputs(None, monotonic_ns())
-        ph0 = cpu_ns()
-        chassis.step_physics()
-        ph1 = cpu_ns()
-        chassis.sample()
-        # the truth of a step is out before its boards: a reader that sees a
-        # board sample can find the truth of the same step
-        chassis.fill_truth()
-        publish_truth()
-        publish_boards()
-        whole.add(cpu_ns() - c0)
-        physics.add(ph1 - ph0)
+        _step(chassis, io, whole, physics)
         now = monotonic_ns()
         if disturbance is not None:
             disturbance.on_boards(now)  # this step's disturbance is on the boards
@@ -242,36 +233,95 @@ def _loop(
             max_gap_ns, max_gap_at_ns = now - last_step_ns, last_step_ns
         last_step_ns = now
         steps = chassis.step_count
-        status["step"] = steps
-        status["sim_time_ns"] = steps * dt_ns
-        status["wall_ns"] = now
-        status["rtf"] = steps * dt_ns / max(1, now - t0)
-        status["late_steps"] = late
-        status["skipped_steps"] = skipped
-        bank.status.publish(status.bytes)
+        _publish_status(bank, status, steps, dt_ns, now, t0, late, skipped)
         if steps_limit and steps >= steps_limit:
             why = "seconds"
             break
         if not steps & 7 and signal.sigpending() & stop_set:  # every 8 steps: it costs
             break
-        if not steps & 1023 and real_time:
-            duty = (cpu_ns() - duty_cpu0) / max(1, now - duty_wall0)
-            if duty > DUTY_LIMIT:
-                real_time = False
-                demoted = {"step": steps, "duty": round(duty, 3)}
-                sched.leave_real_time()
-                with contextlib.suppress(OSError):
-                    os.setpriority(os.PRIO_PROCESS, 0, -10)
-            duty_cpu0, duty_wall0 = cpu_ns(), now
+        if not steps & 1023 and duty.real_time:
+            duty.check(steps, now)
         next_ns += period_ns
-        if now > next_ns + period_ns:
+        if now > next_ns + period_ns:  # late: caught up, or skipped when far behind
             late += 1
             behind = (now - next_ns) // period_ns
             if behind > CATCH_UP_STEPS:
-                skipped += int(behind)
-                next_ns = now
+                skipped, next_ns = skipped + int(behind), now
         port.service(next_ns)
     gc.enable()
+    counts = {"late_steps": late, "skipped_steps": skipped}
+    return _result(
+        chassis,
+        port,
+        why,
+        t0,
+        cpu0,
+        dt_ns,
+        physics_hz,
+        counts,
+        (max_gap_ns, max_gap_at_ns),
+        whole,
+        physics,
+        duty.demoted,
+    )
+
+
+def _step(chassis: Any, io: tuple[Any, Any, Any], whole: Any, physics: Any) -> None:
+    """One step: the controller's outputs applied, PyBullet's step, the
+    joints sampled into the boards, the truth then the boards published
+    (a reader that sees a board sample can find the truth of the same
+    step); its CPU time, and PyBullet's part, timed."""
+    read_outputs, publish_truth, publish_boards = io
+    cpu_ns = time.thread_time_ns
+    c0 = cpu_ns()
+    read_outputs()
+    chassis.apply_outputs(None, time.monotonic_ns())
+    ph0 = cpu_ns()
+    chassis.step_physics()
+    ph1 = cpu_ns()
+    chassis.sample()
+    chassis.fill_truth()
+    publish_truth()
+    publish_boards()
+    whole.add(cpu_ns() - c0)
+    physics.add(ph1 - ph0)
+
+
+def _publish_status(
+    bank: RegisterBank,
+    status: Any,
+    steps: int,
+    dt_ns: int,
+    now: int,
+    t0: int,
+    late: int,
+    skipped: int,
+) -> None:
+    """The plant's status block, each step (what nodes and viewers read)."""
+    status["step"] = steps
+    status["sim_time_ns"] = steps * dt_ns
+    status["wall_ns"] = now
+    status["rtf"] = steps * dt_ns / max(1, now - t0)
+    status["late_steps"] = late
+    status["skipped_steps"] = skipped
+    bank.status.publish(status.bytes)
+
+
+def _result(
+    chassis: Any,
+    port: BoardPort,
+    why: str,
+    t0: int,
+    cpu0: float,
+    dt_ns: int,
+    physics_hz: float,
+    counts: dict[str, int],
+    gap: tuple[int, int],
+    whole: Any,
+    physics: Any,
+    demoted: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """What the plant's run did: its steps, pace, stalls, per-step costs."""
     wall = (time.monotonic_ns() - t0) / 1e9
     cpu_s = time.process_time() - cpu0
     chassis.brake_all()  # brakes on: the arms stay where they are
@@ -280,10 +330,9 @@ def _loop(
         "steps": chassis.step_count,
         "wall_s": round(wall, 3),
         "rtf": round(chassis.step_count * dt_ns / 1e9 / wall, 4) if wall > 0 else 0.0,
-        "late_steps": late,
-        "skipped_steps": skipped,
-        "max_step_gap_ms": round(max_gap_ns / 1e6, 2),
-        "max_step_gap_monotonic_ns": max_gap_at_ns,
+        **counts,
+        "max_step_gap_ms": round(gap[0] / 1e6, 2),
+        "max_step_gap_monotonic_ns": gap[1],
         "torn_outputs": int(getattr(port, "torn_outputs", 0)),
         "bad_frames": int(getattr(port, "bad_frames", 0)),
         "forged_writes": int(getattr(port, "forged", 0)),
@@ -301,6 +350,28 @@ def _loop(
         "watchdog_trips": chassis.watchdog_trips,
         "left_real_time": demoted,
     }
+
+
+class _DutyWatch:
+    """The plant's duty on its CPU, looked at every 1024 steps: above
+    DUTY_LIMIT it leaves real time (it would starve the controller)."""
+
+    def __init__(self, real_time: bool, t0: int) -> None:
+        self.real_time = real_time
+        self.demoted: dict[str, Any] | None = None  # when the plant left real time
+        self.cpu0, self.wall0 = time.thread_time_ns(), t0
+
+    def check(self, steps: int, now: int) -> None:
+        from redistro.ipc import sched
+
+        duty = (time.thread_time_ns() - self.cpu0) / max(1, now - self.wall0)
+        if duty > DUTY_LIMIT:
+            self.real_time = False
+            self.demoted = {"step": steps, "duty": round(duty, 3)}
+            sched.leave_real_time()
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, 0, -10)
+        self.cpu0, self.wall0 = time.thread_time_ns(), now
 
 
 def _truth_publisher(bank: RegisterBank, chassis: Any) -> Any:
