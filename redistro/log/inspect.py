@@ -316,18 +316,41 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     files.make_folder(out, "--out")
-    written: list[Path] = []
+    p = _Plots(plt, out)
+    for r in robot_names(sl):
+        fb = sl.arrays[f"/{r}/feedback"]
+        if len(fb) >= 3:
+            p.joints(sl, r, fb)
+            p.tcp(sl, r, fb)
+    believed = sl.meta("redistro.meta").get("hole_xyz_m")
+    for r in robot_names(sl):
+        fig = _hole_plane(plt, sl.arrays.get(f"/{r}/plan"), believed, r)
+        if fig is not None:
+            p.save(fig, f"{r}-hole-plane.png")
+    nodes = sl.nodes()
+    for topic, tm in sorted(sl.arrays.items()):
+        if topic.endswith("/timing") and len(tm):
+            p.timing(_node_of(topic), tm, list(nodes.get(_node_of(topic), {}).get("processes", [])))
+    return p.written
 
-    def save(fig: Any, name: str) -> None:
+
+class _Plots:
+    """The PNG set of one session log, figure by figure."""
+
+    def __init__(self, plt: Any, out: Path) -> None:
+        self.plt, self.out = plt, out
+        self.written: list[Path] = []
+
+    def save(self, fig: Any, name: str) -> None:
         fig.tight_layout()
-        path = out / name
+        path = self.out / name
         with files.writing(path, text=False) as f:
             fig.savefig(f, dpi=90, format="png")
-        plt.close(fig)
-        written.append(path)
+        self.plt.close(fig)
+        self.written.append(path)
 
-    def joint_plot(t: Any, series: list[tuple[str, Any]], ylabel: str, title: str) -> Any:
-        fig, axes = plt.subplots(7, 1, figsize=(8, 11), sharex=True)
+    def joint_plot(self, t: Any, series: list[tuple[str, Any]], ylabel: str, title: str) -> Any:
+        fig, axes = self.plt.subplots(7, 1, figsize=(8, 11), sharex=True)
         for j, ax in enumerate(axes):
             for label, v in series:
                 ax.plot(t, v[:, j], lw=0.8, label=label)
@@ -340,10 +363,10 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
         return fig
 
     def xyz_pair(
-        t: Any, top: tuple[Any, str, str], bottom: tuple[Any, str, str], title: str
+        self, t: Any, top: tuple[Any, str, str], bottom: tuple[Any, str, str], title: str
     ) -> Any:
         """Two panels of x, y, z series: (values n x 3, label prefix, y label) each."""
-        fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        fig, axes = self.plt.subplots(2, 1, figsize=(8, 6), sharex=True)
         for ax, (v, prefix, ylabel) in zip(axes, (top, bottom), strict=True):
             for k, ax_name in enumerate("xyz"):
                 ax.plot(t, v[:, k], lw=0.8, label=f"{prefix}{ax_name}")
@@ -354,50 +377,42 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
         axes[1].set_xlabel("time on the boards' clock [s]")
         return fig
 
-    robots_meta = sl.robots()
-    for r in robot_names(sl):
-        fb = sl.arrays[f"/{r}/feedback"]
-        if len(fb) < 3:
-            continue
+    def joints(self, sl: SessionLog, r: str, fb: Any) -> None:
+        """Joint positions, velocities, accelerations and torques."""
         s = _stride(len(fb))
         t_all = board_time(sl, r)
         t = t_all[::s]
-        q = fb["q_rad"][::s]
-        qd = fb["qd_rad_s"][::s]
         # acceleration: the velocity's slope on the boards' clock (steps may repeat
         # when the plant is late: those samples are left out of the difference)
         keep = np.concatenate([[True], np.diff(t_all) > 0])
         tk, qdk = t_all[keep], fb["qd_rad_s"][keep]
         qdd = np.gradient(qdk, tk, axis=0) if len(tk) > 2 else np.zeros_like(qdk)
         sk = _stride(len(tk))
-        save(joint_plot(t, [("q", q)], "rad", f"{r} joint positions"), f"{r}-joint-positions.png")
-        save(
-            joint_plot(t, [("qd", qd)], "rad/s", f"{r} joint velocities"),
-            f"{r}-joint-velocities.png",
-        )
-        save(
-            joint_plot(tk[::sk], [("qdd", qdd[::sk])], "rad/s^2", f"{r} joint accelerations"),
-            f"{r}-joint-accelerations.png",
-        )
+        for key, unit, what in (("q_rad", "rad", "positions"), ("qd_rad_s", "rad/s", "velocities")):
+            fig = self.joint_plot(t, [(key.split("_")[0], fb[key][::s])], unit, f"{r} joint {what}")
+            self.save(fig, f"{r}-joint-{what}.png")
+        fig = self.joint_plot(tk[::sk], [("qdd", qdd[::sk])], "rad/s^2", f"{r} joint accelerations")
+        self.save(fig, f"{r}-joint-accelerations.png")
         cmd = sl.arrays.get(f"/{r}/command")
         if cmd is None:
             cmd = sl.arrays.get(f"/{r}/guard")
         series = [("measured", fb["tau_nm"][::s])]
         if cmd is not None and len(cmd) == len(fb):
             series.insert(0, ("commanded", cmd["tau_nm"][::s]))
-        save(joint_plot(t, series, "N m", f"{r} joint torques"), f"{r}-joint-torques.png")
-        # kinematics: TCP pose and the wrist wrench in the world frame
-        info = robots_meta.get(r, {})
+        self.save(self.joint_plot(t, series, "N m", f"{r} joint torques"), f"{r}-joint-torques.png")
+
+    def tcp(self, sl: SessionLog, r: str, fb: Any) -> None:
+        """Kinematics: the TCP's pose and the wrist's wrench, tool and world frames."""
         from redistro.control.cartesian import matrix_to_rotvec
         from redistro.control.dynamics import ArmModel
         from redistro.robotmodel import Peg
 
+        s = _stride(len(fb))
+        t, q, w = board_time(sl, r)[::s], fb["q_rad"][::s], fb["wrench"][::s]
+        info = sl.robots().get(r, {})
         peg = info.get("peg")
         model = ArmModel(Peg(*peg) if peg else None, info.get("base_xyz_m"))
-        pos = np.zeros((len(q), 3))
-        rot = np.zeros((len(q), 3))
-        w = fb["wrench"][::s]
-        w_world = np.zeros_like(w)
+        pos, rot, w_world = np.zeros((len(q), 3)), np.zeros((len(q), 3)), np.zeros_like(w)
         for i in range(len(q)):
             kin = model.kinematics(np.ascontiguousarray(q[i], dtype=np.float64))
             pos[i] = kin.p
@@ -406,54 +421,34 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
             w_world[i, 3:] = kin.R @ w[i, 3:]
         rot = continuous_rotvec(rot)
         for frame, ww in (("tool", w), ("world", w_world)):
-            fig = xyz_pair(
-                t,
-                (ww[:, :3], "F", "force [N]"),
-                (ww[:, 3:], "T", "torque [N m]"),
-                f"{r} wrist force and torque, {frame} frame",
-            )
-            save(fig, f"{r}-wrench-{frame}.png")
-        fig = xyz_pair(
-            t,
-            (pos, "", "position [m]"),
-            (rot, "r", "rotation vector [rad]"),
-            f"{r} end-effector (TCP) pose, world frame",
-        )
-        save(fig, f"{r}-end-effector.png")
-    believed = sl.meta("redistro.meta").get("hole_xyz_m")
-    for r in robot_names(sl):
-        fig = _hole_plane(plt, sl.arrays.get(f"/{r}/plan"), believed, r)
-        if fig is not None:
-            save(fig, f"{r}-hole-plane.png")
-    nodes = sl.nodes()
-    for topic, tm in sorted(sl.arrays.items()):
-        if not topic.endswith("/timing") or len(tm) == 0:
-            continue
-        node = _node_of(topic)
-        procs = list(nodes.get(node, {}).get("processes", []))
+            top, bottom = (ww[:, :3], "F", "force [N]"), (ww[:, 3:], "T", "torque [N m]")
+            fig = self.xyz_pair(t, top, bottom, f"{r} wrist force and torque, {frame} frame")
+            self.save(fig, f"{r}-wrench-{frame}.png")
+        top, bottom = (pos, "", "position [m]"), (rot, "r", "rotation vector [rad]")
+        fig = self.xyz_pair(t, top, bottom, f"{r} end-effector (TCP) pose, world frame")
+        self.save(fig, f"{r}-end-effector.png")
+
+    def timing(self, node: str, tm: Any, procs: list[str]) -> None:
+        """A node's cycle timing: lateness and busy time per process."""
         n = tm["late_us"].shape[1]
         procs += [f"p{j}" for j in range(len(procs), n)]
-        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        fig, axes = self.plt.subplots(1, 2, figsize=(10, 4))
         tick = tm["tick_late_us"][np.isfinite(tm["tick_late_us"])]
         if len(tick):
             axes[0].hist(tick, bins=60, histtype="step", label="manager", log=True)
         for j in range(n):
-            late = tm["late_us"][:, j]
-            late = late[np.isfinite(late)]
-            if len(late):
-                axes[0].hist(late, bins=60, histtype="step", label=procs[j], log=True)
-            busy = tm["busy_us"][:, j]
-            busy = busy[np.isfinite(busy)]
-            if len(busy):
-                axes[1].hist(busy, bins=60, histtype="step", label=procs[j], log=True)
+            for ax, key in ((axes[0], "late_us"), (axes[1], "busy_us")):
+                v = tm[key][:, j]
+                v = v[np.isfinite(v)]
+                if len(v):
+                    ax.hist(v, bins=60, histtype="step", label=procs[j], log=True)
         axes[0].set_xlabel("lateness after the tick [us]")
         axes[1].set_xlabel("busy per cycle (woke to signed) [us]")
         for ax in axes:
             ax.set_ylabel("cycles")
             ax.legend(fontsize=7)
         fig.suptitle(f"{node} cycle timing ({len(tm)} cycles)")
-        save(fig, f"{node}-timing.png")
-    return written
+        self.save(fig, f"{node}-timing.png")
 
 
 def _hole_plane(plt: Any, plan: Any, believed: Any, robot: str) -> Any:

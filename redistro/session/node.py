@@ -25,6 +25,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from redistro import files
 from redistro.config.hardware import load_hardware
@@ -64,31 +65,8 @@ def run_node(
     or ``ssc``) of a strategy task to its end; exit code 0 when it ends ok."""
     say = say or (lambda text: print(text, flush=True))
     task = load_task(task_path, cfg)
-    if task.kind != "strategy":
-        raise ConfigError(f"{task_path}: a node runs alone only in a strategy task (kind strategy)")
+    _check_node(cfg, task, task_path, kind, robot, plant_session, link)
     hardware = load_hardware(cfg)
-    if not link:
-        raise ConfigError("--link: expected a non-empty id")
-    from redistro.config.checks import ZENOH_GROUP
-
-    if not ZENOH_GROUP.match(link):
-        # it names the group's zenoh keys and derives its ports
-        raise ConfigError(f"--link: expected 1-64 letters, digits, _ or -, got {link!r:.60}")
-    if kind == "esc":
-        if robot not in task.robots:
-            raise ConfigError(
-                f"robot {robot!r}: not in the task's robots ({', '.join(task.robots)})"
-            )
-        if not plant_session:
-            raise ConfigError("--plant: the session id of a running plant is needed")
-        _check_plant(plant_session)
-        why = unknown_positions(cfg, task).get(robot)
-        if why:
-            raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
-    check_key(cfg, needed=True)
-    check_zenoh_users(cfg, ["ssc" if kind == "ssc" else f"esc.{robot}"], link)
-    check_zenoh_tls(cfg)
-    check_motion(cfg, task)
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     started = time.time()
@@ -136,28 +114,73 @@ def run_node(
         finally:
             progress.close()
     summary = build_summary(task, results, {}, started, time.time(), run_dir)
-    from redistro.log.mcapfile import finish_run_log
-
-    with contextlib.suppress(Exception):  # the log never fails the node
-        log_info = finish_run_log(run_dir, {r.node: r.cycles for r in results})
-        if log_info:
-            summary["log"] = log_info
-    summary["node"] = spec.node
-    summary["link"] = link
-    summary.pop("plant", None)  # the plant is another process (maybe another host)
-    if kind == "esc":
-        summary["plant_session"] = plant_session
-        for key in ("segments", "insertion_depth_m", "hole_depth_m", "inserted"):
-            summary.pop(key, None)  # the SSC's figures
-        src = positions_file(cfg, robot)
-        if src.exists():
-            files.replace(run_dir / f"positions.{robot}.json", src.read_bytes())
+    _node_summary(cfg, summary, results, run_dir, spec.node, link, robot, plant_session)
     write_json(run_dir / "summary.json", summary)
     for r in results:
         say(f"{r.node}: {r.result} {r.reason}".rstrip())
     say(f"result: {summary['result']}" + (f" ({summary['reason']})" if summary["reason"] else ""))
     say(f"wrote {run_dir / 'summary.json'}")
     return 0 if summary["result"] == "ok" else 1
+
+
+def _check_node(
+    cfg: Config, task: Any, task_path: str, kind: str, robot: str, plant_session: str, link: str
+) -> None:
+    """Everything a node alone needs, before anything starts (ConfigError)."""
+    if task.kind != "strategy":
+        raise ConfigError(f"{task_path}: a node runs alone only in a strategy task (kind strategy)")
+    if not link:
+        raise ConfigError("--link: expected a non-empty id")
+    from redistro.config.checks import ZENOH_GROUP
+
+    if not ZENOH_GROUP.match(link):
+        # it names the group's zenoh keys and derives its ports
+        raise ConfigError(f"--link: expected 1-64 letters, digits, _ or -, got {link!r:.60}")
+    if kind == "esc":
+        if robot not in task.robots:
+            raise ConfigError(
+                f"robot {robot!r}: not in the task's robots ({', '.join(task.robots)})"
+            )
+        if not plant_session:
+            raise ConfigError("--plant: the session id of a running plant is needed")
+        _check_plant(plant_session)
+        why = unknown_positions(cfg, task).get(robot)
+        if why:
+            raise ConfigError(f"motion refused: {why}; run tasks/self_calibration.yaml first")
+    check_key(cfg, needed=True)
+    check_zenoh_users(cfg, ["ssc" if kind == "ssc" else f"esc.{robot}"], link)
+    check_zenoh_tls(cfg)
+    check_motion(cfg, task)
+
+
+def _node_summary(
+    cfg: Config,
+    summary: dict[str, Any],
+    results: list[Any],
+    run_dir: Path,
+    node: str,
+    link: str,
+    robot: str,
+    plant_session: str,
+) -> None:
+    """A node's summary: its log, its link; an ESC's plant and positions
+    (the SSC's figures are the SSC's; the plant is another process)."""
+    from redistro.log.mcapfile import finish_run_log
+
+    with contextlib.suppress(Exception):  # the log never fails the node
+        log_info = finish_run_log(run_dir, {r.node: r.cycles for r in results})
+        if log_info:
+            summary["log"] = log_info
+    summary["node"] = node
+    summary["link"] = link
+    summary.pop("plant", None)  # the plant is another process (maybe another host)
+    if robot and node.startswith("esc"):
+        summary["plant_session"] = plant_session
+        for key in ("segments", "insertion_depth_m", "hole_depth_m", "inserted"):
+            summary.pop(key, None)  # the SSC's figures
+        src = positions_file(cfg, robot)
+        if src.exists():
+            files.replace(run_dir / f"positions.{robot}.json", src.read_bytes())
 
 
 def _check_plant(session_id: str) -> None:

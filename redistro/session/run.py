@@ -118,7 +118,6 @@ def _run_task(
     say: Callable[[str], None],
 ) -> int:
     from redistro.plant.launch import PlantProcess
-    from redistro.ssc.plan import ssc_spec
 
     hardware = load_hardware(cfg)
     runs = Path(cfg.session.runs_dir)
@@ -126,16 +125,7 @@ def _run_task(
     node_results: list[NodeResult] = []
     plant_result: dict[str, Any] = {}
     with ipc_session.Session.create() as s:
-        if not cfg.ddm.key_file:  # the link's key: the session's own, in its 0700 folder
-            from redistro.ddm import record as wire
-
-            wire.new_key(s.directory / wire.SESSION_KEY)
-        if cfg.ddm.transport == "zenoh" and not cfg.ddm.zenoh.users_file:
-            from redistro.ddm import zenoh_transport as zt
-
-            # every node's zenoh user and password: the session's own, beside the key
-            nodes = ["ssc", *(f"esc.{r}" for r in task.robots)]
-            zt.new_users_file(s.directory / zt.SESSION_USERS, zt.group_of(cfg, s.id), nodes)
+        _session_secrets(cfg, task, s)
         run_dir = Path(out_dir) if out_dir else runs / s.id
         files.make_folder(run_dir, "run folder")
         messages = str(run_dir / "messages.log")
@@ -148,55 +138,8 @@ def _run_task(
             order = task.calibration.order if task.kind == "self_calibration" else "together"
             groups = [task.robots] if order == "together" else [[r] for r in task.robots]
             for group in groups:
-                specs = [
-                    esc_spec(
-                        cfg,
-                        task,
-                        r,
-                        hardware[r],
-                        s.id,
-                        positions_file=str(positions_file(cfg, r)),
-                        messages_path=messages,
-                        run_dir=str(run_dir),
-                    )
-                    for r in group
-                ]
-                later: list[NodeSpec] = []
-                if task.kind == "strategy":
-                    later = [
-                        ssc_spec(
-                            cfg,
-                            task,
-                            s.id,
-                            run_dir=str(run_dir),
-                            messages_path=messages,
-                        )
-                    ]
-                    say(
-                        f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz; "
-                        f"ssc at {cfg.ssc.rate_hz:g} Hz once every ESC has published its "
-                        f"robot's state; ddm {cfg.ddm.transport} {ddm_pace(cfg)}"
-                    )
-                else:
-                    say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
-                progress = Progress(s.id, specs + later, say)
-                progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
-                try:
-                    results = run_nodes(
-                        specs,
-                        s,
-                        budget_s=budget_s(task),
-                        clock=plant.clock_s,
-                        on_wait=progress,
-                        keep=frozenset({plant.pid}),
-                        later=later,
-                        later_ready=_esc_ready(s.id, [sp.node for sp in specs]) if later else None,
-                    )
-                finally:
-                    progress.close()
+                results = _run_group(cfg, task, hardware, s, plant, group, run_dir, messages, say)
                 node_results += results
-                for r in results:
-                    say(f"{r.node}: {r.result} {r.reason}".rstrip())
                 if not all(r.ok for r in results):
                     break
         finally:
@@ -204,8 +147,7 @@ def _run_task(
             plant_result = plant.result()
             say("plant powered off")
     summary = build_summary(task, node_results, plant_result, started, time.time(), run_dir)
-    cycles = {r.node: r.cycles for r in node_results}
-    log_info = _finish_log(run_dir, say, cycles)
+    log_info = _finish_log(run_dir, say, {r.node: r.cycles for r in node_results})
     if log_info:
         summary["log"] = log_info
     for robot in task.robots:
@@ -213,6 +155,79 @@ def _run_task(
         if src.exists():
             files.replace(run_dir / f"positions.{robot}.json", src.read_bytes())
     write_json(run_dir / "summary.json", summary)
+    _say_summary(summary, say)
+    say(f"wrote {run_dir / 'summary.json'}")
+    return 0 if summary["result"] == "ok" else 1
+
+
+def _session_secrets(cfg: Config, task: Task, s: ipc_session.Session) -> None:
+    """The link's key (the session's own, in its 0700 folder, unless a key
+    file is set) and, over zenoh, every node's user and password."""
+    if not cfg.ddm.key_file:
+        from redistro.ddm import record as wire
+
+        wire.new_key(s.directory / wire.SESSION_KEY)
+    if cfg.ddm.transport == "zenoh" and not cfg.ddm.zenoh.users_file:
+        from redistro.ddm import zenoh_transport as zt
+
+        nodes = ["ssc", *(f"esc.{r}" for r in task.robots)]
+        zt.new_users_file(s.directory / zt.SESSION_USERS, zt.group_of(cfg, s.id), nodes)
+
+
+def _run_group(
+    cfg: Config,
+    task: Task,
+    hardware: Any,
+    s: ipc_session.Session,
+    plant: Any,
+    group: list[str],
+    run_dir: Path,
+    messages: str,
+    say: Callable[[str], None],
+) -> list[NodeResult]:
+    """One group of robots' nodes run to their end: their ESCs, and for a
+    strategy task the SSC once every ESC has published its robot's state."""
+    from redistro.ssc.plan import ssc_spec
+
+    specs = [
+        esc_spec(
+            cfg, task, r, hardware[r], s.id, positions_file=str(positions_file(cfg, r)),
+            messages_path=messages, run_dir=str(run_dir),
+        )
+        for r in group
+    ]  # fmt: skip
+    later: list[NodeSpec] = []
+    if task.kind == "strategy":
+        later = [ssc_spec(cfg, task, s.id, run_dir=str(run_dir), messages_path=messages)]
+        say(
+            f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz; "
+            f"ssc at {cfg.ssc.rate_hz:g} Hz once every ESC has published its "
+            f"robot's state; ddm {cfg.ddm.transport} {ddm_pace(cfg)}"
+        )
+    else:
+        say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
+    progress = Progress(s.id, specs + later, say)
+    progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
+    try:
+        results = run_nodes(
+            specs,
+            s,
+            budget_s=budget_s(task),
+            clock=plant.clock_s,
+            on_wait=progress,
+            keep=frozenset({plant.pid}),
+            later=later,
+            later_ready=_esc_ready(s.id, [sp.node for sp in specs]) if later else None,
+        )
+    finally:
+        progress.close()
+    for r in results:
+        say(f"{r.node}: {r.result} {r.reason}".rstrip())
+    return results
+
+
+def _say_summary(summary: dict[str, Any], say: Callable[[str], None]) -> None:
+    """The result, the calibration's offsets, each segment, the insertion."""
     say(f"result: {summary['result']}" + (f" ({summary['reason']})" if summary["reason"] else ""))
     if "calibration" in summary:
         for robot, joints in summary["calibration"].items():
@@ -226,8 +241,6 @@ def _run_task(
             f"inserted: {summary['inserted']} (depth {summary['insertion_depth_m'] * 1e3:.2f} mm "
             f"of {summary['hole_depth_m'] * 1e3:.1f} mm)"
         )
-    say(f"wrote {run_dir / 'summary.json'}")
-    return 0 if summary["result"] == "ok" else 1
 
 
 def _finish_log(
