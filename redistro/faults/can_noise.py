@@ -125,6 +125,48 @@ def _ended(row: dict[str, Any], fault: str, sid: str) -> None:
     row["ipc_left"] = sorted(e for e in os.listdir("/dev/shm") if sid in e)
 
 
+class _CanRig:
+    """The plant on the CAN backplane and r2's robot-level driver open on
+    it (its encoders preset from the simulation's truth), for one drill:
+    ``with _CanRig(out_dir, cfg) as rig: ...``; the plant's result after."""
+
+    def __init__(self, out_dir: Path, cfg: Config) -> None:
+        self.out_dir = out_dir
+        self.cfg = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, backplane="can"))
+        self.result: dict[str, Any] = {}
+
+    def __enter__(self) -> _CanRig:
+        from redistro.config.hardware import load_hardware
+        from redistro.drivers.io.backplane import open_backplane
+        from redistro.drivers.robot import RobotDriver
+        from redistro.ipc.session import Session
+        from redistro.plant.launch import PlantProcess
+
+        cfg = self.cfg
+        self.session = Session.create()
+        self.session.__enter__()
+        self.sid = self.session.id
+        self.plant = PlantProcess.start(self.session, self.out_dir / "run", cfg)
+        try:
+            assert self.plant.bank is not None
+            self.bp = open_backplane(cfg.plant, self.sid)
+            self.d = RobotDriver(load_hardware(cfg)["r2"], self.bp, cfg.plant.physics_hz)
+            self.d.open()
+            self.truth = self.plant.bank.truth(self.plant.bank.robot_names.index("r2"))
+            self.d.preset_encoders(self.truth.read()["q_rad"])
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.plant.stop()
+            self.result = self.plant.result()
+        finally:
+            self.session.__exit__(None, None, None)
+
+
 def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str, Any]:
     """The plant on the CAN backplane, r2's robot-level driver reading it at
     200 Hz (holding its DAC at zero, the brakes on) for 3 s, corrupt frames on
@@ -135,66 +177,19 @@ def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str,
     Passed when every read came back (no I/O fault), every position agreed with
     the simulation's truth within 2 counts (nothing corrupt was taken), and
     the bad frames were counted."""
-    import threading
-
     import numpy as np
 
-    from redistro.config.hardware import load_hardware
-    from redistro.drivers.io.backplane import open_backplane
-    from redistro.drivers.robot import RobotDriver
-    from redistro.errors import IOFault
-    from redistro.ipc.session import Session
-    from redistro.plant.launch import PlantProcess
-
-    cfg = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, backplane="can"))
-    hw = load_hardware(cfg)["r2"]
     row: dict[str, Any] = {}
-    reads = worst = 0
-    worst_counts = 0.0
-    fault = ""
-    with Session.create() as session:
-        plant = PlantProcess.start(session, out_dir / "run", cfg)
-        sid = session.id
-        try:
-            assert plant.bank is not None
-            bp = open_backplane(cfg.plant, sid)  # plant.backplane=can above
-            d = RobotDriver(hw, bp, cfg.plant.physics_hz)
-            d.open()
-            truth = plant.bank.truth(plant.bank.robot_names.index("r2"))
-            d.preset_encoders(truth.read()["q_rad"])
-            q_start = np.array(truth.read()["q_rad"], dtype=np.float64)
-            sent: list[int] = []
-            noise = threading.Thread(
-                target=lambda: sent.append(send_noise(cfg, sid, 1.0, forged=forged))
-            )
-            t0 = time.monotonic()
-            nxt = t0
-            try:
-                while time.monotonic() - t0 < 3.0:
-                    if not noise.is_alive() and not sent and time.monotonic() - t0 > 1.0:
-                        noise.start()
-                    fb = d.read_feedback()
-                    d.send_torques(np.zeros(7))  # the amplifiers' watchdog
-                    tr = truth.read()
-                    if int(tr["step"]) == fb.step:  # the same sample: they must agree
-                        err = float(np.max(np.abs(fb.q_rad - tr["q_rad"]) * d.counts_per_rad))
-                        worst_counts = max(worst_counts, err)
-                        worst += 1
-                    reads += 1
-                    nxt += 0.005
-                    time.sleep(max(0.0, nxt - time.monotonic()))  # a 200 Hz loop
-            except IOFault as exc:
-                fault = str(exc)
-            noise.join()
-            row["controller_bad_frames"] = int(getattr(bp, "bad_frames", 0))
-            moved = np.abs(np.asarray(truth.read()["q_rad"], dtype=np.float64) - q_start)
-            row["moved_rad"] = round(float(moved.max()), 5)
-            d.freeze()
-            d.close()
-        finally:
-            plant.stop()
-        result = plant.result()
-    row["frames_sent"] = sent[0] if sent else 0
+    with _CanRig(out_dir, cfg) as rig:
+        q_start = np.array(rig.truth.read()["q_rad"], dtype=np.float64)
+        fault, reads, worst, worst_counts, sent = _read_through_noise(rig, forged)
+        row["controller_bad_frames"] = int(getattr(rig.bp, "bad_frames", 0))
+        moved = np.abs(np.asarray(rig.truth.read()["q_rad"], dtype=np.float64) - q_start)
+        row["moved_rad"] = round(float(moved.max()), 5)
+        rig.d.freeze()
+        rig.d.close()
+    result = rig.result
+    row["frames_sent"] = sent
     row["reads"] = reads
     row["compared"] = worst
     row["worst_position_error_counts"] = round(worst_counts, 2)
@@ -203,7 +198,7 @@ def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str,
     row["count"] = {"bad_frames": row["plant_bad_frames"] + row["controller_bad_frames"]}
     if forged:
         row["count"] = {"forged_writes": row["plant_forged_writes"]}
-    _ended(row, fault, sid)
+    _ended(row, fault, rig.sid)
     row["passed"] = bool(
         not fault
         and reads > 300
@@ -214,6 +209,46 @@ def run_can_noise(out_dir: Path, cfg: Config, forged: bool = False) -> dict[str,
         and not row["ipc_left"]
     )
     return row
+
+
+def _read_through_noise(rig: _CanRig, forged: bool) -> tuple[str, int, int, float, int]:
+    """The driver's 200 Hz loop for 3 s, the noise on the bus in the middle
+    second: (the I/O fault, reads, reads compared with the truth, the worst
+    position error [counts], frames of noise sent)."""
+    import threading
+
+    import numpy as np
+
+    from redistro.errors import IOFault
+
+    d, truth = rig.d, rig.truth
+    reads = compared = 0
+    worst = 0.0
+    sent: list[int] = []
+    noise = threading.Thread(
+        target=lambda: sent.append(send_noise(rig.cfg, rig.sid, 1.0, forged=forged))
+    )
+    fault = ""
+    t0 = nxt = time.monotonic()
+    try:
+        while time.monotonic() - t0 < 3.0:
+            if not noise.is_alive() and not sent and time.monotonic() - t0 > 1.0:
+                noise.start()
+            fb = d.read_feedback()
+            d.send_torques(np.zeros(7))  # the amplifiers' watchdog
+            tr = truth.read()
+            if int(tr["step"]) == fb.step:  # the same sample: they must agree
+                err = float(np.max(np.abs(fb.q_rad - tr["q_rad"]) * d.counts_per_rad))
+                worst = max(worst, err)
+                compared += 1
+            reads += 1
+            nxt += 0.005
+            time.sleep(max(0.0, nxt - time.monotonic()))  # a 200 Hz loop
+    except IOFault as exc:
+        fault = str(exc)
+    if noise.is_alive() or sent:
+        noise.join()
+    return fault, reads, compared, worst, sent[0] if sent else 0
 
 
 def run_can_replay(out_dir: Path, cfg: Config) -> dict[str, Any]:
@@ -229,87 +264,21 @@ def run_can_replay(out_dir: Path, cfg: Config) -> dict[str, Any]:
     more writes than the driver made; the replayed ones counted forged),
     joint 1 did not move while they came, the amplifiers' watchdog never
     tripped (the genuine writes were taken all along) and no read failed."""
-    import threading
-
-    import numpy as np
-
-    from redistro.config.hardware import load_hardware
-    from redistro.drivers.io.backplane import open_backplane
-    from redistro.drivers.robot import RobotDriver
-    from redistro.errors import IOFault
-    from redistro.ipc.session import Session
-    from redistro.plant.launch import PlantProcess
-
-    cfg = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, backplane="can"))
-    hw = load_hardware(cfg)["r2"]
     row: dict[str, Any] = {}
-    fault = ""
-    with Session.create() as session:
-        plant = PlantProcess.start(session, out_dir / "run", cfg)
-        sid = session.id
-        try:
-            assert plant.bank is not None
-            bp = open_backplane(cfg.plant, sid)
-            d = RobotDriver(hw, bp, cfg.plant.physics_hz)
-            d.open()
-            truth = plant.bank.truth(plant.bank.robot_names.index("r2"))
-            d.preset_encoders(truth.read()["q_rad"])
-            captured: list[Any] = []
-            spy = threading.Thread(target=_listen, args=(cfg, sid, 0.3, captured))
-            replayed: list[int] = []
-            drive = np.zeros(7)
-            drive[0] = 4.0
-            try:
-                spy.start()
-                time.sleep(0.05)  # the eavesdropper joins the group (pacing, not a sync)
-                t0 = nxt = time.monotonic()
-                q_hold = q_end = None
-                replay: threading.Thread | None = None
-                while time.monotonic() - t0 < 2.5:
-                    d.read_feedback()
-                    t = time.monotonic() - t0
-                    if t < 0.3:
-                        d.release_brakes([0])
-                        d.send_torques(drive)
-                    else:
-                        d.freeze()
-                    if replay is None and t >= 0.8:
-                        spy.join()
-                        # whole banks only: from a first segment to a last one
-                        while captured and captured[0].data[2] != 0:
-                            captured.pop(0)
-                        while captured and captured[-1].data[2] != captured[-1].data[3] - 1:
-                            captured.pop()
-                        bp._seq += 70_000  # type: ignore[attr-defined]  # minutes of running
-                        q_hold = float(truth.read()["q_rad"][0])
-                        replay = threading.Thread(
-                            target=lambda: replayed.append(_replay(cfg, sid, captured, 1.0))
-                        )
-                        replay.start()
-                    if replay is not None and not replay.is_alive() and q_end is None:
-                        q_end = float(truth.read()["q_rad"][0])
-                    nxt += 0.005
-                    time.sleep(max(0.0, nxt - time.monotonic()))  # a 200 Hz loop
-                if replay is not None:
-                    replay.join()
-            except IOFault as exc:
-                fault = str(exc)
-            moved = abs((q_end if q_end is not None else float(truth.read()["q_rad"][0]))
-                        - (q_hold if q_hold is not None else 0.0))  # fmt: skip
-            row["captured_frames"] = len(captured)
-            row["replayed_writes"] = replayed[0] if replayed else 0
-            row["moved_while_replayed_rad"] = round(moved, 5)
-            d.freeze()
-            d.close()
-            row["driver_writes"] = int(bp.writes)  # type: ignore[attr-defined]
-        finally:
-            plant.stop()
-        result = plant.result()
+    with _CanRig(out_dir, cfg) as rig:
+        fault, captured, replayed, moved = _drive_and_replay(rig)
+        row["captured_frames"] = captured
+        row["replayed_writes"] = replayed
+        row["moved_while_replayed_rad"] = round(moved, 5)
+        rig.d.freeze()
+        rig.d.close()
+        row["driver_writes"] = int(rig.bp.writes)  # type: ignore[attr-defined]
+    result = rig.result
     row["plant_forged_writes"] = int(result.get("forged_writes", 0))
     row["plant_taken_writes"] = int(result.get("taken_writes", 0))
     row["watchdog_trips"] = [t.get("robot") for t in result.get("watchdog_trips") or []]
     row["count"] = {"forged_writes": row["plant_forged_writes"]}
-    _ended(row, fault, sid)
+    _ended(row, fault, rig.sid)
     row["passed"] = bool(
         not fault
         and row["captured_frames"] > 0
@@ -324,3 +293,64 @@ def run_can_replay(out_dir: Path, cfg: Config) -> dict[str, Any]:
         and not row["ipc_left"]
     )
     return row
+
+
+def _drive_and_replay(rig: _CanRig) -> tuple[str, int, int, float]:
+    """The driver's 200 Hz loop for 2.5 s: joint 1 driven for 0.3 s while
+    recorded, then held; from 0.8 s the recording replayed. (the I/O fault,
+    frames captured, writes replayed, joint 1's move while replayed [rad])."""
+    import threading
+
+    import numpy as np
+
+    from redistro.errors import IOFault
+
+    d, truth, cfg, sid = rig.d, rig.truth, rig.cfg, rig.sid
+    captured: list[Any] = []
+    spy = threading.Thread(target=_listen, args=(cfg, sid, 0.3, captured))
+    replayed: list[int] = []
+    drive = np.zeros(7)
+    drive[0] = 4.0
+    fault = ""
+    q_hold = q_end = None
+    try:
+        spy.start()
+        time.sleep(0.05)  # the eavesdropper joins the group (pacing, not a sync)
+        t0 = nxt = time.monotonic()
+        replay: threading.Thread | None = None
+        while time.monotonic() - t0 < 2.5:
+            d.read_feedback()
+            t = time.monotonic() - t0
+            if t < 0.3:
+                d.release_brakes([0])
+                d.send_torques(drive)
+            else:
+                d.freeze()
+            if replay is None and t >= 0.8:
+                spy.join()
+                _whole_banks(captured)
+                rig.bp._seq += 70_000  # type: ignore[attr-defined]  # minutes of running
+                q_hold = float(truth.read()["q_rad"][0])
+                replay = threading.Thread(
+                    target=lambda: replayed.append(_replay(cfg, sid, captured, 1.0))
+                )
+                replay.start()
+            if replay is not None and not replay.is_alive() and q_end is None:
+                q_end = float(truth.read()["q_rad"][0])
+            nxt += 0.005
+            time.sleep(max(0.0, nxt - time.monotonic()))  # a 200 Hz loop
+        if replay is not None:
+            replay.join()
+    except IOFault as exc:
+        fault = str(exc)
+    moved = abs((q_end if q_end is not None else float(truth.read()["q_rad"][0]))
+                - (q_hold if q_hold is not None else 0.0))  # fmt: skip
+    return fault, len(captured), replayed[0] if replayed else 0, moved
+
+
+def _whole_banks(captured: list[Any]) -> None:
+    """Whole banks only: from a first segment to a last one."""
+    while captured and captured[0].data[2] != 0:
+        captured.pop(0)
+    while captured and captured[-1].data[2] != captured[-1].data[3] - 1:
+        captured.pop()

@@ -345,10 +345,11 @@ def _verdict(
     cfg: Config,
     cycles_at: dict[str, int] | None = None,
 ) -> dict[str, Any]:
+    """A scenario's row: what the session said, when the fault was detected
+    and by whom, the freezes and e-stops, what was left behind."""
     row: dict[str, Any] = {}
-    summary_path = out_dir / "summary.json"
     try:
-        summary = json.loads(summary_path.read_text())
+        summary = json.loads((out_dir / "summary.json").read_text())
     except (OSError, ValueError):
         summary = {}
     got = summary.get("result", "none")
@@ -361,59 +362,9 @@ def _verdict(
         for name, n in nodes.items()
         if str(n.get("reason", "")).startswith("manager error")
     ]
-    faults = [
-        (n["fault_monotonic_ns"], name, n)
-        for name, n in nodes.items()
-        if n.get("fault_monotonic_ns") and n["fault_monotonic_ns"] >= inject_ns > 0
-    ]
-    detected_ns = min(faults)[0] if faults else None
     row["detected"] = got != "ok" and got != "none"
-    if detected_ns is not None:
-        _, first, n = min(faults)
-        period_ms = 1e3 / float(n.get("rate_hz") or 200.0)
-        ms = (detected_ns - inject_ns) / 1e6
-        row["detected_by"] = first
-        row["detection_ms"] = round(ms, 2)
-        row["detection_cycles"] = round(ms / period_ms, 2)
-        limit = _limit_cycles(sc, cfg, first)
-        row["detection_limit_cycles"] = limit
-        # the bound is in the detecting node's own cycles (its manager's
-        # counter, as its checks count); ms / period is shown beside it
-        cycles = ms / period_ms
-        if cycles_at and first in cycles_at and n.get("fault_cycle") is not None:
-            at = cycles_at[first]
-            if sc.kind == "inject":  # an armed point acts when its process next looks
-                at = cycle_at(at, cycles_at.get(f"{first}/due_ns", 0), inject_ns, period_ms)
-            cycles = int(n["fault_cycle"]) - at
-            row["detection_node_cycles"] = cycles
-        sender = next((w for w in n.get("workers", []) if w.get("name") == "sender"), None)
-        if sc.limit == "starving" and cycles_at and f"{first}/sender" in cycles_at and sender:
-            # the starving index counts the commands the sender sent without a
-            # fresh one: on a loaded host the sender skips cycles, so the bound
-            # is in its cycles (it runs no more after the fault)
-            sent = int(sender["cycles"]) - cycles_at[f"{first}/sender"]
-            row["detection_sender_cycles"] = sent
-            cycles = sent
-        row["detection_within_limit"] = limit is None or cycles <= limit
-    freezes = summary.get("plant", {}).get("freezes") or []
-    frozen: dict[str, float] = {}
-    for f in freezes:
-        if f.get("monotonic_ns", 0) >= inject_ns > 0 and f["robot"] not in frozen:
-            frozen[f["robot"]] = f["monotonic_ns"]
-    if not (sc.kind == "process" and sc.node == "plant"):
-        row["frozen"] = sorted(frozen)
-        row["all_frozen"] = set(frozen) >= {"r1", "r2"}
-        if frozen and detected_ns is not None:
-            # from the first detection to the last robot's brakes at the plant
-            row["freeze_ms"] = round((max(frozen.values()) - detected_ns) / 1e6, 2)
-        # each robot's freeze after its own ESC's fault (the ESC's own reaction)
-        own = {
-            r: round((t - nodes[f"esc.{r}"]["fault_monotonic_ns"]) / 1e6, 2)
-            for r, t in frozen.items()
-            if nodes.get(f"esc.{r}", {}).get("fault_monotonic_ns")
-        }
-        if own:
-            row["freeze_after_own_fault_ms"] = own
+    detected_ns = _detection(sc, cfg, nodes, inject_ns, cycles_at, row)
+    _freezes(sc, summary, nodes, inject_ns, detected_ns, row)
     row["estop_every_node"] = bool(nodes) and all(n.get("result") != "ok" for n in nodes.values())
     stops = [int(n["fault_monotonic_ns"]) for n in nodes.values() if n.get("fault_monotonic_ns")]
     if len(stops) == len(nodes) > 1 and detected_ns is not None:
@@ -433,8 +384,13 @@ def _verdict(
     row["positions_valid"] = valid == ["r1", "r2"]
     if sc.count:
         row["count"] = {sc.count: count_of(summary, sc.count)}
+    row["passed"] = _passed(sc, got, row)
+    return row
+
+
+def _passed(sc: Scenario, got: str, row: dict[str, Any]) -> bool:
     fault_expected = "ok" not in sc.expect
-    row["passed"] = bool(
+    return bool(
         got in sc.expect
         and reason_matches(sc.reason, row["cause"])
         and (
@@ -448,7 +404,80 @@ def _verdict(
         and row["processes_left"] == 0
         and not row["ipc_left"]
     )  # fmt: skip
-    return row
+
+
+def _detection(
+    sc: Scenario,
+    cfg: Config,
+    nodes: dict[str, Any],
+    inject_ns: int,
+    cycles_at: dict[str, int] | None,
+    row: dict[str, Any],
+) -> int | None:
+    """When the fault was first detected (None: never), by whom, in how
+    many of the detecting node's own cycles (its manager's counter, as its
+    checks count; ms / period beside it), against its bound."""
+    faults = [
+        (n["fault_monotonic_ns"], name, n)
+        for name, n in nodes.items()
+        if n.get("fault_monotonic_ns") and n["fault_monotonic_ns"] >= inject_ns > 0
+    ]
+    if not faults:
+        return None
+    detected_ns, first, n = min(faults)
+    period_ms = 1e3 / float(n.get("rate_hz") or 200.0)
+    ms = (detected_ns - inject_ns) / 1e6
+    row["detected_by"] = first
+    row["detection_ms"] = round(ms, 2)
+    row["detection_cycles"] = round(ms / period_ms, 2)
+    limit = _limit_cycles(sc, cfg, first)
+    row["detection_limit_cycles"] = limit
+    cycles = ms / period_ms
+    if cycles_at and first in cycles_at and n.get("fault_cycle") is not None:
+        at = cycles_at[first]
+        if sc.kind == "inject":  # an armed point acts when its process next looks
+            at = cycle_at(at, cycles_at.get(f"{first}/due_ns", 0), inject_ns, period_ms)
+        cycles = int(n["fault_cycle"]) - at
+        row["detection_node_cycles"] = cycles
+    sender = next((w for w in n.get("workers", []) if w.get("name") == "sender"), None)
+    if sc.limit == "starving" and cycles_at and f"{first}/sender" in cycles_at and sender:
+        # the starving index counts the commands the sender sent without a
+        # fresh one: on a loaded host the sender skips cycles, so the bound
+        # is in its cycles (it runs no more after the fault)
+        cycles = int(sender["cycles"]) - cycles_at[f"{first}/sender"]
+        row["detection_sender_cycles"] = cycles
+    row["detection_within_limit"] = limit is None or cycles <= limit
+    return int(detected_ns)
+
+
+def _freezes(
+    sc: Scenario,
+    summary: dict[str, Any],
+    nodes: dict[str, Any],
+    inject_ns: int,
+    detected_ns: int | None,
+    row: dict[str, Any],
+) -> None:
+    """Which robots froze after the fault, how soon after its detection,
+    and each after its own ESC's fault (a dead plant freezes nothing)."""
+    if sc.kind == "process" and sc.node == "plant":
+        return
+    frozen: dict[str, float] = {}
+    for f in summary.get("plant", {}).get("freezes") or []:
+        if f.get("monotonic_ns", 0) >= inject_ns > 0 and f["robot"] not in frozen:
+            frozen[f["robot"]] = f["monotonic_ns"]
+    row["frozen"] = sorted(frozen)
+    row["all_frozen"] = set(frozen) >= {"r1", "r2"}
+    if frozen and detected_ns is not None:
+        # from the first detection to the last robot's brakes at the plant
+        row["freeze_ms"] = round((max(frozen.values()) - detected_ns) / 1e6, 2)
+    own = {
+        r: round((t - nodes[f"esc.{r}"]["fault_monotonic_ns"]) / 1e6, 2)
+        for r, t in frozen.items()
+        if nodes.get(f"esc.{r}", {}).get("fault_monotonic_ns")
+    }
+    if own:
+        row["freeze_after_own_fault_ms"] = own
 
 
 def reason_matches(expected: str, cause: str) -> bool:
