@@ -245,9 +245,18 @@ class Sender(Worker):
         self.cycle_now = self.trace_at["cycle"]
         run_dir = os.path.dirname(self.spec.messages_path)
         self.trace_path = os.path.join(run_dir, f"trip-{self.robot}.json") if run_dir else ""
-        # the guard's screen: the command prepared (joints on, their torques)
-        # and every figure against its limit in one kernel call; anything it
-        # flags is checked again by check(), which names the first limit broken
+        self._plan_screen()
+        self._prepare: Any = self._prepare_numpy
+        if kernels.AVAILABLE:
+            plan = kernels.plan("guard_prepare", **self._prepare_args)
+            run = kernels.KERNELS.guard_prepare
+            self._prepare = lambda: run(plan)
+
+    def _plan_screen(self) -> None:
+        """The guard's screen: the command prepared (joints on, their
+        torques) and every figure against its limit in one kernel call;
+        anything it flags is checked again by check(), which names the
+        first limit broken. Its buffers (esc/guard_layout.py)."""
         src = self.cmd if self.from_ssc else self.ctl
         fields = src.array.dtype.fields
         assert fields is not None
@@ -286,11 +295,6 @@ class Sender(Worker):
             "trace": self.trace,
             "trace_at": self.trace_at,
         }
-        self._prepare: Any = self._prepare_numpy
-        if kernels.AVAILABLE:
-            plan = kernels.plan("guard_prepare", **self._prepare_args)
-            run = kernels.KERNELS.guard_prepare
-            self._prepare = lambda: run(plan)
 
     def step(self, cycle: int) -> None:
         self.manager_block.read_into(self.mgr.bytes)

@@ -63,29 +63,16 @@ def _read_exact(f: IO[bytes], n: int) -> bytes | None:
 
 
 def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
-    from mcap.writer import CompressionType, Writer
-
-    from redistro.log.frames import JSON_SCHEMA, MESSAGE_ENCODING, SCHEMA_ENCODING
+    from redistro import files
 
     if ready_fd >= 0:  # imported: the recorder may start the cycles
         os.write(ready_fd, b"R")
         os.close(ready_fd)
-
     src = io.BufferedReader(PacedPipe(fd), 1 << 16)
-    from redistro import files
-
     tmp = files.temp_name(out)
-    sink = os.fdopen(files.create(tmp), "wb", buffering=1 << 20)
-    writer = Writer(sink, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-    writer.start(profile="", library="redistro")
-    cuts: list[tuple[int, int, int]] = []  # channel id, offset, size
-    timing: Timing | None = None
-    json_schema = writer.register_schema("redistro/Event", "jsonschema", JSON_SCHEMA)
-    json_channels: dict[str, int] = {}
-    header: dict[str, Any] = {}
-    stats: dict[str, Any] = {}
-    frames = messages = 0
+    sink = _McapSink(os.fdopen(files.create(tmp), "wb", buffering=1 << 20))
     cpu0, wall0 = time.process_time(), time.monotonic()
+    stats: dict[str, Any] = {}
     while True:
         head = _read_exact(src, FRAME.size)
         if head is None:
@@ -94,65 +81,96 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
         body = _read_exact(src, size)
         if body is None:
             break
-        if kind == KIND_CYCLE and timing is not None:
-            cycle_bytes = body[0:8]
-            seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
-            for cid, off, n in cuts:
-                writer.add_message(cid, log_ns, cycle_bytes + body[off : off + n], log_ns, seq)
-                messages += 1
-            writer.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
-            messages += 1
-            frames += 1
-            for doc in timing.events(body):
-                topic = str(doc.pop("topic"))
-                if topic not in json_channels:
-                    json_channels[topic] = writer.register_channel(topic, "json", json_schema)
-                writer.add_message(json_channels[topic], log_ns, json.dumps(doc).encode(), log_ns)
-                messages += 1
+        if kind == KIND_CYCLE:
+            sink.cycle(body, log_ns)
         elif kind == KIND_EVENT:
             doc = json.loads(body)
-            topic = str(doc.pop("topic", "/events"))
-            if topic not in json_channels:
-                json_channels[topic] = writer.register_channel(topic, "json", json_schema)
-            writer.add_message(json_channels[topic], log_ns, json.dumps(doc).encode(), log_ns)
-            messages += 1
+            sink.event(str(doc.pop("topic", "/events")), doc, log_ns)
         elif kind == KIND_HEADER:
-            header = json.loads(body)
-            for ch in [*header["channels"], header["timing"]]:
-                sid = writer.register_schema(
-                    ch["schema"], SCHEMA_ENCODING, ch["definition"].encode()
-                )
-                cid = writer.register_channel(
-                    ch["topic"], MESSAGE_ENCODING, sid, {"node": header["node"]}
-                )
-                if ch is header["timing"]:
-                    timing = Timing(header, cid)
-                else:
-                    cuts.append((cid, int(ch["offset"]), int(ch["size"])))
-            node = {
-                k: v for k, v in header.items() if k not in ("channels", "meta", "timing", "frame")
-            }
-            writer.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
-            writer.add_metadata(
-                "redistro.meta", {k: json.dumps(v) for k, v in header.get("meta", {}).items()}
-            )
+            sink.header(json.loads(body))
         elif kind == KIND_END:
             stats = json.loads(body)
-    stats.setdefault("node", header.get("node", ""))
-    stats["frames_written"] = frames
-    stats["messages"] = messages
+    stats.setdefault("node", sink.node)
+    stats["frames_written"] = sink.frames
+    stats["messages"] = sink.messages
     stats["complete"] = "recorded" in stats
     wall = time.monotonic() - wall0
     stats["writer_cpu_s"] = round(time.process_time() - cpu0, 3)
     stats["writer_cpu_percent"] = round(100 * stats["writer_cpu_s"] / wall, 2) if wall else 0.0
-    writer.add_metadata("redistro.recording", {k: json.dumps(v) for k, v in stats.items()})
-    writer.finish()  # type: ignore[no-untyped-call]
-    sink.close()
+    sink.finish(stats)
     src.close()
     os.replace(tmp, out)
     side = out[: -len(".mcap")] + ".log.json" if out.endswith(".mcap") else out + ".json"
     files.replace(side, json.dumps(stats, indent=1))
     return 0
+
+
+class _McapSink:
+    """The MCAP file one node's frames go into: its channels from the
+    header, each cycle's messages cut from the frame, the events as JSON."""
+
+    def __init__(self, out: Any) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        from redistro.log.frames import JSON_SCHEMA
+
+        self.out = out
+        self.writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self.writer.start(profile="", library="redistro")
+        self.cuts: list[tuple[int, int, int]] = []  # channel id, offset, size
+        self.timing: Timing | None = None
+        self.json_schema = self.writer.register_schema("redistro/Event", "jsonschema", JSON_SCHEMA)
+        self.json_channels: dict[str, int] = {}
+        self.node = ""
+        self.frames = self.messages = 0
+
+    def header(self, header: dict[str, Any]) -> None:
+        """The node's channels (one per logged block, and its timing), and
+        its metadata."""
+        from redistro.log.frames import MESSAGE_ENCODING, SCHEMA_ENCODING
+
+        w = self.writer
+        self.node = header.get("node", "")
+        for ch in [*header["channels"], header["timing"]]:
+            sid = w.register_schema(ch["schema"], SCHEMA_ENCODING, ch["definition"].encode())
+            cid = w.register_channel(ch["topic"], MESSAGE_ENCODING, sid, {"node": header["node"]})
+            if ch is header["timing"]:
+                self.timing = Timing(header, cid)
+            else:
+                self.cuts.append((cid, int(ch["offset"]), int(ch["size"])))
+        skip = ("channels", "meta", "timing", "frame")
+        node = {k: v for k, v in header.items() if k not in skip}
+        w.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
+        meta = header.get("meta", {})
+        w.add_metadata("redistro.meta", {k: json.dumps(v) for k, v in meta.items()})
+
+    def cycle(self, body: bytes, log_ns: int) -> None:
+        """One cycle's messages, its timing, its events."""
+        timing = self.timing
+        if timing is None:
+            return
+        w = self.writer
+        cycle_bytes = body[0:8]
+        seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
+        for cid, off, n in self.cuts:
+            w.add_message(cid, log_ns, cycle_bytes + body[off : off + n], log_ns, seq)
+        w.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
+        self.messages += len(self.cuts) + 1
+        self.frames += 1
+        for doc in timing.events(body):
+            self.event(str(doc.pop("topic")), doc, log_ns)
+
+    def event(self, topic: str, doc: dict[str, Any], log_ns: int) -> None:
+        if topic not in self.json_channels:
+            channel = self.writer.register_channel(topic, "json", self.json_schema)
+            self.json_channels[topic] = channel
+        self.writer.add_message(self.json_channels[topic], log_ns, json.dumps(doc).encode(), log_ns)
+        self.messages += 1
+
+    def finish(self, stats: dict[str, Any]) -> None:
+        self.writer.add_metadata("redistro.recording", {k: json.dumps(v) for k, v in stats.items()})
+        self.writer.finish()  # type: ignore[no-untyped-call]
+        self.out.close()
 
 
 class Timing:
