@@ -321,51 +321,18 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
     ends with a command that says the session finished (or a lost link)."""
     from redistro.localdata.layout import SessionStatus
 
-    writer = ld.writer("feedback", 0, role="acquisition")
     commands = ld.block("command", 0)
-    cycle = 0
-    seq = 0
-    last_cmd = commands.seq
+    last_cmd = first_cmd = checked = commands.seq
     cpu0, t0 = _cpu_s(), time.monotonic()
-
-    sampling = threading.Lock()
-    # (the stand-in's own cost kept small: it runs in the answering thread,
-    # on the way of every command it times)
-    seq_word, stamp_word, step_word = fb.word("seq_src"), fb.word("stamp_ns"), fb.word("step")
-    publish, record, stamp = writer.publish, fb.bytes, time.monotonic_ns
-
-    def sample() -> None:
-        nonlocal seq
-        with sampling:  # (the ddm's step, or zenoh's thread answering)
-            seq += 1
-            seq_word[0] = step_word[0] = seq
-            stamp_word[0] = stamp()
-            publish(record)
-
-    if ddm.answers.on and ddm.answers.gate is not None:
-        # a ddm that answers each command in its transport's thread: the
-        # fresh sample goes first there, as it does before a step here (the
-        # compiled answer runs it first on every record)
-        ddm.answers.before = sample
-    elif ddm.answers.on:
-        answer = ddm.transport.answer
-
-        def answered(raw: bytes) -> int:
-            sample()
-            result: int = answer(raw)
-            return result
-
-        ddm.transport.answer = answered
-
-    first_cmd = checked = commands.seq
+    sample = _acquisition(ddm, ld, fb)
     next_datum = 0.0
     steps = samples()  # the CPU of each of the ddm's steps
+    cycle = [0]
 
     def step() -> None:
-        nonlocal cycle
-        cycle += 1
+        cycle[0] += 1
         c0 = time.thread_time_ns()
-        ddm.step(cycle)
+        ddm.step(cycle[0])
         steps.add(time.thread_time_ns() - c0)
 
     while time.monotonic() < end_by and not ddm.lost:
@@ -404,6 +371,40 @@ def _esc_loop(ddm: Any, ld: Any, poll: Any, end_by: float, fb: Any, samples: Any
     }
 
 
+def _acquisition(ddm: Any, ld: Any, fb: Any) -> Any:
+    """The acquisition's stand-in: a fresh feedback sample per call. A ddm
+    that answers in its transport's thread takes one before each record
+    there, as the ddm's own step takes one before its step."""
+    writer = ld.writer("feedback", 0, role="acquisition")
+    sampling = threading.Lock()
+    seq = [0]
+    # (the stand-in's own cost kept small: it runs in the answering thread,
+    # on the way of every command it times)
+    seq_word, stamp_word, step_word = fb.word("seq_src"), fb.word("stamp_ns"), fb.word("step")
+    publish, record, stamp = writer.publish, fb.bytes, time.monotonic_ns
+
+    def sample() -> None:
+        with sampling:  # (the ddm's step, or zenoh's thread answering)
+            seq[0] += 1
+            seq_word[0] = step_word[0] = seq[0]
+            stamp_word[0] = stamp()
+            publish(record)
+
+    if ddm.answers.on and ddm.answers.gate is not None:
+        # the compiled answer runs it first on every record
+        ddm.answers.before = sample
+    elif ddm.answers.on:
+        answer = ddm.transport.answer
+
+        def answered(raw: bytes) -> int:
+            sample()
+            result: int = answer(raw)
+            return result
+
+        ddm.transport.answer = answered
+    return sample
+
+
 def _ssc_loop(
     ddm: Any,
     ld: Any,
@@ -419,44 +420,13 @@ def _ssc_loop(
     for what comes; each robot's fresh feedback timed from its stamp to its
     admission (the exchange's ``last_update_ns``: a ddm that admits in its
     transport's thread is not woken for it, and this loop reads it later)."""
-    from redistro.localdata.block import Record
-    from redistro.localdata.layout import FEEDBACK, SessionStatus
-
-    writers = [ld.writer("command", i, role="worker") for i in range(len(robots))]
-    readers = [ld.block("feedback", i) for i in range(len(robots))]
-    fbs = [Record(FEEDBACK) for _ in robots]
-    last = [0] * len(robots)
-    lat = [samples() for _ in robots]
-    seen = [0] * len(robots)
-    sent = [0] * len(robots)
-    cycle = 0
-
-    def take(measure: bool) -> None:
-        with ddm.answers.lock:  # (the sample and its admission's time together)
-            for i, (rd, rec) in enumerate(zip(readers, fbs, strict=True)):
-                rd.read_into(rec.bytes)
-                s = int(rec["seq_src"])
-                if s != last[i]:
-                    last[i] = s
-                    if measure:
-                        seen[i] += 1
-                        lat[i].add(int(ddm.ex[i]["last_update_ns"]) - int(rec["stamp_ns"]))
-
-    def turn(timeout_s: float, measure: bool) -> None:
-        nonlocal cycle
-        events = poll.wait(timeout_s)
-        ddm.ready_fds = [fd for fd, _ in events] or None
-        cycle += 1
-        ddm.step(cycle)
-        poll.refresh()
-        take(measure)
-
+    b = _SscBench(ddm, ld, poll, robots, samples)
     # the meeting point: every ESC's start-up datum (its feedback on its own)
     connect_by = min(end_by, time.monotonic() + CONNECT_S)
-    while not all(last) and time.monotonic() < connect_by and not ddm.lost:
-        turn(0.05, False)
-    if not all(last):
-        silent = [r for r, s in zip(robots, last, strict=True) if not s]
+    while not all(b.last) and time.monotonic() < connect_by and not ddm.lost:
+        b.turn(0.05, False)
+    if not all(b.last):
+        silent = [r for r, s in zip(robots, b.last, strict=True) if not s]
         return {
             "connected": False,
             "error": f"not heard from within {CONNECT_S:g} s: {', '.join(silent)}",
@@ -465,56 +435,9 @@ def _ssc_loop(
     # feedback taken: what the ddm admitted into Local Data from here on (two
     # that come within one of this process's reads leave one sample to see)
     admitted0 = [int(e["updates"]) for e in ddm.ex]
-    stop = min(end_by - 2.0, t0 + seconds)
-    due = time.monotonic_ns()
-    seq = 0
-    steps = samples()  # the CPU of each of the ddm's steps
-    # (the worker's stand-in kept small: its commands are timed from their stamps)
-    seq_word, stamp_word, record = cmd.word("seq_src"), cmd.word("stamp_ns"), cmd.bytes
-    publishes, clock = [w.publish for w in writers], time.monotonic_ns
-    while time.monotonic() < stop and not ddm.lost:
-        now = time.monotonic_ns()
-        if now >= due:
-            # the last period's feedback, timed by its admission: read here,
-            # before the commands, the reads stay out of the burst they time
-            take(True)
-            seq += 1
-            seq_word[0] = seq
-            for publish in publishes:  # (each stamped as it goes)
-                stamp_word[0] = clock()
-                publish(record)
-            for i in range(len(sent)):
-                sent[i] += 1
-            due += period_ns
-            ddm.ready_fds = []  # woken by its worker's command (as by a node's wake event)
-        else:
-            events = poll.wait(max(0.0, (due - now) / 1e9))
-            ddm.ready_fds = [fd for fd, _ in events]
-            if not events:
-                continue
-        cycle += 1
-        c0 = time.thread_time_ns()
-        ddm.step(cycle)
-        steps.add(time.thread_time_ns() - c0)
-        poll.refresh()
+    steps = b.commands(cmd, period_ns, min(end_by - 2.0, t0 + seconds))
     wall = max(1e-9, time.monotonic() - t0)
-    # the last command says the session finished (as a session's last does):
-    # an ESC ends on it, where no closed link tells it (reflective memory)
-    seq += 1
-    cmd["session_status"] = SessionStatus.FINISHED
-    for i, w in enumerate(writers):
-        cmd["seq_src"] = seq
-        cmd["stamp_ns"] = time.monotonic_ns()
-        w.publish(cmd.bytes)
-        sent[i] += 1
-    ddm.ready_fds = []
-    cycle += 1
-    ddm.step(cycle)  # sent now (waiting first made its latency the wait's, 20 ms)
-    poll.refresh()
-    # the last replies
-    tail = time.monotonic() + 0.2
-    while time.monotonic() < tail and not ddm.lost:
-        turn(0.02, True)
+    b.finish(cmd)
     taken = [int(e["updates"]) - a for e, a in zip(ddm.ex, admitted0, strict=True)]
     return {
         "connected": True,
@@ -522,11 +445,113 @@ def _ssc_loop(
         "cpu_percent": round(100 * (_cpu_s() - cpu0) / wall, 2),
         "step_cpu_us": steps.summary_us(),
         "steps_per_s": round(steps.count / wall, 1),
-        "sent": dict(zip(robots, sent, strict=True)),
+        "sent": dict(zip(robots, b.sent, strict=True)),
         "taken": dict(zip(robots, taken, strict=True)),
-        "seen": dict(zip(robots, seen, strict=True)),
-        "feedback_latency_us": {r: s.summary_us() for r, s in zip(robots, lat, strict=True)},
+        "seen": dict(zip(robots, b.seen, strict=True)),
+        "feedback_latency_us": {r: s.summary_us() for r, s in zip(robots, b.lat, strict=True)},
     }
+
+
+class _SscBench:
+    """The SSC's side of ``bench ddm``: a worker's stand-in publishing the
+    commands, and each robot's feedback timed to its admission."""
+
+    def __init__(self, ddm: Any, ld: Any, poll: Any, robots: list[str], samples: Any) -> None:
+        from redistro.localdata.block import Record
+        from redistro.localdata.layout import FEEDBACK
+
+        n = len(robots)
+        self.ddm, self.poll, self.samples = ddm, poll, samples
+        self.writers = [ld.writer("command", i, role="worker") for i in range(n)]
+        self.readers = [ld.block("feedback", i) for i in range(n)]
+        self.fbs = [Record(FEEDBACK) for _ in robots]
+        self.last = [0] * n
+        self.lat = [samples() for _ in robots]
+        self.seen = [0] * n
+        self.sent = [0] * n
+        self.cycle = 0
+
+    def take(self, measure: bool) -> None:
+        """Each robot's newest feedback, timed by its admission."""
+        ddm = self.ddm
+        with ddm.answers.lock:  # (the sample and its admission's time together)
+            for i, (rd, rec) in enumerate(zip(self.readers, self.fbs, strict=True)):
+                rd.read_into(rec.bytes)
+                s = int(rec["seq_src"])
+                if s != self.last[i]:
+                    self.last[i] = s
+                    if measure:
+                        self.seen[i] += 1
+                        lat = int(ddm.ex[i]["last_update_ns"]) - int(rec["stamp_ns"])
+                        self.lat[i].add(lat)
+
+    def turn(self, timeout_s: float, measure: bool) -> None:
+        events = self.poll.wait(timeout_s)
+        self.ddm.ready_fds = [fd for fd, _ in events] or None
+        self.cycle += 1
+        self.ddm.step(self.cycle)
+        self.poll.refresh()
+        self.take(measure)
+
+    def commands(self, cmd: Any, period_ns: int, stop: float) -> Any:
+        """A command per robot every period until ``stop``: the CPU of each
+        of the ddm's steps."""
+        ddm, poll = self.ddm, self.poll
+        due = time.monotonic_ns()
+        seq = 0
+        steps = self.samples()
+        # (the worker's stand-in kept small: its commands are timed from their stamps)
+        seq_word, stamp_word, record = cmd.word("seq_src"), cmd.word("stamp_ns"), cmd.bytes
+        publishes, clock = [w.publish for w in self.writers], time.monotonic_ns
+        while time.monotonic() < stop and not ddm.lost:
+            now = time.monotonic_ns()
+            if now >= due:
+                # the last period's feedback, timed by its admission: read here,
+                # before the commands, the reads stay out of the burst they time
+                self.take(True)
+                seq += 1
+                seq_word[0] = seq
+                for publish in publishes:  # (each stamped as it goes)
+                    stamp_word[0] = clock()
+                    publish(record)
+                for i in range(len(self.sent)):
+                    self.sent[i] += 1
+                due += period_ns
+                ddm.ready_fds = []  # woken by its worker's command (as by a node's wake event)
+            else:
+                events = poll.wait(max(0.0, (due - now) / 1e9))
+                ddm.ready_fds = [fd for fd, _ in events]
+                if not events:
+                    continue
+            self.cycle += 1
+            c0 = time.thread_time_ns()
+            ddm.step(self.cycle)
+            steps.add(time.thread_time_ns() - c0)
+            poll.refresh()
+        self.seq = seq
+        return steps
+
+    def finish(self, cmd: Any) -> None:
+        """The last command says the session finished (as a session's last
+        does): an ESC ends on it, where no closed link tells it (reflective
+        memory); then the last replies."""
+        from redistro.localdata.layout import SessionStatus
+
+        ddm = self.ddm
+        seq = self.seq + 1
+        cmd["session_status"] = SessionStatus.FINISHED
+        for i, w in enumerate(self.writers):
+            cmd["seq_src"] = seq
+            cmd["stamp_ns"] = time.monotonic_ns()
+            w.publish(cmd.bytes)
+            self.sent[i] += 1
+        ddm.ready_fds = []
+        self.cycle += 1
+        ddm.step(self.cycle)  # sent now (waiting first made its latency the wait's, 20 ms)
+        self.poll.refresh()
+        tail = time.monotonic() + 0.2
+        while time.monotonic() < tail and not ddm.lost:
+            self.turn(0.02, True)
 
 
 def print_figures(out: dict[str, Any]) -> None:
