@@ -189,8 +189,6 @@ def render(doc: dict[str, Any]) -> Any:
     text may quote a task's or a segment's name) are printed as they are,
     escaped: never read as markup."""
     from rich.console import Group
-    from rich.markup import escape
-    from rich.table import Table
     from rich.text import Text
 
     parts: list[Any] = []
@@ -201,74 +199,61 @@ def render(doc: dict[str, Any]) -> Any:
         for n in s["nodes"]:
             if "cycle" not in n:
                 parts.append(Text(f"{n['node']}: {n['state']}"))
-                continue
-            estop = "[red]E-STOP[/red]" if n.get("estop") else "ok"
-            starving = n.get("starving_index")
-            title = (
-                f"{n['node']} {n.get('state')} cycle {n.get('cycle')} "
-                f"{n.get('measured_hz') or '-'}/{n.get('rate_hz', '-')} Hz, "
-                f"manager late {n.get('manager_late_us')} us, overruns {n.get('overruns')}, "
-                f"starving {'-' if starving is None else starving}"
-                f", {estop}"
-            )
-            if n.get("fault"):
-                title += (
-                    f" [red]{escape(str(n['fault']))}: {escape(str(n.get('fault_text')))}[/red]"
-                )
-            # short headings and no column rules: fits an 80-column terminal
-            t = Table(
-                title=title,
-                title_justify="left",
-                expand=False,
-                box=None,
-                header_style="bold underline",
-                padding=(0, 0, 0, 1),
-                pad_edge=False,
-            )
-            heads = ("name", "pid", "state", "sched", "hb age", "late us", "busy us")
-            for c in (*heads, "cycles", "overruns", "skip"):
-                t.add_column(c, justify="left" if c == "name" else "right", no_wrap=True)
-            t.add_row(
-                "manager",
-                str(n.get("manager_pid", "")),
-                n.get("state", ""),
-                "",
-                "",
-                str(n.get("manager_late_us")),
-                "",
-                str(n.get("cycle")),
-                str(n.get("overruns")),
-                "",
-            )
-            for p in n["processes"]:
-                age = p["heartbeat_age_cycles"]
-                limit = n.get("heartbeat_limit_cycles", 0)
-                age_s = (
-                    "-"
-                    if age is None
-                    else (f"[red]{age}[/red]" if limit and age > limit // 2 else str(age))
-                )
-                t.add_row(
-                    p["name"],
-                    str(p["pid"]),
-                    p["state"],
-                    p["sched"],
-                    age_s,
-                    str(p["late_us"] if p["late_us"] is not None else "-"),
-                    str(p["busy_us"] if p["busy_us"] is not None else "-"),
-                    str(p["cycles"]),
-                    str(p["overruns"]),
-                    str(p["skipped"]),
-                )
-            parts.append(t)
+            else:
+                parts.append(_node_table(n))
         if s["other_processes"]:
-            parts.append(
-                Text(
-                    "other processes: "
-                    + ", ".join(f"{o['what']} ({o['pid']})" for o in s["other_processes"])
-                )
-            )
+            others = ", ".join(f"{o['what']} ({o['pid']})" for o in s["other_processes"])
+            parts.append(Text("other processes: " + others))
     return Group(*parts)
+
+
+def _node_table(n: dict[str, Any]) -> Any:
+    """One node's table: its manager's line, then a line per process."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    estop = "[red]E-STOP[/red]" if n.get("estop") else "ok"
+    starving = n.get("starving_index")
+    title = (
+        f"{n['node']} {n.get('state')} cycle {n.get('cycle')} "
+        f"{n.get('measured_hz') or '-'}/{n.get('rate_hz', '-')} Hz, "
+        f"manager late {n.get('manager_late_us')} us, overruns {n.get('overruns')}, "
+        f"starving {'-' if starving is None else starving}"
+        f", {estop}"
+    )
+    if n.get("fault"):
+        title += f" [red]{escape(str(n['fault']))}: {escape(str(n.get('fault_text')))}[/red]"
+    # short headings and no column rules: fits an 80-column terminal
+    t = Table(
+        title=title,
+        title_justify="left",
+        expand=False,
+        box=None,
+        header_style="bold underline",
+        padding=(0, 0, 0, 1),
+        pad_edge=False,
+    )
+    heads = ("name", "pid", "state", "sched", "hb age", "late us", "busy us")
+    for c in (*heads, "cycles", "overruns", "skip"):
+        t.add_column(c, justify="left" if c == "name" else "right", no_wrap=True)
+    manager = (str(n.get("manager_pid", "")), n.get("state", ""), "", "")
+    t.add_row("manager", *manager, str(n.get("manager_late_us")), "", str(n.get("cycle")),
+              str(n.get("overruns")), "")  # fmt: skip
+    limit = n.get("heartbeat_limit_cycles", 0)
+    for p in n["processes"]:
+        age = p["heartbeat_age_cycles"]
+        age_s = (
+            "-"
+            if age is None
+            else (f"[red]{age}[/red]" if limit and age > limit // 2 else str(age))
+        )
+        t.add_row(
+            p["name"], str(p["pid"]), p["state"], p["sched"], age_s,
+            str(p["late_us"] if p["late_us"] is not None else "-"),
+            str(p["busy_us"] if p["busy_us"] is not None else "-"),
+            str(p["cycles"]), str(p["overruns"]), str(p["skipped"]),
+        )  # fmt: skip
+    return t
 
 
 def run_top(session: str | None, once: bool, as_json: bool, interval_s: float) -> int:

@@ -163,6 +163,28 @@ def measure(
         return {"error": (out.stderr.strip().splitlines() or ["no output"])[-1]}
 
 
+def _repliers(
+    listener: socket.socket, port: int, robots: int, count: int, priority: int, children: list[Any]
+) -> list[socket.socket]:
+    """One replier process per robot (as one ESC ddm each), connected:
+    their connections (each started one goes into ``children``)."""
+    conns = []
+    listener.settimeout(10.0)
+    for _ in range(robots):
+        children.append(
+            subprocess.Popen(
+                _module("--reply", str(port), "--count", str(count), "--priority", str(priority)),
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+        )
+        conn, _ = listener.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.setblocking(True)
+        conns.append(conn)
+    return conns
+
+
 def _worker(
     rate_hz: float, seconds: float, priority: int, cpu_latency_us: int | None, robots: int
 ) -> int:
@@ -179,22 +201,7 @@ def _worker(
     stamp = mmap.mmap(stamp_fd, 8)
     children: list[Any] = []
     try:
-        conns = []
-        listener.settimeout(10.0)
-        for _ in range(robots):  # one replier per robot, as one ESC ddm each
-            children.append(
-                subprocess.Popen(
-                    _module(
-                        "--reply", str(port), "--count", str(count), "--priority", str(priority)
-                    ),
-                    stdout=subprocess.PIPE,
-                    text=True,
-                )
-            )
-            conn, _ = listener.accept()
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            conn.setblocking(True)
-            conns.append(conn)
+        conns = _repliers(listener, port, robots, count, priority, children)
         fds = [c.fileno() for c in conns]
         forwarder = subprocess.Popen(
             _module(

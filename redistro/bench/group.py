@@ -64,66 +64,19 @@ def _process(w: dict[str, Any]) -> dict[str, Any]:
 
 def figures(summary: dict[str, Any]) -> dict[str, Any]:
     """The benchmark's figures from a session's summary.json."""
-    nodes: dict[str, Any] = {}
-    group_cpu = 0.0
-    for name, n in summary.get("nodes", {}).items():
-        periods = int(n.get("cycles") or 0) + int(n.get("missed_ticks") or 0)
-        overruns = int(n.get("overruns") or 0)
-        mgr = n.get("manager", {})
-        procs = {"manager": {"cpu_percent": mgr.get("cpu_percent"), "tick_work_us": None}}
-        procs["manager"]["tick_work_us"] = _triple(mgr.get("tick_work_us"))
-        for w in n.get("workers", []):
-            procs[str(w.get("name"))] = _process(w)
-        rate = float(n.get("rate_hz") or 0.0)
-        for proc in procs.values():
-            # what a process costs per node cycle, wake-ups and all: a recorder
-            # drains many cycles a step, a ddm wakes several times a cycle
-            pct = proc.get("cpu_percent")
-            proc["cpu_per_cycle_us"] = (
-                round(float(pct) / 100 * 1e6 / rate, 1) if pct is not None and rate else None
-            )
-        node_cpu = sum(float(p.get("cpu_percent") or 0.0) for p in procs.values())
-        group_cpu += node_cpu
-        nodes[name] = {
-            "result": n.get("result"),
-            "rate_hz": n.get("rate_hz"),
-            "cycles": n.get("cycles"),
-            "overrun_cycles": overruns,
-            "overrun_percent": round(100 * overruns / periods, 4) if periods else None,
-            "lateness_us": _triple(n.get("lateness_us")),
-            "makespan_us": _triple(n.get("makespan_us")),
-            "cpu_percent": round(node_cpu, 2),
-            "processes": procs,
-        }
+    nodes = {name: _node(n) for name, n in summary.get("nodes", {}).items()}
     p = summary.get("plant", {})
-    plant = {
-        "rtf": p.get("rtf"),
-        "steps": p.get("steps"),
-        "late_steps": p.get("late_steps"),
-        "skipped_steps": p.get("skipped_steps"),
-        "step_us": _triple(p.get("step_us")),
-        "physics_us": _triple(p.get("physics_us")),
-        "chassis_us": _triple(p.get("chassis_us")),
-        "cpu_percent": p.get("cpu_percent"),
-    }
-    group_cpu += float(p.get("cpu_percent") or 0.0)
+    plant = {k: p.get(k) for k in ("rtf", "steps", "late_steps", "skipped_steps", "cpu_percent")}
+    for k in ("step_us", "physics_us", "chassis_us"):
+        plant[k] = _triple(p.get(k))
     log = summary.get("log", {}) or {}
-    writers = 0.0
-    log_nodes = {}
-    for node, rec in (log.get("nodes") or {}).items():
-        writers += float(rec.get("writer_cpu_percent") or 0.0)
-        log_nodes[node] = {
-            k: rec.get(k)
-            for k in (
-                "cycles",
-                "recorded",
-                "dropped",
-                "overwritten",
-                "pipe_full",
-                "writer_cpu_percent",
-            )
-        }
-    group_cpu += writers
+    keys = ("cycles", "recorded", "dropped", "overwritten", "pipe_full", "writer_cpu_percent")
+    log_nodes = {
+        node: {k: rec.get(k) for k in keys} for node, rec in (log.get("nodes") or {}).items()
+    }
+    writers = sum(float(rec.get("writer_cpu_percent") or 0.0) for rec in log_nodes.values())
+    group_cpu = sum(n["cpu_percent"] for n in nodes.values())
+    group_cpu += float(p.get("cpu_percent") or 0.0) + writers
     ddm: dict[str, Any] = {}
     for node, ex in (summary.get("ddm") or {}).items():
         if node.startswith("esc.") and isinstance(ex, dict):
@@ -145,11 +98,43 @@ def figures(summary: dict[str, Any]) -> dict[str, Any]:
         "nodes": nodes,
         "plant": plant,
         "ddm": ddm,
-        "log": {
-            "dropped": log.get("dropped"),
-            "nodes": log_nodes,
-        },
+        "log": {"dropped": log.get("dropped"), "nodes": log_nodes},
         "group_cpu_percent": round(group_cpu, 1),
+    }
+
+
+def _node(n: dict[str, Any]) -> dict[str, Any]:
+    """One node's figures: its overruns, lateness, and each process's CPU."""
+    periods = int(n.get("cycles") or 0) + int(n.get("missed_ticks") or 0)
+    overruns = int(n.get("overruns") or 0)
+    mgr = n.get("manager", {})
+    procs = {
+        "manager": {
+            "cpu_percent": mgr.get("cpu_percent"),
+            "tick_work_us": _triple(mgr.get("tick_work_us")),
+        }
+    }
+    for w in n.get("workers", []):
+        procs[str(w.get("name"))] = _process(w)
+    rate = float(n.get("rate_hz") or 0.0)
+    for proc in procs.values():
+        # what a process costs per node cycle, wake-ups and all: a recorder
+        # drains many cycles a step, a ddm wakes several times a cycle
+        pct = proc.get("cpu_percent")
+        proc["cpu_per_cycle_us"] = (
+            round(float(pct) / 100 * 1e6 / rate, 1) if pct is not None and rate else None
+        )
+    node_cpu = sum(float(p.get("cpu_percent") or 0.0) for p in procs.values())
+    return {
+        "result": n.get("result"),
+        "rate_hz": n.get("rate_hz"),
+        "cycles": n.get("cycles"),
+        "overrun_cycles": overruns,
+        "overrun_percent": round(100 * overruns / periods, 4) if periods else None,
+        "lateness_us": _triple(n.get("lateness_us")),
+        "makespan_us": _triple(n.get("makespan_us")),
+        "cpu_percent": round(node_cpu, 2),
+        "processes": procs,
     }
 
 
