@@ -426,13 +426,13 @@ def _plant(args: argparse.Namespace, cfg: Any) -> int:
 
     if args.seconds < 0:
         raise ConfigError(f"--seconds: expected >= 0, got {args.seconds}")
-    load_hardware(cfg)
+    hardware = load_hardware(cfg)
     for name in session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     with session.Session.create() as s:
         print(f"session {s.id}", flush=True)
         run_dir = Path(cfg.session.runs_dir) / s.id
-        plant = PlantProcess.start(s, run_dir, plant_config(cfg), gui=args.gui)
+        plant = PlantProcess.start(s, run_dir, plant_config(cfg), gui=args.gui, hardware=hardware)
         try:
             end = time.monotonic() + args.seconds if args.seconds else None
             while plant.proc.poll() is None and (end is None or time.monotonic() < end):

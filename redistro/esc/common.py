@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from redistro.config import Config
-from redistro.config.hardware import RobotHardware, load_hardware
+from redistro.config.hardware import RobotHardware
 from redistro.drivers.io.backplane import open_backplane
 from redistro.drivers.robot import RobotDriver
 from redistro.process.spec import NodeSpec
@@ -19,11 +19,9 @@ class EscContext:
 
     @classmethod
     def load(cls, spec: NodeSpec) -> EscContext:
-        """The node's config (resolved by the session owner, in its spec) and
-        its robot's hardware."""
-        cfg = spec.cfg()
-        robot = spec.robots[0]
-        return cls(cfg, robot, load_hardware(cfg)[robot])
+        """The node's config and its robot's hardware (read and checked once by
+        the session owner, handed down resolved in its spec)."""
+        return cls(spec.cfg(), spec.robots[0], spec.hardware())
 
     def driver(self, session_id: str) -> RobotDriver:
         """A robot-level driver over its own backplane connection (not yet opened)

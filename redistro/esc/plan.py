@@ -104,5 +104,6 @@ def esc_spec(
         messages_path=messages_path,
         config=resolved(controller_view(cfg)),
         task_data=resolved(task),
+        hardware_data=resolved(hw),
         node_params=node_params,
     )

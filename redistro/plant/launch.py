@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from redistro import files
+from redistro.config.hardware import RobotHardware, load_hardware
 from redistro.config.loader import resolved
 from redistro.config.model import Config
 from redistro.drivers.io.bank import PlantState, RegisterBank
@@ -41,14 +42,18 @@ class PlantProcess:
         *,
         gui: bool = False,
         timeout_s: float = 30.0,
+        hardware: dict[str, RobotHardware] | None = None,
     ) -> PlantProcess:
-        """cfg: the plant's config, loaded and checked by the caller; handed
-        down resolved (``plant.config.json`` in ``run_dir``), never re-read
-        from YAML."""
+        """cfg: the plant's config, loaded and checked by the caller, and the
+        robots' hardware (read and checked here unless the caller did):
+        handed down resolved (``plant.config.json`` in ``run_dir``), never
+        re-read from their files."""
         files.make_folder(run_dir, "run folder")
         result = run_dir / "plant.json"
         resolved_path = run_dir / "plant.config.json"
-        files.replace(resolved_path, json.dumps(resolved(cfg)))
+        hw = hardware if hardware is not None else load_hardware(cfg)
+        doc = {"config": resolved(cfg), "hardware": {r: resolved(h) for r, h in hw.items()}}
+        files.replace(resolved_path, json.dumps(doc))
         args = ["plant", "--session", session.id, "--result", str(result)]
         args += ["--resolved", str(resolved_path)]
         if gui:

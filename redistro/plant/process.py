@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config.hardware import load_hardware
+from redistro.config.hardware import RobotHardware
 from redistro.config.loader import from_resolved
 from redistro.config.model import Config
 from redistro.drivers.io.backplane import BoardPort
@@ -62,9 +62,10 @@ def run_plant(
     from redistro.plant.world import World
 
     signals.set_parent_death_signal(signal.SIGTERM)
-    # the config its starter loaded and checked, handed down resolved
-    cfg = from_resolved(Config, json.loads(Path(resolved_path).read_text()))
-    hardware = load_hardware(cfg)
+    # the config and the hardware its starter loaded and checked, handed down resolved
+    doc = json.loads(Path(resolved_path).read_text())
+    cfg = from_resolved(Config, doc["config"])
+    hardware = {r: from_resolved(RobotHardware, h) for r, h in doc["hardware"].items()}
     world: World | None = None
     bank: RegisterBank | None = None
     port: BoardPort | None = None

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from redistro.config.hardware import RobotHardware
     from redistro.config.model import Config
     from redistro.config.task import Task
 
@@ -99,6 +100,9 @@ class NodeSpec:
     # from here and never reads the YAML (``cfg()``, ``task()``)
     config: dict[str, Any] = field(default_factory=dict)
     task_data: dict[str, Any] = field(default_factory=dict)
+    # an ESC's robot's hardware (I/O wiring, sensors), read and checked once
+    # by the session owner with the config, handed down the same way
+    hardware_data: dict[str, Any] = field(default_factory=dict)
     node_params: NodeParams = field(default_factory=NodeParams)
 
     def cfg(self) -> Config:
@@ -114,6 +118,15 @@ class NodeSpec:
         from redistro.config.task import Task
 
         return from_resolved(Task, self.task_data)
+
+    def hardware(self) -> RobotHardware:
+        """The node's robot's hardware (an ESC's)."""
+        from redistro.config.hardware import RobotHardware
+        from redistro.config.loader import from_resolved
+
+        if not self.hardware_data:
+            raise ValueError(f"node {self.node}: its spec holds no hardware")
+        return from_resolved(RobotHardware, self.hardware_data)
 
     def stages(self) -> list[list[int]]:
         """Indices of the workers on the cycle, grouped by stage, in stage order."""

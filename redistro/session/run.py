@@ -132,7 +132,7 @@ def _run_task(
         os.close(files.create(messages))  # (new: the managers only append to it)
         say(f"session {s.id}")
         say(f"task {task.task} ({task.kind}) on {', '.join(task.robots)}; run folder {run_dir}")
-        plant = PlantProcess.start(s, run_dir, plant_config(cfg))
+        plant = PlantProcess.start(s, run_dir, plant_config(cfg), hardware=hardware)
         say(f"plant running ({cfg.plant.backplane} backplane, {cfg.plant.physics_hz:g} Hz)")
         try:
             order = task.calibration.order if task.kind == "self_calibration" else "together"
