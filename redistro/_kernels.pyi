@@ -8,13 +8,13 @@ KERNEL_NAMES: tuple[str, ...]
 class Plan:
     def __init__(self, kernel: str, buffers: dict[str, Any], /) -> None: ...
 
-class Answerer:
+class CompiledAnswer:
     def __init__(
         self,
         admit: Plan,
         emit: Plan,
         publish: Plan,
-        gate: Any,
+        state: Any,
         estop_at: int,
         lock: Any,
         put: Any,

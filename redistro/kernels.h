@@ -122,6 +122,6 @@ PyObject *seq_write(PyObject *mod, PyObject *arg);
 extern const KernelSet CORE_KERNELS, CHASSIS_KERNELS, DRIVER_KERNELS, GUARD_KERNELS,
     JOINT_KERNELS, LINALG_KERNELS, CARTESIAN_KERNELS, WIRE_KERNELS, STEP_KERNELS;
 
-int answer_kernel_init(PyObject *module); /* ddm/answer_kernel.c: the Answerer type */
+int answer_kernel_init(PyObject *module); /* ddm/answer_kernel.c: the CompiledAnswer type */
 
 #endif

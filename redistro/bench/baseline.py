@@ -135,7 +135,7 @@ class Cyclictest:
             setsigmask=(),
             setsid=True,
         )
-        from redistro.process.owner import SPARED
+        from redistro.process.session_owner import SPARED
 
         SPARED.add(self.pid)  # a session's reaping must leave it running
 
@@ -145,7 +145,7 @@ class Cyclictest:
         import signal
         import time
 
-        from redistro.process.owner import SPARED
+        from redistro.process.session_owner import SPARED
 
         with contextlib.suppress(ProcessLookupError):
             os.kill(self.pid, signal.SIGINT)

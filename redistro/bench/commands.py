@@ -41,7 +41,7 @@ def _bench_cycle(args: argparse.Namespace, cfg: Any) -> int:
     from redistro.bench import cycle
     from redistro.bench.baseline import cpu_steal_ticks, cyclictest, steal_report
     from redistro.ipc import session
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
 
     rate = args.rate if args.rate is not None else cfg.bench.rate_hz
     cycle.check_args(rate, args.workers, args.seconds, args.work_us)
@@ -97,7 +97,7 @@ def _bench_group(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> in
     from pathlib import Path
 
     from redistro.bench import group
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
 
     _writable("--json", args.json_path)
     out = group.run(cfg, args.task, overrides)
@@ -121,7 +121,7 @@ def _bench_peg(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
     from rich.progress import Progress
 
     from redistro.bench import peg
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
     from redistro.session.preflight import preflight
 
     _writable("--json", args.json_path)
@@ -177,7 +177,7 @@ def _bench_kernels(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
     from redistro.bench import kernels
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
 
     if args.calls < 1:
         raise ConfigError(f"--calls {args.calls}: must be at least 1")
@@ -194,7 +194,7 @@ def _bench_ipc(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from redistro.bench import ipc
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
 
     if args.samples < 10:
         raise ConfigError(f"--samples: expected >= 10, got {args.samples}")
@@ -224,7 +224,7 @@ def _bench_plant(args: argparse.Namespace, cfg: Any) -> int:
     from redistro.bench import plant
     from redistro.config.hardware import load_hardware
     from redistro.ipc import session
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
 
     if not args.seconds > 0:
         raise ConfigError(f"--seconds: expected > 0, got {args.seconds}")
@@ -249,7 +249,7 @@ def _bench_ddm(args: argparse.Namespace, cfg: Any) -> int:
     from pathlib import Path
 
     from redistro.bench import ddm
-    from redistro.process.owner import write_json
+    from redistro.process.session_owner import write_json
 
     if not 1 <= args.robots <= 16:
         raise ConfigError(f"--robots {args.robots}: expected 1 to 16")

@@ -11,8 +11,8 @@ from redistro.config import Config
 from redistro.errors import ConfigError
 from redistro.ipc import session as ipc_session
 from redistro.localdata import MAX_PROCS
-from redistro.process.owner import run_node
 from redistro.process.result import NodeResult
+from redistro.process.session_owner import run_node
 from redistro.process.spec import NodeSpec, WorkerSpec
 
 

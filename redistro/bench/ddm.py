@@ -256,9 +256,9 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     from redistro.ddm.worker import Ddm
     from redistro.localdata.block import Record
     from redistro.localdata.layout import COMMAND, FEEDBACK
-    from redistro.process.books import node_local_data
     from redistro.process.spec import NodeSpec
     from redistro.process.stats import Samples
+    from redistro.process.watch import node_local_data
 
     spec = NodeSpec.load(spec_path)
     period_ns = int(1e9 / spec.rate_hz)
@@ -390,7 +390,7 @@ def _acquisition(ddm: Any, ld: Any, fb: Any) -> Any:
             stamp_word[0] = stamp()
             publish(record)
 
-    if ddm.answers.on and ddm.answers.gate is not None:
+    if ddm.answers.on and ddm.answers.state is not None:
         # the compiled answer runs it first on every record
         ddm.answers.before = sample
     elif ddm.answers.on:

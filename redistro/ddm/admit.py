@@ -55,8 +55,8 @@ class PythonAdmission:
         if kind != d.in_kind or i is None:
             return 0  # another node's traffic on a broadcast medium (authentic)
         ex = d.ex[i]
-        if d.fast is not None:
-            why = d.fast.refuse(d.admission, i, source, kind, robot, seq, stamp)
+        if d.kernel_path is not None:
+            why = d.kernel_path.refuse(d.admission, i, source, kind, robot, seq, stamp)
         else:
             why = d.admission.refuse(source, kind, robot, seq, stamp)
         if why:
@@ -112,7 +112,7 @@ class PythonAdmission:
             d.urgent = True
         if not d.commanded:
             d.commanded = True
-            d.answers.open_gate()
+            d.answers.open_state()
             if d.replying:  # ... feedback goes out as the replies to commands
                 ex["feedback_wanted"] = 0
         ex["updates"] += 1
@@ -128,7 +128,7 @@ class PythonAdmission:
         d.delivered_block.publish(d.delivered_rec.bytes)
         stamp = wire.payload_stamp(raw) if not d.cipher else _stamp_of(payload)
         if 0 < stamp <= now:
-            if d.fast is not None:
-                d.fast.add_latency(now - stamp)
+            if d.kernel_path is not None:
+                d.kernel_path.add_latency(now - stamp)
             else:
                 d.latency.add(now - stamp)

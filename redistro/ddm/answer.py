@@ -10,7 +10,7 @@ record to refuse, a lost link) is the ddm's own step's: the record goes to
 its queue untouched. The step's state is shared under one lock.
 
 The answer is made in one compiled call when the kernels are built (the
-``Answerer``, ddm/answer_kernel.c, over the ddm's plans); :meth:`answer`
+``CompiledAnswer``, ddm/answer_kernel.c, over the ddm's plans); :meth:`answer`
 is its Python reference, and the path taken otherwise.
 """
 
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from redistro.ddm import wire_layout
-from redistro.ddm.transport import ANSWERED, NOT_TAKEN, OWED
+from redistro.ddm.transport import ANSWERED, NOT_TAKEN, REPLY_OWED
 from redistro.errors import TransportError
 from redistro.kernels import KERNELS
 from redistro.localdata.layout import MANAGER
@@ -40,10 +40,10 @@ class ThreadAnswer:
         self.on = False  # the transport hands records over to be answered
         self.owed = False  # an answer's feedback the ddm's own step is to send
         self.taken_here = 0  # records the Python answer took whole
-        # the compiled answer's gate and counts (GATE, ddm/wire_layout.py),
+        # the compiled answer's state and counts (ANSWER_STATE, ddm/wire_layout.py),
         # the e-stop byte it reads, and what runs before each record (a
         # bench's stand-in for the acquisition; None in a node)
-        self.gate: Any = None
+        self.state: Any = None
         self.estop_at = 0
         self.before: Any = None
 
@@ -51,56 +51,56 @@ class ThreadAnswer:
         """Ask the transport to hand its records over as they arrive (the
         compiled answer when the kernels have it)."""
         compiled = None
-        if hasattr(KERNELS, "Answerer"):
-            self.gate = np.zeros((), wire_layout.GATE)
+        if hasattr(KERNELS, "CompiledAnswer"):
+            self.state = np.zeros((), wire_layout.ANSWER_STATE)
             _, manager_at, _ = ld.block_offsets("manager")
             self.estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
             compiled = self.compiled
         self.on = self.ddm.accel.answer_with(self.answer, compiled)
-        self.open_gate()
+        self.open_state()
 
     @property
     def taken(self) -> int:
         """Records taken whole in the transport's thread (by either answer)."""
-        return self.taken_here + (0 if self.gate is None else int(self.gate["answered"]))
+        return self.taken_here + (0 if self.state is None else int(self.state["answered"]))
 
-    def open_gate(self) -> None:
-        """The compiled answer's gate: open while this ddm answers, was
-        commanded and has its link (the e-stop it reads itself)."""
-        if self.gate is not None:
+    def open_state(self) -> None:
+        """The compiled answer's state: answering while this ddm answers,
+        was commanded and has its link (the e-stop it reads itself)."""
+        if self.state is not None:
             d = self.ddm
             commanded = d.commanded or d.kind != "esc"
-            self.gate["open"] = int(self.on and commanded and not d.lost)
+            self.state["answering"] = int(self.on and commanded and not d.lost)
 
     def take_owed(self) -> bool:
         """Whether an answer left the reply to the ddm's step (and no more)."""
         owed, self.owed = self.owed, False
-        if self.gate is not None and self.gate["owed"]:
-            owed, self.gate["owed"] = True, 0
+        if self.state is not None and self.state["reply_owed"]:
+            owed, self.state["reply_owed"] = True, 0
         return owed
 
     def compiled(self, put: Any, inbox: Any, fallback: Any, wake: Any) -> Any:
-        """The answer in one compiled call (``_kernels.Answerer``), for the
+        """The answer in one compiled call (``_kernels.CompiledAnswer``), for the
         transport to hand each record to in its thread: what :meth:`answer`
         does, over the same kernels, state and step lock. ``put`` sends an
         ESC's reply (None: the SSC's side); a record it does not take goes
         to ``fallback(raw)`` (the transport's Python path); ``wake()`` when
         the ddm's own step owes the reply."""
-        fast = self.ddm.fast
+        fast = self.ddm.kernel_path
         assert fast is not None and KERNELS is not None
-        return KERNELS.Answerer(
-            fast.admit_plan, fast.emit_plan, fast.publish_plan, self.gate, self.estop_at,
+        return KERNELS.CompiledAnswer(
+            fast.admit_plan, fast.emit_plan, fast.publish_plan, self.state, self.estop_at,
             self.lock, put, inbox, fallback, wake, self.before,
         )  # fmt: skip
 
     def answer(self, raw: bytes) -> int:
         """The ddm's usual step for one record (see the module's text):
-        NOT_TAKEN, ANSWERED or OWED (taken; the ddm's step sends the reply)."""
+        NOT_TAKEN, ANSWERED or REPLY_OWED (taken; the ddm's step sends the reply)."""
         if not self.lock.acquire(blocking=False):
             return NOT_TAKEN
         try:
             d = self.ddm
-            fast = d.fast
+            fast = d.kernel_path
             if not self.on or d.lost or d.estop_flag[0]:
                 return NOT_TAKEN
             esc = d.kind == "esc"
@@ -121,19 +121,19 @@ class ThreadAnswer:
     def _reply(self) -> int:
         """An ESC's reply: the newest feedback, emitted and sent back."""
         d = self.ddm
-        fast = d.fast
+        fast = d.kernel_path
         assert fast is not None
         d.steps += 1
         mask = fast.emit_call(fast.emit_plan)
         if mask < 0:  # a torn read of the feedback: the ddm reads it again
             self.owed = True
-            return OWED
+            return REPLY_OWED
         if mask:
             d.sends += 1
             try:
                 d.transport.send(bytes(fast.wire_views[0]), d.answer_gid)
             except TransportError:
-                return OWED  # (closed: the ddm's receive says so)
+                return REPLY_OWED  # (closed: the ddm's receive says so)
         if not d.steps & 63:
             d._publish()
         return ANSWERED

@@ -2,7 +2,7 @@
  * A ddm's answer, whole, in the transport's thread (its reference: the
  * ddm's Python answer, Ddm._answer in ddm/worker.py).
  *
- * Answerer(admit_plan, emit_plan, publish_plan, gate, estop_at, lock, put,
+ * CompiledAnswer(admit_plan, emit_plan, publish_plan, state, estop_at, lock, put,
  * inbox, fallback, wake, before): the callable a transport that delivers
  * records on a thread of its own (zenoh's) hands each record to, in that
  * thread. Called with a record (a bytes-like object) or a sample (its
@@ -12,12 +12,12 @@
  * 64th answer the exchange records published (publish_plan, seq_write's).
  * The SSC's (``put`` None): the feedback admitted and the exchange
  * published (its manager watches every robot's updates). It takes a record
- * only when the gate (GATE in ddm/wire_layout.py) is open, the manager's
+ * only while its state (ANSWER_STATE in ddm/wire_layout.py) says it answers, the manager's
  * e-stop byte (Local Data byte estop_at) is clear, ``inbox`` is empty
  * (records queued before it go first), and ``lock`` (the ddm's step lock)
  * is free; anything else goes to ``fallback(raw)`` untouched (the ddm's own
  * step). A torn read of the feedback, or a put that raised, leaves the
- * reply to the ddm: the gate's owed set and ``wake()`` called; its answered
+ * reply to the ddm: its reply_owed set and ``wake()`` called; its answered
  * counts the records taken. ``before``: None, or a callable run first on
  * every call (a bench's stand-in for the acquisition). The first call in
  * each thread keeps that thread's Python thread state (one
@@ -26,27 +26,27 @@
  */
 #include "step.h"
 
-#define GATE(f) ANSWER_GATE_##f
+#define STATE(f) ANSWER_STATE_##f
 #define KEPT_THREADS 8
 #define PUBLISH_EVERY 64 /* an ESC's answers between publishing the exchange */
 typedef struct {
     PyObject_HEAD
-    PyObject *admit, *emit, *publish, *gate_obj, *acquire, *release, *put, *inbox, *fallback,
+    PyObject *admit, *emit, *publish, *state_obj, *acquire, *release, *put, *inbox, *fallback,
         *wake, *before;
-    Py_buffer gate;
+    Py_buffer state;
     Py_ssize_t estop_at;
     int closed;
     int nkept;
     unsigned long kept[KEPT_THREADS];
-} AnswererObject;
+} CompiledAnswerObject;
 
 static PyObject *STR_PAYLOAD, *STR_TO_BYTES;
 
-static int Answerer_traverse(AnswererObject *self, visitproc visit, void *arg) {
+static int CompiledAnswer_traverse(CompiledAnswerObject *self, visitproc visit, void *arg) {
     Py_VISIT(self->admit);
     Py_VISIT(self->emit);
     Py_VISIT(self->publish);
-    Py_VISIT(self->gate_obj);
+    Py_VISIT(self->state_obj);
     Py_VISIT(self->acquire);
     Py_VISIT(self->release);
     Py_VISIT(self->put);
@@ -57,13 +57,13 @@ static int Answerer_traverse(AnswererObject *self, visitproc visit, void *arg) {
     return 0;
 }
 
-static int Answerer_clear(AnswererObject *self) {
-    if (self->gate_obj != NULL && self->gate.obj != NULL)
-        PyBuffer_Release(&self->gate);
+static int CompiledAnswer_clear(CompiledAnswerObject *self) {
+    if (self->state_obj != NULL && self->state.obj != NULL)
+        PyBuffer_Release(&self->state);
     Py_CLEAR(self->admit);
     Py_CLEAR(self->emit);
     Py_CLEAR(self->publish);
-    Py_CLEAR(self->gate_obj);
+    Py_CLEAR(self->state_obj);
     Py_CLEAR(self->acquire);
     Py_CLEAR(self->release);
     Py_CLEAR(self->put);
@@ -74,17 +74,17 @@ static int Answerer_clear(AnswererObject *self) {
     return 0;
 }
 
-static void Answerer_dealloc(AnswererObject *self) {
+static void CompiledAnswer_dealloc(CompiledAnswerObject *self) {
     PyObject_GC_UnTrack(self);
-    Answerer_clear(self);
+    CompiledAnswer_clear(self);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-static int Answerer_init(AnswererObject *self, PyObject *args, PyObject *kwds) {
-    PyObject *admit, *emit, *publish, *gate, *lock, *put, *inbox, *fallback, *wake, *before;
+static int CompiledAnswer_init(CompiledAnswerObject *self, PyObject *args, PyObject *kwds) {
+    PyObject *admit, *emit, *publish, *state, *lock, *put, *inbox, *fallback, *wake, *before;
     Py_ssize_t estop_at;
     if (!PyArg_ParseTuple(args, "O!O!O!OnOOOOOO", &PlanType, &admit, &PlanType, &emit, &PlanType,
-                          &publish, &gate, &estop_at, &lock, &put, &inbox, &fallback, &wake,
+                          &publish, &state, &estop_at, &lock, &put, &inbox, &fallback, &wake,
                           &before))
         return -1;
     PlanObject *ap = plan_arg(admit, "ddm_admit");
@@ -92,22 +92,22 @@ static int Answerer_init(AnswererObject *self, PyObject *args, PyObject *kwds) {
     if (ep == NULL || plan_arg(publish, "seq_write") == NULL || !step_plans_ok(ap, ep))
         return -1;
     if (estop_at < 0 || estop_at >= ap->n[DA_LD]) {
-        PyErr_SetString(PyExc_ValueError, "Answerer: the e-stop byte is outside Local Data");
+        PyErr_SetString(PyExc_ValueError, "CompiledAnswer: the e-stop byte is outside Local Data");
         return -1;
     }
-    Answerer_clear(self);
-    if (PyObject_GetBuffer(gate, &self->gate, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
+    CompiledAnswer_clear(self);
+    if (PyObject_GetBuffer(state, &self->state, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
         return -1;
-    if (self->gate.len != GATE(_N) * 8 || (uintptr_t)self->gate.buf % 8) {
-        PyBuffer_Release(&self->gate);
-        PyErr_Format(PyExc_ValueError, "Answerer: the gate is %d aligned int64 (GATE)", GATE(_N));
+    if (self->state.len != STATE(_N) * 8 || (uintptr_t)self->state.buf % 8) {
+        PyBuffer_Release(&self->state);
+        PyErr_Format(PyExc_ValueError, "CompiledAnswer: the state is %d aligned int64 (ANSWER_STATE)", STATE(_N));
         return -1;
     }
-    self->gate_obj = Py_NewRef(gate);
+    self->state_obj = Py_NewRef(state);
     self->acquire = PyObject_GetAttrString(lock, "acquire");
     self->release = PyObject_GetAttrString(lock, "release");
     if (self->acquire == NULL || self->release == NULL) {
-        Answerer_clear(self);
+        CompiledAnswer_clear(self);
         return -1;
     }
     self->admit = Py_NewRef(admit);
@@ -125,7 +125,7 @@ static int Answerer_init(AnswererObject *self, PyObject *args, PyObject *kwds) {
 }
 
 /* The step's lock, not waited for: 1 taken, 0 busy, -1 an error. */
-static int answer_try_lock(AnswererObject *self) {
+static int answer_try_lock(CompiledAnswerObject *self) {
     PyObject *r = PyObject_CallOneArg(self->acquire, Py_False);
     if (r == NULL)
         return -1;
@@ -136,7 +136,7 @@ static int answer_try_lock(AnswererObject *self) {
 
 /* The reply (the node's newest feedback) emitted and put: 1 when it is
  * owed to the ddm (a torn read, a put that raised), -1 an error. */
-static int answer_reply(AnswererObject *self, PlanObject *ep) {
+static int answer_reply(CompiledAnswerObject *self, PlanObject *ep) {
     Py_ssize_t wsize = 0;
     long mask = step_emit(ep, &wsize);
     if (mask == -2)
@@ -158,35 +158,35 @@ static int answer_reply(AnswererObject *self, PlanObject *ep) {
 
 /* Under the step's lock: the record admitted and answered (1; 2 with the
  * reply owed to the ddm), or not taken (0), -1 an error. */
-static int answer_locked(AnswererObject *self, const uint8_t *raw, Py_ssize_t len) {
-    int64_t *gate = (int64_t *)self->gate.buf;
+static int answer_locked(CompiledAnswerObject *self, const uint8_t *raw, Py_ssize_t len) {
+    int64_t *state = (int64_t *)self->state.buf;
     PlanObject *ap = (PlanObject *)self->admit, *ep = (PlanObject *)self->emit;
-    /* (the ddm may have closed the gate meanwhile) */
-    if (!gate[GATE(OPEN)] || U8(ap, DA_LD)[self->estop_at])
+    /* (the ddm may have closed the state meanwhile) */
+    if (!state[STATE(ANSWERING)] || U8(ap, DA_LD)[self->estop_at])
         return 0;
     long robot = step_admit(ap, raw, len);
     if (robot < 0)
         return robot == -2 ? -1 : 0;
-    gate[GATE(ANSWERED)] += 1;
+    state[STATE(ANSWERED)] += 1;
     int owed = self->put == NULL ? 0 : answer_reply(self, ep);
     if (owed < 0)
         return -1;
-    if (self->put == NULL || gate[GATE(ANSWERED)] % PUBLISH_EVERY == 0) {
+    if (self->put == NULL || state[STATE(ANSWERED)] % PUBLISH_EVERY == 0) {
         PyObject *r = seq_write(NULL, self->publish);
         if (r == NULL)
             return -1;
         Py_DECREF(r);
     }
     if (owed)
-        gate[GATE(OWED)] = 1;
+        state[STATE(REPLY_OWED)] = 1;
     return owed ? 2 : 1;
 }
 
 /* The usual record taken whole (1), or left to the fallback (0), -1 an error. */
-static int answer_record(AnswererObject *self, const uint8_t *raw, Py_ssize_t len) {
-    int64_t *gate = (int64_t *)self->gate.buf;
+static int answer_record(CompiledAnswerObject *self, const uint8_t *raw, Py_ssize_t len) {
+    int64_t *state = (int64_t *)self->state.buf;
     PlanObject *ap = (PlanObject *)self->admit;
-    if (self->closed || !gate[GATE(OPEN)] || U8(ap, DA_LD)[self->estop_at] ||
+    if (self->closed || !state[STATE(ANSWERING)] || U8(ap, DA_LD)[self->estop_at] ||
         PyObject_Size(self->inbox) != 0)
         return 0;
     int taken = answer_try_lock(self);
@@ -214,12 +214,12 @@ static int answer_record(AnswererObject *self, const uint8_t *raw, Py_ssize_t le
     return done > 0;
 }
 
-static PyObject *Answerer_call(AnswererObject *self, PyObject *args, PyObject *kwds) {
+static PyObject *CompiledAnswer_call(CompiledAnswerObject *self, PyObject *args, PyObject *kwds) {
     PyObject *arg;
-    if (!PyArg_UnpackTuple(args, "Answerer", 1, 1, &arg))
+    if (!PyArg_UnpackTuple(args, "CompiledAnswer", 1, 1, &arg))
         return NULL;
     if (self->admit == NULL) {
-        PyErr_SetString(PyExc_ValueError, "Answerer: not initialized");
+        PyErr_SetString(PyExc_ValueError, "CompiledAnswer: not initialized");
         return NULL;
     }
     unsigned long me = PyThread_get_thread_ident();
@@ -270,27 +270,27 @@ static PyObject *Answerer_call(AnswererObject *self, PyObject *args, PyObject *k
     return r;
 }
 
-static PyObject *Answerer_close(AnswererObject *self, PyObject *unused) {
+static PyObject *CompiledAnswer_close(CompiledAnswerObject *self, PyObject *unused) {
     self->closed = 1;
     Py_RETURN_NONE;
 }
 
 static PyMethodDef ANSWERER_METHODS[] = {
-    {"close", (PyCFunction)(void (*)(void))Answerer_close, METH_NOARGS,
+    {"close", (PyCFunction)(void (*)(void))CompiledAnswer_close, METH_NOARGS,
      "Take no more records (each goes to the fallback)."},
     {NULL, NULL, 0, NULL},
 };
 
-static PyTypeObject AnswererType = {
-    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "redistro._kernels.Answerer",
-    .tp_basicsize = sizeof(AnswererObject),
+static PyTypeObject CompiledAnswerType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "redistro._kernels.CompiledAnswer",
+    .tp_basicsize = sizeof(CompiledAnswerObject),
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
     .tp_new = PyType_GenericNew,
-    .tp_init = (initproc)Answerer_init,
-    .tp_dealloc = (destructor)Answerer_dealloc,
-    .tp_traverse = (traverseproc)Answerer_traverse,
-    .tp_clear = (inquiry)Answerer_clear,
-    .tp_call = (ternaryfunc)Answerer_call,
+    .tp_init = (initproc)CompiledAnswer_init,
+    .tp_dealloc = (destructor)CompiledAnswer_dealloc,
+    .tp_traverse = (traverseproc)CompiledAnswer_traverse,
+    .tp_clear = (inquiry)CompiledAnswer_clear,
+    .tp_call = (ternaryfunc)CompiledAnswer_call,
     .tp_methods = ANSWERER_METHODS,
     .tp_doc = "An ESC ddm's answer in the transport's thread (see the C source).",
 };
@@ -299,7 +299,7 @@ static PyTypeObject AnswererType = {
 int answer_kernel_init(PyObject *module) {
     STR_PAYLOAD = PyUnicode_InternFromString("payload");
     STR_TO_BYTES = PyUnicode_InternFromString("to_bytes");
-    if (STR_PAYLOAD == NULL || STR_TO_BYTES == NULL || PyType_Ready(&AnswererType) < 0)
+    if (STR_PAYLOAD == NULL || STR_TO_BYTES == NULL || PyType_Ready(&CompiledAnswerType) < 0)
         return -1;
-    return PyModule_AddObjectRef(module, "Answerer", (PyObject *)&AnswererType);
+    return PyModule_AddObjectRef(module, "CompiledAnswer", (PyObject *)&CompiledAnswerType);
 }

@@ -80,8 +80,8 @@ class Greeting:
             d.cipher = wire.cipher_key(key)
         for enc in d.encoders:
             enc.rekey(key)
-        if d.fast is not None:
-            d.fast.rekey(key)
+        if d.kernel_path is not None:
+            d.kernel_path.rekey(key)
         d.links.authenticated()
         d.post("handshake done: this run's key taken from the SSC's proof", logging.DEBUG)
         d.urgent = d.dirty = True

@@ -33,7 +33,7 @@ class SocketSteps:
         fd = d.accel.reply_fd(d.ready_fds)
         if fd < 0:
             return False
-        fast = d.fast
+        fast = d.kernel_path
         assert fast is not None
         if d.accel.generation != self.generation:
             self.refresh_fds()
@@ -50,7 +50,7 @@ class SocketSteps:
         read of the feedback, a send not made whole), or a receive the
         general path takes on."""
         d = self.d
-        fast = d.fast
+        fast = d.kernel_path
         assert fast is not None
         if not d.accel.received(got):
             return False
@@ -64,7 +64,7 @@ class SocketSteps:
     def refresh_fds(self) -> None:
         """Each robot's socket for the send kernels (a peer came or went)."""
         d = self.d
-        fast = d.fast
+        fast = d.kernel_path
         assert fast is not None
         self.generation = d.accel.generation
         for i, robot in enumerate(d.gid[r] for r in d.robots):
@@ -74,7 +74,7 @@ class SocketSteps:
         """The records emitted (mask) sent on their sockets by ddm_send, the
         robots in turn; what it could not send whole goes to the transport."""
         d = self.d
-        fast = d.fast
+        fast = d.kernel_path
         assert fast is not None
         if d.accel.generation != self.generation:  # a peer came or went
             self.refresh_fds()

@@ -1,4 +1,4 @@
-/* A ddm's admission and emission (ddm/step_kernel.c), for the Answerer. */
+/* A ddm's admission and emission (ddm/step_kernel.c), for the CompiledAnswer. */
 #ifndef REDISTRO_STEP_H
 #define REDISTRO_STEP_H
 

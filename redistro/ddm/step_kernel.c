@@ -379,7 +379,7 @@ static PyObject *ddm_reply(PyObject *mod, PyObject *const *args, Py_ssize_t narg
     return failed ? NULL : PyLong_FromLongLong(result);
 }
 
-/* -- for the Answerer (step.h) -- */
+/* -- for the CompiledAnswer (step.h) -- */
 
 int step_plans_ok(PlanObject *admit, PlanObject *emit) {
     Codec c;

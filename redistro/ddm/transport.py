@@ -15,14 +15,14 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
-from redistro.lazy import load
+from redistro.registries import load
 
 if TYPE_CHECKING:
     from redistro.config import Config
 
 
 # what an answer (``Transport.answer_with``) did with a record
-NOT_TAKEN, ANSWERED, OWED = 0, 1, 2
+NOT_TAKEN, ANSWERED, REPLY_OWED = 0, 1, 2
 
 
 class Links:
@@ -130,7 +130,7 @@ class Accelerator:
         ddm's usual step for it whole without waking the ddm (admitted; an
         ESC's reply sent back). It returns ``NOT_TAKEN`` (the record is
         queued for the ddm's ``receive`` as usual, and wakes it),
-        ``ANSWERED``, or ``OWED`` (taken; the ddm is woken for the rest of
+        ``ANSWERED``, or ``REPLY_OWED`` (taken; the ddm is woken for the rest of
         its step). While records wait in the queue, the later ones queue
         behind them. ``compiled``: the same answer in one compiled call,
         made for the transport by ``compiled(put, inbox, fallback, wake)``

@@ -1,5 +1,5 @@
 """The DDM kernels' buffers with fields (``ddm_admit``, ``ddm_emit``,
-``ddm_send``, the Answerer's gate, a record's codec; their references are
+``ddm_send``, the compiled answer's state, a record's codec; their references are
 ddm/record.py and ddm/worker.py's Python path), declared once."""
 
 from __future__ import annotations
@@ -81,8 +81,8 @@ EMIT_ROW = np.dtype(
 # ddm_reply's outcome, after ddm_send's per-robot status: the emit's mask
 # (-2: not run; -1: a torn read) and the send's trouble bits
 REPLY = np.dtype([("emitted", I8), ("trouble", I8)])
-# the Answerer's gate: open while the ddm answers; records taken; a reply owed
-GATE = np.dtype([("open", I8), ("answered", I8), ("owed", I8)])
+# the compiled answer's state: whether the ddm answers; records taken; a reply owed
+ANSWER_STATE = np.dtype([("answering", I8), ("answered", I8), ("reply_owed", I8)])
 
 LAYOUTS = {
     "wire": {"codec": CODEC},
@@ -94,5 +94,5 @@ LAYOUTS = {
     },
     "ddm_emit": {"codec": CODEC, "params": EMIT_PARAMS, "rows": Table(EMIT_ROW)},
     "ddm_send": {"reply": REPLY},
-    "answer": {"gate": GATE},
+    "answer": {"state": ANSWER_STATE},
 }

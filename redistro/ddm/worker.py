@@ -21,7 +21,7 @@ sends what this node produced since:
 Over a transport that delivers records on a thread of its own (zenoh),
 the usual record is taken there, as it arrives, without waking the ddm
 (admitted by the kernel; an ESC's reply emitted and sent): in one compiled
-call (the C ``_kernels.Answerer``), else by its Python reference
+call (the C ``_kernels.CompiledAnswer``), else by its Python reference
 (:mod:`redistro.ddm.answer`). The step's state is shared under one lock,
 and whatever the answer does not take whole goes to the ddm's own step.
 
@@ -51,9 +51,9 @@ from redistro.config import Config
 from redistro.ddm import record as wire
 from redistro.ddm.admit import PythonAdmission
 from redistro.ddm.answer import ThreadAnswer
-from redistro.ddm.fast import FastPath
 from redistro.ddm.greeting import Greeting
 from redistro.ddm.handshake import Handshake
+from redistro.ddm.kernel_path import KernelPath
 from redistro.ddm.socket_steps import SocketSteps
 from redistro.ddm.transport import (
     NO_ACCELERATOR,
@@ -127,7 +127,7 @@ class Ddm(Worker):
         n = len(self.robots)
         self.exchange_blocks = [ld.writer("exchange", i, role="ddm") for i in range(n)]
         self.ex = [Record(EXCHANGE) for _ in range(n)]
-        self.fast: FastPath | None = None
+        self.kernel_path: KernelPath | None = None
         self.socket_kernels = False  # (see _plan_fast)
         self.replies_in_kernel = False
         self.publish_call: Any = None
@@ -220,11 +220,11 @@ class Ddm(Worker):
             self._plan_fast(ld)
 
     def _plan_fast(self, ld: Any) -> None:
-        """The compiled common case (:mod:`redistro.ddm.fast`), over records
+        """The compiled common case (:mod:`redistro.ddm.kernel_path`), over records
         and counters the Python path shares."""
         n = len(self.robots)
         esc = self.kind == "esc"
-        fast = FastPath(
+        fast = KernelPath(
             ld,
             [self.gid[r] for r in self.robots],
             [("command", 0)] if esc else [("feedback", i) for i in range(n)],
@@ -236,7 +236,7 @@ class Ddm(Worker):
             starving=esc,
             latency=self.latency,
         )
-        self.fast = fast
+        self.kernel_path = fast
         self.ex = fast.ex
         self.out_recs = fast.out
         self.seq = fast.seq
@@ -324,7 +324,7 @@ class Ddm(Worker):
             # no retry: a lost link is a fault; the data stop and the
             # managers' starving checks end the session within their limits
             self.lost = True
-            self.answers.open_gate()
+            self.answers.open_state()
             for ex in self.ex:
                 ex["link_lost"] = 1
                 ex["fresh"] = 0
@@ -342,8 +342,8 @@ class Ddm(Worker):
             self._publish()
         every = self.links.status_every
         steps = self.steps
-        if self.answers.gate is not None and self.kind == "esc":
-            steps += int(self.answers.gate["answered"])
+        if self.answers.state is not None and self.kind == "esc":
+            steps += int(self.answers.state["answered"])
         if every and steps - self.status_at >= every:
             # (by count: an ESC's answers in the transport's thread step the
             # count too, as the Python answer's do; the SSC's do not)
@@ -402,13 +402,13 @@ class Ddm(Worker):
                 ex["foreign"] += refused - self.refused_seen
             self.refused_seen = refused
             self.dirty = self.urgent = True
-        fast = self.fast
+        fast = self.kernel_path
         for raw in received:
             self.dirty = True
             if fast is not None:
                 i = fast.admit_call(fast.admit_plan, raw)
                 if i >= 0:
-                    taken += 1  # admitted, published and counted (FastPath.admit)
+                    taken += 1  # admitted, published and counted (KernelPath.admit)
                     if self.corrupting:
                         self._corrupt_command(i)
                     continue
@@ -421,8 +421,8 @@ class Ddm(Worker):
         proven = self.handshake.proven
         if not self.shaken and not any(proven):
             return  # nobody may take our records yet (the handshake)
-        if self.fast is not None and not estop:
-            mask = self.fast.emit_call(self.fast.emit_plan)  # FastPath.emit
+        if self.kernel_path is not None and not estop:
+            mask = self.kernel_path.emit_call(self.kernel_path.emit_plan)  # KernelPath.emit
             if mask >= 0:  # else a torn read: the Python path reads again
                 if not self.shaken:  # only to the robots shaken hands with
                     mask &= sum(1 << i for i, ok in enumerate(proven) if ok)
@@ -431,7 +431,7 @@ class Ddm(Worker):
                     if self.socket_kernels:
                         self.socket_steps.send(mask)
                     else:
-                        views = self.fast.wire_views
+                        views = self.kernel_path.wire_views
                         for i, robot in self.send_orders[self.sends & 1]:
                             if mask >> i & 1:
                                 self.transport.send(bytes(views[i]), robot)
@@ -475,7 +475,7 @@ class Ddm(Worker):
     def cleanup(self) -> None:
         with self.answers.lock:
             self.answers.on = False  # the transport's thread answers no more
-            self.answers.open_gate()
+            self.answers.open_state()
         with contextlib.suppress(Exception):
             self.manager_block.read_into(self.mgr.bytes)
             if self.mgr["estop"] and not self.lost:
@@ -485,8 +485,8 @@ class Ddm(Worker):
                         block.read_into(rec.bytes)
                         self._send_one(i, rec, True)
                 self.links.flush()
-        if self.fast is not None:
-            self.latency.count = self.fast.latency_count()
+        if self.kernel_path is not None:
+            self.latency.count = self.kernel_path.latency_count()
         lat = self.latency.summary_us()
         for ex in self.ex:
             ex.array["latency_us"] = np.array([lat["p50"], lat["p99"], lat["max"]])

@@ -44,7 +44,7 @@ from collections.abc import Callable, Collection, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from redistro.ddm.transport import ANSWERED, OWED, Accelerator, Links, Transport
+from redistro.ddm.transport import ANSWERED, REPLY_OWED, Accelerator, Links, Transport
 from redistro.errors import TransportError
 
 if TYPE_CHECKING:
@@ -502,7 +502,7 @@ class ZenohTransport(Transport):
             done = answer(raw)
             if done == ANSWERED:
                 return
-            if done == OWED:
+            if done == REPLY_OWED:
                 self._wake()
                 return
         inbox.append(raw)

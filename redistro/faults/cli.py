@@ -70,7 +70,7 @@ def run_faults(
         doc: dict[str, Any] = {"scenarios": rows}
         if stopped:
             doc["stopped_by"] = name
-        from redistro.process.owner import write_json
+        from redistro.process.session_owner import write_json
 
         write_json(Path(json_path), doc)
         print(f"wrote {json_path}")

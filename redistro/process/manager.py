@@ -11,7 +11,7 @@ every IPC object the node created.
 
 The states and their moves are :class:`~redistro.process.states.Lifecycle`'s
 table; the worker processes are :mod:`redistro.process.children`'s; the
-bookkeeping over Local Data is ``books.py``'s.
+bookkeeping over Local Data is ``watch.py``'s.
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ from redistro.localdata import Block, LocalData, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, MSG_TEXT
 from redistro.process import hooks
-from redistro.process.books import NodeBooks, node_local_data
 from redistro.process.children import (
     Child,
     describe_status,
@@ -48,6 +47,7 @@ from redistro.process.result import NodeResult
 from redistro.process.spec import EXIT_FAILED, NodeSpec
 from redistro.process.states import Event, Lifecycle, State
 from redistro.process.stats import Samples
+from redistro.process.watch import WorkerWatch, node_local_data
 from redistro.process.worker import IDLE_GUARD_NS
 
 log = logging.getLogger(__name__)
@@ -107,7 +107,7 @@ class Manager:
         self.on_cycle: list[Child] = []  # the children the sync signal goes to
         self.timing = Timing()
         self.ld: LocalData | None = None
-        self.books = NodeBooks(spec)
+        self.watch = WorkerWatch(spec)
         self.sems: list[Semaphore] = []
         self.granted: sched.Granted | None = None
         self.block: Block | None = None
@@ -123,7 +123,7 @@ class Manager:
     @property
     def last_error(self) -> dict[str, str]:
         """Worker name -> its last ERROR message."""
-        return self.books.last_error
+        return self.watch.last_error
 
     def _state_changed(self, old: State, new: State) -> None:
         """The state into the manager's block: at once when the node starts
@@ -168,7 +168,7 @@ class Manager:
         if self.spec.owner_pid and os.getppid() != self.spec.owner_pid:
             return 3
         if self.spec.messages_path:
-            self.books.msg_file = files.open_append(self.spec.messages_path)
+            self.watch.msg_file = files.open_append(self.spec.messages_path)
         try:
             self._initialization()
             self.life.process(Event.READY)
@@ -191,7 +191,7 @@ class Manager:
         unit tests), the manager's block and the bookkeeping over it."""
         self.ld = ld = node_local_data(self.spec, self.timer.period_ns, manifest, memory)
         self.block = ld.writer("manager", role="manager")
-        self.books.attach(ld)
+        self.watch.attach(ld)
         with self.block.write() as d:
             d["state"] = ProcState.INITIALIZATION
             d["pid"] = os.getpid()
@@ -227,7 +227,7 @@ class Manager:
         pass_fds = ((int(lock_fd),) if lock_fd else ()) + (self.wake_fd,)
         self.children = spawn_workers(spec, self.spec_path, self.wake_fd, pass_fds)
         for j, child in enumerate(self.children):
-            self.books.pids[j] = child.pid
+            self.watch.pids[j] = child.pid
         self.on_cycle = [c for c, w in zip(self.children, spec.workers, strict=True) if w.on_cycle]
         self._wait_ready()
 
@@ -246,11 +246,11 @@ class Manager:
                 raise NodeFault("estop", relayed_estop(self.spec) + " during start-up")
             if info is not None:
                 raise NodeFault("abnormal", stop_text(info.si_signo) + " during start-up")
-            self.books.drain_messages()
+            self.watch.drain_messages()
             if time.monotonic() > deadline:
                 late = [
                     c.name
-                    for c, r in zip(self.children, self.books.rows, strict=True)
+                    for c, r in zip(self.children, self.watch.rows, strict=True)
                     if int(r.read()["state"]) != ProcState.ROUTINE
                 ]
                 raise NodeFault(
@@ -300,8 +300,8 @@ class Manager:
         elif sig == signals.SIG_ESTOP:
             raise NodeFault("estop", relayed_estop(self.spec))
         elif sig == signals.SIG_WAKE:
-            self.books.check_failed()
-            self.books.check_estop_requests()
+            self.watch.check_failed()
+            self.watch.check_estop_requests()
             with contextlib.suppress(TornReadTimeout):  # the tick looks again
                 self.on_wake()
         else:
@@ -323,7 +323,7 @@ class Manager:
         if self.cycle:
             if self.capture is not None:  # the cycle that ended, for the session log
                 self.capture(self.cycle, self._due_ns, self._tick_ns, self._estop)
-            self.books.check_heartbeats(self.cycle, self._due_ns, self.timer.period_ns)
+            self.watch.check_heartbeats(self.cycle, self._due_ns, self.timer.period_ns)
         if self.spec.cycles and self.cycle >= self.spec.cycles:
             return True
         try:
@@ -360,7 +360,7 @@ class Manager:
         workers' message boxes to the log and messages.log, then the node's
         own idle work in slices, until the deadline or the next tick (pending,
         it is taken by the wait that follows)."""
-        self.books.drain_messages()
+        self.watch.drain_messages()
         self.timing.idle_slices += 1
         clock = time.monotonic_ns
         while clock() < deadline_ns and signal.SIGALRM not in signal.sigpending():
@@ -373,26 +373,26 @@ class Manager:
 
     def _check_children(self) -> None:
         """Reap any worker that exited; a worker exit during the session is a fault."""
-        books = self.books
+        watch = self.watch
         for j, child in enumerate(self.children):
             if child.alive and child.reap():
-                books.door_down(j)
+                watch.door_down(j)
                 status = child.status or 0
                 if os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_FAILED:
                     # it said why in its box: that is the cause
-                    books.drain_messages()
-                    why = books.failed.get(j, describe_status(status))
-                    raise NodeFault("abnormal", f"{books.who(j)} {why}")
+                    watch.drain_messages()
+                    why = watch.failed.get(j, describe_status(status))
+                    raise NodeFault("abnormal", f"{watch.who(j)} {why}")
                 raise NodeFault(
                     "abnormal",
-                    f"{books.who(j)} died: {describe_status(status)} at cycle {self.cycle}",
+                    f"{watch.who(j)} died: {describe_status(status)} at cycle {self.cycle}",
                 )
 
     def _drain_messages(self) -> None:
-        self.books.drain_messages()
+        self.watch.drain_messages()
 
     def _message(self, process: str, level: int, text: str, stamp_ns: int | None = None) -> None:
-        self.books.message(process, level, text, stamp_ns)
+        self.watch.message(process, level, text, stamp_ns)
 
     def _fault(self, reason: str, message: str) -> None:
         r = self.result
@@ -416,7 +416,7 @@ class Manager:
         except Exception:
             log.exception("on_fault hook failed")
         if reason != "estop":
-            ask_for_relay(self.spec, self.books.no_door)
+            ask_for_relay(self.spec, self.watch.no_door)
         # the reaction is out; what is left (the workers' end, the results)
         # must not hold the simulated plant off the CPUs while it applies
         # the group's freezes
@@ -464,12 +464,12 @@ class Manager:
                 self.ld.close()
                 self.ld.unlink()
             self._write_result()
-            if self.books.msg_file is not None:
-                self.books.msg_file.close()
+            if self.watch.msg_file is not None:
+                self.watch.msg_file.close()
             self.life.process(Event.CLEANED)
 
     def _end_workers(self) -> None:
-        end_workers(self.children, self.books.hung)
+        end_workers(self.children, self.watch.hung)
         for sem in self.sems[1:]:  # wake workers waiting at a collecting point
             sem.release()
 
@@ -479,7 +479,7 @@ class Manager:
         reap_workers(self.children, self.spec.shutdown_timeout_s, warn)
 
     def _collect(self, started: float) -> None:
-        self.books.drain_messages()
+        self.watch.drain_messages()
         collect(self.result, self, started)
 
     def _write_result(self) -> None:
@@ -490,11 +490,11 @@ class Manager:
 
 def collect(r: NodeResult, m: Manager, started: float) -> None:
     """The node's figures into its result, at the end of Cleanup."""
-    books, t = m.books, m.timing
+    watch, t = m.watch, m.timing
     routine_s, manager_cpu_s = t.routine_s, t.cpu_s
     exits = [c.exit for c in m.children]
     exits += ["unknown"] * (len(m.spec.workers) - len(exits))
-    workers = books.worker_results(routine_s, exits) if books.rows else []
+    workers = watch.worker_results(routine_s, exits) if watch.rows else []
     cpu_s = manager_cpu_s + sum(w.cpu_s for w in workers)
     r.started, r.ended = iso_time(started), iso_time(time.time())
     r.rate_hz, r.period_us = m.spec.rate_hz, m.timer.period_ns / 1e3
@@ -502,14 +502,14 @@ def collect(r: NodeResult, m: Manager, started: float) -> None:
     r.manager_overruns, r.missed_ticks = t.overruns, t.missed_ticks
     r.worker_overruns = sum(w.overruns for w in workers)
     r.worker_skipped = sum(w.skipped for w in workers)
-    r.late_heartbeats, r.missed_heartbeats = books.late_heartbeats, books.missed_heartbeats
-    r.deadline_misses, r.incomplete_cycles = books.deadline_misses, books.incomplete_cycles
+    r.late_heartbeats, r.missed_heartbeats = watch.late_heartbeats, watch.missed_heartbeats
+    r.deadline_misses, r.incomplete_cycles = watch.deadline_misses, watch.incomplete_cycles
     r.torn_ticks, r.idle_slices = t.torn_ticks, t.idle_slices
     # timer periods without a completed cycle: finished late, unfinished
     # at the next tick, or a tick never taken
-    r.overruns = books.deadline_misses + books.incomplete_cycles + t.missed_ticks
+    r.overruns = watch.deadline_misses + watch.incomplete_cycles + t.missed_ticks
     r.lateness_us = t.lateness.summary_us()
-    r.makespan_us = books.makespan.summary_us()
+    r.makespan_us = watch.makespan.summary_us()
     r.manager_work_us = t.tick_work.summary_us()
     r.cpu_s = round(cpu_s, 3)
     r.cpu_percent = round(100 * cpu_s / routine_s, 1) if routine_s else 0.0
@@ -521,7 +521,7 @@ def collect(r: NodeResult, m: Manager, started: float) -> None:
         "tick_work_us": t.tick_work.summary_us(),
     }
     r.workers = workers
-    r.messages, r.messages_lost = books.messages, books.messages_lost
+    r.messages, r.messages_lost = watch.messages, watch.messages_lost
 
 
 def node_semaphores(spec: NodeSpec, manifest: Manifest, into: list[Semaphore]) -> None:

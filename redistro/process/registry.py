@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from redistro.lazy import load
+from redistro.registries import load
 
 if TYPE_CHECKING:
     from redistro.process.manager import Manager

@@ -34,7 +34,7 @@ from redistro.config.task import load_task
 from redistro.errors import ConfigError, IPCError, LayoutError
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
-from redistro.process.owner import run_nodes, write_json
+from redistro.process.session_owner import run_nodes, write_json
 from redistro.session.preflight import (
     check_key,
     check_motion,

@@ -25,8 +25,8 @@ from redistro.config.model import Config
 from redistro.config.task import Task
 from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
-from redistro.process.owner import run_nodes, write_json
 from redistro.process.result import NodeResult
+from redistro.process.session_owner import run_nodes, write_json
 from redistro.process.spec import NodeSpec
 from redistro.session.preflight import positions_file, preflight, unknown_positions
 from redistro.session.progress import Progress, ddm_pace

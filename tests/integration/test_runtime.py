@@ -214,7 +214,7 @@ def test_an_off_cycle_worker_keeps_its_own_rate_and_is_watched(tmp_path: Path) -
     the node's cycle, signs heartbeats (the node ends ok: none went stale) and
     ends in order."""
     from redistro.ipc.session import Session
-    from redistro.process.owner import run_node
+    from redistro.process.session_owner import run_node
     from redistro.process.spec import WorkerSpec
 
     workers = [
@@ -239,7 +239,7 @@ def test_a_worker_may_carry_its_own_heartbeat_limit(tmp_path: Path) -> None:
     import threading
 
     from redistro.ipc.session import Session
-    from redistro.process.owner import run_node
+    from redistro.process.session_owner import run_node
     from redistro.process.spec import WorkerSpec
 
     own_limit = 60
@@ -299,7 +299,7 @@ def test_idle_work_runs_between_cycles_and_gives_way_to_the_sync() -> None:
     every sync: the cycle never waits on it. The manager drains the message
     boxes in its own Idle, after the syncs went out."""
     from redistro.ipc.session import Session
-    from redistro.process.owner import run_node
+    from redistro.process.session_owner import run_node
     from redistro.process.spec import WorkerSpec
 
     workers = [

@@ -2,7 +2,7 @@
 
 Twin ESC ddms (``ddm.worker.Ddm``, each on its own Local Data, over the
 in-process transport) get the same records: one plans the kernels
-(``ddm_admit``, ``ddm_emit``, the ``Answerer``), the other runs the Python
+(``ddm_admit``, ``ddm_emit``, the ``CompiledAnswer``), the other runs the Python
 path alone. After every step both must have written the same command into
 Local Data, counted the same in their exchange records, and sent the same
 feedback records back, byte for byte (their time stamps aside: the reply's
@@ -79,7 +79,7 @@ def _twin(tmp_path: Path, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> Tw
         esc = _node(
             esc_spec(g.cfg, g.task, "r1", g.hw["r1"], g.sid, positions_file="p"), esc_ends[gid]
         )
-    assert (esc.ddm.fast is not None) == compiled
+    assert (esc.ddm.kernel_path is not None) == compiled
     for cycle in range(2):  # the run's handshake, then one key for both twins
         ssc.ddm.step(cycle)
         esc.ddm.step(cycle)
@@ -197,23 +197,23 @@ def test_the_compiled_step_writes_what_the_python_step_writes(
 def test_the_kernel_took_its_share_of_that_traffic(twins: tuple[Twin, Twin, Traffic]) -> None:
     if twins[2].seq == 0:
         pytest.skip("the traffic test above was not run")
-    fast = twins[0].esc.ddm.fast
+    fast = twins[0].esc.ddm.kernel_path
     assert fast is not None and int(fast.taken) > 100
-    assert twins[1].esc.ddm.fast is None  # (and the other twin had none)
+    assert twins[1].esc.ddm.kernel_path is None  # (and the other twin had none)
 
 
-# -- the Answerer against the ddm's Python answer --
+# -- the CompiledAnswer against the ddm's Python answer --
 
 
 @pytest.fixture(scope="module")
 def answering(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
-    """Two compiled twins: one answers with the Answerer, one with _answer."""
+    """Two compiled twins: one answers with the CompiledAnswer, one with _answer."""
     mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("answer")
     pair = (_twin(tmp / "a", True, mp), _twin(tmp / "b", True, mp))
     for t in pair:
         t.esc.ddm.answers.on = True
-        t.esc.ddm.answers.open_gate()
+        t.esc.ddm.answers.open_state()
     puts: list[list[bytes]] = [[], []]
     fallen: list[list[bytes]] = [[], []]
     ddm_a = pair[0].esc.ddm
@@ -233,7 +233,7 @@ def answering(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
         st.tuples(st.sampled_from(KINDS), st.floats(-50, 50), st.booleans()), min_size=1, max_size=8
     )
 )
-def test_the_answerer_answers_as_the_python_answer(
+def test_the_compiled_answer_answers_as_the_python_answer(
     answering: Any, events: list[tuple[str, float, bool]]
 ) -> None:
     from redistro.ddm.transport import NOT_TAKEN
@@ -242,7 +242,7 @@ def test_the_answerer_answers_as_the_python_answer(
     gid = compiled.esc.ddm.gid["r1"]
     for t in (compiled, python):  # an ESC answers once commanded
         t.esc.ddm.commanded = True
-        t.esc.ddm.answers.open_gate()
+        t.esc.ddm.answers.open_state()
     for kind, mark, new_feedback in events:
         if new_feedback:
             traffic.produced += 1
@@ -279,18 +279,18 @@ def test_the_answerer_took_its_share_of_that_traffic(answering: Any) -> None:
     (compiled, python), *_, traffic = answering
     if traffic.seq == 0:
         pytest.skip("the answer test above was not run")
-    assert int(compiled.esc.ddm.answers.gate["answered"]) > 100
-    assert python.esc.ddm.answers.taken_here == int(compiled.esc.ddm.answers.gate["answered"])
+    assert int(compiled.esc.ddm.answers.state["answered"]) > 100
+    assert python.esc.ddm.answers.taken_here == int(compiled.esc.ddm.answers.state["answered"])
 
 
 # -- the stream sockets' kernels against admit and emit --
 
 
 def _socket_fast(ld: Any) -> Any:
-    from redistro.ddm.fast import FastPath
+    from redistro.ddm.kernel_path import KernelPath
     from redistro.process.stats import Samples
 
-    fast = FastPath(
+    fast = KernelPath(
         ld, [1], [("command", 0)], [("feedback", 0)], wire.KIND_COMMAND, wire.KIND_FEEDBACK,
         "esc.r2", RUN_KEY, starving=True, latency=Samples(16),
     )  # fmt: skip

@@ -28,8 +28,8 @@ from redistro.ipc.names import new_session_id
 from redistro.localdata import LocalData
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, COUNTER, FEEDBACK
-from redistro.process.books import node_local_data
 from redistro.process.spec import NodeSpec
+from redistro.process.watch import node_local_data
 from redistro.ssc.plan import ssc_spec
 from tests.helpers import ROOT, wait_for
 
@@ -154,7 +154,7 @@ def test_commands_go_down_and_feedback_comes_back_as_the_reply(
     assert ssc.ddm.ex[0]["updates"] == ssc.ddm.ex[1]["updates"] == 2
     from redistro.kernels import KERNELS
 
-    assert (ssc.ddm.fast is not None) == (KERNELS is not None)  # the compiled path ran
+    assert (ssc.ddm.kernel_path is not None) == (KERNELS is not None)  # the compiled path ran
 
 
 def test_a_forged_command_is_dropped_and_counted(group: tuple[Node, dict[str, Node]]) -> None:
@@ -306,10 +306,10 @@ def test_over_sockets_the_kernels_receive_admit_and_send(
         )
         ex = esc.ddm.ex[0]
         assert ex["updates"] == 10 and ex["dropped"] == 0
-        fast = esc.ddm.fast
+        fast = esc.ddm.kernel_path
         assert fast is not None and int(fast.state["taken"]) >= 9  # admitted by the kernel
         assert int(fast.send_fds[0]) >= 0  # sent by ddm_send, on the peer's socket
-    assert ssc.ddm.fast is not None and int(ssc.ddm.fast.state["taken"]) >= 18
+    assert ssc.ddm.kernel_path is not None and int(ssc.ddm.kernel_path.state["taken"]) >= 18
     # a forged record, then a replay of a sound one, on the pinned connection
     esc = escs["r2"]
     gid = esc.ddm.gid["r2"]
@@ -319,7 +319,7 @@ def test_over_sockets_the_kernels_receive_admit_and_send(
     ssc.ddm.transport.send(
         wire.encode(wire.KIND_COMMAND, gid, "ssc", 99, 1, cmd, key=bytes(32)), gid
     )
-    replay = bytes(ssc.ddm.fast.wire_views[1])  # the last command sent to r2
+    replay = bytes(ssc.ddm.kernel_path.wire_views[1])  # the last command sent to r2
     ssc.ddm.transport.send(replay, gid)
     wait_for(
         lambda: esc.ddm.step(99) or esc.ddm.ex[0]["dropped"] == 2,
@@ -409,8 +409,8 @@ def test_an_earlier_runs_hello_and_records_are_refused_and_pin_nothing(tmp_path:
                 lambda s=seq: int(esc.ld.block("command", 0).read()["seq_src"]) == s,
                 f"run 1's command {seq}",
             )
-            if ssc.ddm.fast is not None:  # (sent by the send kernel, not through send())
-                sent.append(bytes(ssc.ddm.fast.wire_views[0]))
+            if ssc.ddm.kernel_path is not None:  # (sent by the send kernel, not through send())
+                sent.append(bytes(ssc.ddm.kernel_path.wire_views[0]))
     finally:
         for n in (ssc, esc):
             n.ddm.cleanup()
@@ -487,7 +487,11 @@ def test_encrypted_payloads_cross_unreadable_and_arrive_whole(tmp_path: Path) ->
     }
     try:
         _shake_hands(ssc, escs)
-        assert ssc.ddm.fast is None and ssc.ddm.cipher and escs["r2"].ddm.cipher == ssc.ddm.cipher
+        assert (
+            ssc.ddm.kernel_path is None
+            and ssc.ddm.cipher
+            and escs["r2"].ddm.cipher == ssc.ddm.cipher
+        )
         cmd = Record(COMMAND)
         cmd["seq_src"] = 1
         cmd.array["tau_nm"] = [1.25, -2.5, 3.75, 0, 0, 0, 0.5]

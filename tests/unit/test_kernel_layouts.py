@@ -51,7 +51,7 @@ def test_every_layout_is_a_buffer_of_its_kernels_signature() -> None:
     sigs = _signatures()
     layouts = kernel_layouts.all_layouts()
     for kernel, bufs in layouts.items():
-        if kernel == "answer":  # the Answerer's gate: checked by its constructor
+        if kernel == "answer":  # the CompiledAnswer's state: checked by its constructor
             continue
         assert kernel in sigs, f"{kernel}: declared, but no such kernel"
         args = {a[0]: a for a in sigs[kernel]}
@@ -171,12 +171,12 @@ def test_no_python_module_indexes_a_kernel_buffer_by_number() -> None:
     root = Path(kernel_layouts.__file__).parent
     # names only kernel buffers have, and common names on an owner's object
     unique = r"gains0?|trace_at|_jump|admit_rows|emit_rows|noise_at|step_rec|guard_limits|codec"
-    fields = r"kin|ref|cmd|state|out|params|_state|_params|gate|reply|time|_dt"
-    owned = rf"(?:self|law|fast|st|ssc|esc)\.(?:{fields})"
+    fields = r"kin|ref|cmd|state|out|params|_state|_params|answer_state|reply|time|_dt"
+    owned = rf"(?:self|law|kernel_path|st|ssc|esc)\.(?:{fields})"
     pattern = re.compile(rf"(?:\b(?:{unique})|{owned})\[-?\d+(?::-?\d*)?\]")
     for bad in (
         "gains[5] = 1.0",
-        "int(fast.state[2])",
+        "int(kernel_path.state[2])",
         "self._params[4] = 0.0",
         "ref = law.out[0:7]",
     ):

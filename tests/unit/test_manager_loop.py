@@ -88,10 +88,10 @@ def test_every_tick_publishes_the_cycle_and_syncs_every_worker(
     assert m.ld is not None
     seen = m.ld.block("manager").read()
     assert int(seen["cycle"]) == 20 and int(seen["tick_due_ns"]) == 20 * PERIOD_NS
-    books = m.books
-    assert books.late_heartbeats == books.missed_heartbeats == 0
-    assert books.deadline_misses == books.incomplete_cycles == 0
-    assert books.makespan.count == 19  # every cycle that ended, its last stage's span
+    watch = m.watch
+    assert watch.late_heartbeats == watch.missed_heartbeats == 0
+    assert watch.deadline_misses == watch.incomplete_cycles == 0
+    assert watch.makespan.count == 19  # every cycle that ended, its last stage's span
     assert m.timing.lateness.summary_us()["p50"] == pytest.approx(50.0)
     assert m.timing.overruns == m.timing.missed_ticks == 0
 
@@ -108,10 +108,10 @@ def test_a_hung_worker_ends_the_node_at_its_limit(node: tuple[Manager, list[Fake
     _ticks(m, 1, 5)
     workers[1].hang = True  # signed cycle 5, then nothing
     _ticks(m, 6, 5 + LIMIT)  # cycles 6..9 end unsigned; tick 10 checks cycle 9
-    assert m.books.missed_heartbeats > 0 and m.books.incomplete_cycles == LIMIT - 1
+    assert m.watch.missed_heartbeats > 0 and m.watch.incomplete_cycles == LIMIT - 1
     with pytest.raises(NodeFault, match=r"worker b \(pid 0\) missed 5 heartbeats \(limit 5\)"):
         m.tick((6 + LIMIT) * PERIOD_NS)  # cycle 10 ended: 5 cycles since b's last
-    assert m.books.hung == {1}
+    assert m.watch.hung == {1}
 
 
 def test_a_worker_that_asks_for_an_e_stop_ends_the_node(
@@ -130,7 +130,7 @@ def test_a_late_last_stage_is_a_deadline_miss(node: tuple[Manager, list[FakeWork
     m, workers = node
     workers[1].work_ns = PERIOD_NS + 1  # the last stage ends after the period
     _ticks(m, 1, 4)
-    assert m.books.deadline_misses == 3
+    assert m.watch.deadline_misses == 3
 
 
 def test_the_node_ends_at_its_cycle_count() -> None:
@@ -152,18 +152,18 @@ def test_message_boxes_keep_the_last_error_and_a_failed_workers_reason(
     m, workers = node
     workers[0].box.post("starting")
     workers[1].box.post("link lost", logging.ERROR)
-    m.books.drain_messages()
+    m.watch.drain_messages()
     assert m.last_error == {"b": "link lost"}
-    assert [x["text"] for x in m.books.messages] == ["starting", "link lost"]
+    assert [x["text"] for x in m.watch.messages] == ["starting", "link lost"]
     workers[1].box.post("failed at cycle 3: boom", logging.CRITICAL)
     with pytest.raises(NodeFault, match=r"worker b \(pid 0\) failed at cycle 3: boom"):
-        m.books.check_failed()
+        m.watch.check_failed()
 
 
 def test_the_workers_figures_come_from_their_rows(node: tuple[Manager, list[FakeWorker]]) -> None:
     m, _ = node
     _ticks(m, 1, 7)
-    got = m.books.worker_results(routine_s=1.0, exits=["exited with code 0"] * 2)
+    got = m.watch.worker_results(routine_s=1.0, exits=["exited with code 0"] * 2)
     assert [(w.name, w.stage, w.cycles, w.exit) for w in got] == [
         ("a", 0, 7, "exited with code 0"),
         ("b", 1, 7, "exited with code 0"),

@@ -3,7 +3,7 @@ wall-clock backstop for a stalled plant; on the wall clock otherwise."""
 
 from __future__ import annotations
 
-from redistro.process.owner import MIN_CLOCK_RATE, _Budget
+from redistro.process.session_owner import MIN_CLOCK_RATE, _Budget
 
 
 class FakeClock:

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from redistro.drivers.io.registers import BoardType
-from redistro.lazy import load
+from redistro.registries import load
 
 if TYPE_CHECKING:
     from redistro.config.model import PlantConfig

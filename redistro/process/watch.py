@@ -61,7 +61,7 @@ def triple(values: Any) -> dict[str, float]:
     return {k: round(float(v), 1) for k, v in zip(("p50", "p99", "max"), values, strict=True)}
 
 
-class NodeBooks:
+class WorkerWatch:
     """A node's bookkeeping; :meth:`attach` it to the node's Local Data."""
 
     def __init__(self, spec: NodeSpec, msg_file: IO[str] | None = None) -> None:

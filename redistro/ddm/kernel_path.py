@@ -6,7 +6,7 @@ stamp from its source), publish its payload into Local Data, count it,
 pay back the starving index, take the command latency; on the way out,
 read the node's block, encode, checksum and sign. Done in Python that is
 two dozen interpreter-level calls per record, which a process woken cold
-pays several times over. :class:`FastPath` plans the kernels
+pays several times over. :class:`KernelPath` plans the kernels
 ``ddm_admit`` and ``ddm_emit`` once, in Initialization, over the ddm's own
 records and Local Data; each takes the common case in one call and leaves
 everything else (a record to refuse and count, an e-stop, the first record
@@ -48,7 +48,7 @@ def _field(dtype: np.dtype[Any], name: str) -> int:
     return int(fields[name][1])
 
 
-class FastPath:
+class KernelPath:
     """The compiled common case of one ddm (see the module's text).
 
     ld: the node's Local Data; gids: each local robot's group-wide id;

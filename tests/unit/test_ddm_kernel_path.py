@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from redistro.ddm import record as wire
 from redistro.ddm import wire_layout
-from redistro.ddm.fast import FastPath
+from redistro.ddm.kernel_path import KernelPath
 from redistro.kernels import KERNELS
 from redistro.localdata import LocalData
 from redistro.localdata.block import Record
@@ -129,8 +129,8 @@ def ld() -> Iterator[LocalData]:
         yield seg
 
 
-def _esc_fast(ld: LocalData, latency: Samples) -> FastPath:
-    return FastPath(
+def _esc_fast(ld: LocalData, latency: Samples) -> KernelPath:
+    return KernelPath(
         ld,
         [1],
         [("command", 0)],
@@ -357,10 +357,10 @@ def test_reply_receives_admits_and_sends_back_in_one_call(ld: LocalData) -> None
 
 
 def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: LocalData) -> None:
-    """_kernels.Answerer, an ESC's answer in the transport's thread: a sound
+    """_kernels.CompiledAnswer, an ESC's answer in the transport's thread: a sound
     command admitted and the new feedback handed to put as the reply (a
     sample's payload, or bytes); with no new feedback, admitted and nothing
-    put. Everything else goes to the fallback untouched: the gate closed,
+    put. Everything else goes to the fallback untouched: the state closed,
     the e-stop up, records queued before it, the step's lock held, a record
     the kernel refuses, an answerer closed. A put that raises leaves the
     reply owed and wakes the ddm; every 64th answer publishes the exchange."""
@@ -375,7 +375,7 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     fast.ex[0]["fresh"] = 1
     feedback = ld.writer("feedback", 0, role="acquisition")
     rec = Record(FEEDBACK)
-    gate = np.zeros((), wire_layout.GATE)
+    state = np.zeros((), wire_layout.ANSWER_STATE)
     _, manager_at, _ = ld.block_offsets("manager")
     estop_at = manager_at + int(MANAGER.fields["estop"][1])  # type: ignore[index]
     lock = threading.Lock()
@@ -400,11 +400,11 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
         raise RuntimeError("the session is closing")
 
     def answerer(put_call: object) -> Any:
-        return KERNELS.Answerer(
+        return KERNELS.CompiledAnswer(
             fast.admit_plan,
             fast.emit_plan,
             fast.publish_plan,
-            gate,
+            state,
             estop_at,
             lock,
             put_call,
@@ -416,24 +416,24 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
 
     answer = answerer(put.append)
     first = _command(2, 200, mark=1.5)
-    answer(Sample(first))  # the gate closed (not yet commanded): the Python path's
+    answer(Sample(first))  # the state closed (not yet commanded): the Python path's
     assert fallen == [first] and not put and int(fast.ex[0]["updates"]) == 0
     assert before == [1]
 
-    gate["open"] = 1
+    state["answering"] = 1
     rec["seq_src"] = 7
     feedback.publish(rec.bytes)
     answer(Sample(_command(3, 300, mark=2.5)))
     assert float(ld.block("command", 0).read()["tau_nm"][0]) == 2.5
     assert len(put) == 1 and int(wire.decode(put[0], KEY).payload["seq_src"]) == 7
-    assert int(gate["answered"]) == 1 and int(fast.ex[0]["updates"]) == 1
+    assert int(state["answered"]) == 1 and int(fast.ex[0]["updates"]) == 1
     answer(_command(4, 400))  # bytes; no new feedback: admitted, nothing put
-    assert len(put) == 1 and int(gate["answered"]) == 2
+    assert len(put) == 1 and int(state["answered"]) == 2
 
     refused = [_command(5, 500, key=LONG_KEY), _command(4, 450)]  # forged; a duplicate
     for raw in refused:
         answer(raw)
-    assert fallen[1:] == refused and int(gate["answered"]) == 2
+    assert fallen[1:] == refused and int(state["answered"]) == 2
     left = [_command(5, 500), _command(6, 600), _command(7, 700)]
     inbox.append(b"queued first")
     answer(left[0])
@@ -443,31 +443,31 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     ld.raw[estop_at] = 1
     answer(left[2])
     ld.raw[estop_at] = 0
-    assert fallen[3:] == left and int(gate["answered"]) == 2
+    assert fallen[3:] == left and int(state["answered"]) == 2
 
     rec["seq_src"] = 8
     feedback.publish(rec.bytes)
     answerer(failing_put)(_command(8, 800))  # admitted, the reply owed to the ddm
-    assert int(gate["owed"]) == 1 and woken == [1] and int(gate["answered"]) == 3
+    assert int(state["reply_owed"]) == 1 and woken == [1] and int(state["answered"]) == 3
     assert not lock.locked()
 
     exchange = ld.block("exchange", 0)
     for k in range(9, 9 + 61):  # the 64th answer publishes the exchange
         answer(_command(k, 100 * k))
-    assert int(gate["answered"]) == 64
+    assert int(state["answered"]) == 64
     assert int(np.frombuffer(exchange.read().tobytes(), EXCHANGE)[0]["updates"]) == 64
 
     with pytest.raises(ValueError, match="not initialized"):
-        KERNELS.Answerer.__new__(KERNELS.Answerer)(_command(70, 7000))
+        KERNELS.CompiledAnswer.__new__(KERNELS.CompiledAnswer)(_command(70, 7000))
 
     answer.close()
     answer(_command(70, 7000))
-    assert fallen[-1] == _command(70, 7000) and int(gate["answered"]) == 64
+    assert fallen[-1] == _command(70, 7000) and int(state["answered"]) == 64
     assert len(before) == 1 + 1 + 1 + 2 + 3 + 1 + 61 + 1  # run first on every record
 
 
 def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -> None:
-    """The SSC's side of _kernels.Answerer (put None): each sound feedback
+    """The SSC's side of _kernels.CompiledAnswer (put None): each sound feedback
     admitted into its robot's block and the exchange published at once (the
     manager watches every robot's updates); nothing is put."""
     import collections
@@ -493,7 +493,7 @@ def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -
         memory=True,
     )
     try:
-        fast = FastPath(
+        fast = KernelPath(
             seg,
             [0, 1],
             [("feedback", 0), ("feedback", 1)],
@@ -509,15 +509,15 @@ def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -
             source = name.encode().ljust(16, b"\0")
             fast.refuse(wire.Admission(), i, source, wire.KIND_FEEDBACK, i, 1, 100)
             fast.ex[i]["fresh"] = 1
-        gate = np.zeros((), wire_layout.GATE)
-        gate["open"] = 1
+        state = np.zeros((), wire_layout.ANSWER_STATE)
+        state["answering"] = 1
         _, manager_at, _ = seg.block_offsets("manager")
         fallen: list[bytes] = []
-        answer = KERNELS.Answerer(
+        answer = KERNELS.CompiledAnswer(
             fast.admit_plan,
             fast.emit_plan,
             fast.publish_plan,
-            gate,
+            state,
             manager_at + int(MANAGER.fields["estop"][1]),  # type: ignore[index]
             threading.Lock(),
             None,
@@ -531,10 +531,10 @@ def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -
         answer(wire.encode(wire.KIND_FEEDBACK, 1, "esc.r2", 2, 200, payload, key=KEY))
         assert int(seg.block("feedback", 1).read()["seq_src"]) == 5
         published = np.frombuffer(seg.block("exchange", 1).read().tobytes(), EXCHANGE)[0]
-        assert int(published["updates"]) == 1 and int(gate["answered"]) == 1
+        assert int(published["updates"]) == 1 and int(state["answered"]) == 1
         other = wire.encode(wire.KIND_FEEDBACK, 0, "esc.r2", 3, 300, payload, key=KEY)
         answer(other)  # robot r1's feedback from r2's ESC: the Python path refuses it
-        assert fallen == [other] and int(gate["answered"]) == 1
+        assert fallen == [other] and int(state["answered"]) == 1
     finally:
         seg.close()
         seg.unlink()
