@@ -15,7 +15,7 @@
  *   control/linalg.c               3x3 and SPD helpers (eig3, Cholesky)
  *   control/cartesian_kernel.c     the SSC's Cartesian law (control/cartesian.py)
  *   ddm/wire_kernel.c              the DDM record's crc32 and tag (ddm/record.py)
- *   ddm/step_kernel.c              a ddm's admit, emit, recv, send, reply (ddm/fast.py)
+ *   ddm/step_kernel.c              a ddm's admit, emit, recv, send, reply (ddm/kernel_path.py)
  *   ddm/answer_kernel.c            a ddm's answer in the transport's thread (ddm/worker.py)
  *
  * Registers and records are packed: multi-byte values are loaded and

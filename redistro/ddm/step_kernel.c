@@ -1,6 +1,6 @@
 /*
  * A ddm's exchange in compiled code (its reference: the ddm's Python path,
- * ddm/worker.py and ddm/record.py; the plans are built in ddm/fast.py):
+ * ddm/worker.py and ddm/record.py; the plans are built in ddm/kernel_path.py):
  * the common case of a record admitted and of a record emitted, and the
  * stream sockets' receive and send around them.
  *

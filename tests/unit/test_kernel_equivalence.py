@@ -3,7 +3,7 @@
 Each test draws inputs with hypothesis (500 examples at least), runs the
 kernel and the reference beside it on the same buffers, and compares what
 both wrote. The DDM's kernels have theirs in test_ddm_equivalence.py, the
-record codec in test_ddm_fast.py.
+record codec in test_ddm_kernel_path.py.
 """
 
 from __future__ import annotations
