@@ -237,13 +237,20 @@ def _break_session(
     return row
 
 
+# the drill's first segment alone, shortened: the motion still runs past
+# the latest injection (2.5 s in), and the segment 1.5 s beyond it
+RIDE_OUT_MOVE_S, RIDE_OUT_SEGMENT_S = 3.5, 4.0
+
+
 def _first_segment_drill(out_dir: Path) -> Path:
     """The drill's first segment alone: a fault the session must ride out
     comes within 2.5 s of it, and the session goes on to its ``ok``."""
     import yaml
 
     data = yaml.safe_load(Path(TASK).read_text())
-    data["segments"] = data["segments"][:1]
+    first = data["segments"][0]
+    first["duration_s"], first["goal"]["move_s"] = RIDE_OUT_SEGMENT_S, RIDE_OUT_MOVE_S
+    data["segments"] = [first]
     path = out_dir / "drill_first_segment.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
