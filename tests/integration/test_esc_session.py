@@ -121,26 +121,28 @@ def test_self_calibration_at_1khz_then_the_next_session_needs_none(tmp_path: Pat
 
 
 def test_a_slow_plant_is_no_fault(tmp_path: Path) -> None:
-    """The task and its time budget count on the plant's clock: a plant at 0.15
+    """The task and its time budget count on the plant's clock: a plant at 0.17
     of real time (a loaded host's figure) takes longer than the budget would in
     wall time, and the calibration still ends ok."""
     from redistro.config.task import load_task
     from redistro.session.summary import budget_s
 
+    startup_s = 5.0  # (the start-up margin the wall time must exceed, kept short)
     cfg = load_config(None)
     out = tmp_path / "r"
     done = run_cli(
         "--set", f"session.runs_dir={tmp_path / 'runs'}",
-        "--set", "plant.real_time_factor=0.15",
+        "--set", "plant.real_time_factor=0.17",
+        "--set", f"session.startup_timeout_s={startup_s}",
         "session", SHORT, "--out", str(out), timeout=180,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     summary = _summary(out)
     _check_calibrated(summary, ["r1", "r2"])
     plant = load_json(out / "plant.json")
-    assert plant["rtf"] <= 0.16, plant["rtf"]  # paced: never faster than asked
+    assert plant["rtf"] <= 0.18, plant["rtf"]  # paced: never faster than asked
     # longer than the budget and its start-up margin, had they counted wall time
-    margin = cfg.session.startup_timeout_s + cfg.session.shutdown_timeout_s + 5.0
+    margin = startup_s + cfg.session.shutdown_timeout_s + 5.0
     assert plant["wall_s"] > budget_s(load_task(SHORT, cfg)) + margin, plant["wall_s"]
 
 
