@@ -161,7 +161,7 @@ static int answer_reply(CompiledAnswerObject *self, PlanObject *ep) {
 static int answer_locked(CompiledAnswerObject *self, const uint8_t *raw, Py_ssize_t len) {
     int64_t *state = (int64_t *)self->state.buf;
     PlanObject *ap = (PlanObject *)self->admit, *ep = (PlanObject *)self->emit;
-    /* (the ddm may have closed the state meanwhile) */
+    /* (the ddm may have stopped answering meanwhile) */
     if (!state[STATE(ANSWERING)] || U8(ap, DA_LD)[self->estop_at])
         return 0;
     long robot = step_admit(ap, raw, len);

@@ -295,11 +295,11 @@ class SocketTransport(Transport):
         if ready is not None and peer.fd not in ready:
             return []  # woken by something else: nothing came
         if self.accel.admit is not None:
-            fast: list[bytes] = []
-            got = self.accel.kernel_recv(peer, fast)  # (a part record went into peer.buf)
+            left: list[bytes] = []
+            got = self.accel.kernel_recv(peer, left)  # (a part record went into peer.buf)
             if got == -errno.EAGAIN or got > 0:
                 if not peer.buf:
-                    return fast
+                    return left
                 self.accel.taken = 0  # (a part record: the general path has them all)
             else:
                 self._receives -= 1  # the general path sees the end or the error itself
