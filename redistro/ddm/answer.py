@@ -86,10 +86,10 @@ class ThreadAnswer:
         ESC's reply (None: the SSC's side); a record it does not take goes
         to ``fallback(raw)`` (the transport's Python path); ``wake()`` when
         the ddm's own step owes the reply."""
-        kp = self.ddm.kernel_path
-        assert kp is not None and KERNELS is not None
+        kpath = self.ddm.kernel_path
+        assert kpath is not None and KERNELS is not None
         return KERNELS.CompiledAnswer(
-            kp.admit_plan, kp.emit_plan, kp.publish_plan, self.state, self.estop_at,
+            kpath.admit_plan, kpath.emit_plan, kpath.publish_plan, self.state, self.estop_at,
             self.lock, put, inbox, fallback, wake, self.before,
         )  # fmt: skip
 
@@ -100,14 +100,14 @@ class ThreadAnswer:
             return NOT_TAKEN
         try:
             d = self.ddm
-            kp = d.kernel_path
+            kpath = d.kernel_path
             if not self.on or d.lost or d.estop_flag[0]:
                 return NOT_TAKEN
             esc = d.kind == "esc"
             if esc and not d.commanded:
                 return NOT_TAKEN
-            assert kp is not None
-            if kp.admit_call(kp.admit_plan, raw) < 0:
+            assert kpath is not None
+            if kpath.admit_call(kpath.admit_plan, raw) < 0:
                 return NOT_TAKEN
             d.dirty = True
             self.taken_here += 1
@@ -121,17 +121,17 @@ class ThreadAnswer:
     def _reply(self) -> int:
         """An ESC's reply: the newest feedback, emitted and sent back."""
         d = self.ddm
-        kp = d.kernel_path
-        assert kp is not None
+        kpath = d.kernel_path
+        assert kpath is not None
         d.steps += 1
-        mask = kp.emit_call(kp.emit_plan)
+        mask = kpath.emit_call(kpath.emit_plan)
         if mask < 0:  # a torn read of the feedback: the ddm reads it again
             self.owed = True
             return REPLY_OWED
         if mask:
             d.sends += 1
             try:
-                d.transport.send(bytes(kp.wire_views[0]), d.answer_gid)
+                d.transport.send(bytes(kpath.wire_views[0]), d.answer_gid)
             except TransportError:
                 return REPLY_OWED  # (closed: the ddm's receive says so)
         if not d.steps & 63:

@@ -33,11 +33,11 @@ class SocketSteps:
         fd = d.accel.reply_fd(d.ready_fds)
         if fd < 0:
             return False
-        kp = d.kernel_path
-        assert kp is not None
+        kpath = d.kernel_path
+        assert kpath is not None
         if d.accel.generation != self.generation:
             self.refresh_fds()
-        got = kp.reply_call(kp.admit_plan, kp.emit_plan, kp.send_plan, d.accel.rx, fd)
+        got = kpath.reply_call(kpath.admit_plan, kpath.emit_plan, kpath.send_plan, d.accel.rx, fd)
         if got == REPLIED:
             d.dirty = True
             return True
@@ -50,41 +50,41 @@ class SocketSteps:
         read of the feedback, a send not made whole), or a receive the
         general path takes on."""
         d = self.d
-        kp = d.kernel_path
-        assert kp is not None
+        kpath = d.kernel_path
+        assert kpath is not None
         if not d.accel.received(got):
             return False
         d.dirty = True
-        if kp.reply["trouble"]:
-            d.accel.send_result(d.gid[d.robots[0]], int(kp.send_status[0]))
-        elif kp.reply["emitted"] == -1:  # a torn read of the feedback: read it again
+        if kpath.reply["trouble"]:
+            d.accel.send_result(d.gid[d.robots[0]], int(kpath.send_status[0]))
+        elif kpath.reply["emitted"] == -1:  # a torn read of the feedback: read it again
             d._send(False)
         return True
 
     def refresh_fds(self) -> None:
         """Each robot's socket for the send kernels (a peer came or went)."""
         d = self.d
-        kp = d.kernel_path
-        assert kp is not None
+        kpath = d.kernel_path
+        assert kpath is not None
         self.generation = d.accel.generation
         for i, robot in enumerate(d.gid[r] for r in d.robots):
-            kp.send_fds[i] = d.accel.send_fd(robot)
+            kpath.send_fds[i] = d.accel.send_fd(robot)
 
     def send(self, mask: int) -> None:
         """The records emitted (mask) sent on their sockets by ddm_send, the
         robots in turn; what it could not send whole goes to the transport."""
         d = self.d
-        kp = d.kernel_path
-        assert kp is not None
+        kpath = d.kernel_path
+        assert kpath is not None
         if d.accel.generation != self.generation:  # a peer came or went
             self.refresh_fds()
-        trouble = kp.send_call(kp.send_plan, mask, d.sends & 1)
+        trouble = kpath.send_call(kpath.send_plan, mask, d.sends & 1)
         if not trouble:
             return
         for i, robot in d.send_orders[0]:
             if trouble >> i & 1:
-                result = int(kp.send_status[i])
+                result = int(kpath.send_status[i])
                 if result == 0:  # no socket: the transport's own send counts it
-                    d.transport.send(bytes(kp.wire_views[i]), robot)
+                    d.transport.send(bytes(kpath.wire_views[i]), robot)
                 else:
                     d.accel.send_result(robot, result)

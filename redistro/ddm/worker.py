@@ -224,7 +224,7 @@ class Ddm(Worker):
         and counters the Python path shares."""
         n = len(self.robots)
         esc = self.kind == "esc"
-        kp = KernelPath(
+        kpath = KernelPath(
             ld,
             [self.gid[r] for r in self.robots],
             [("command", 0)] if esc else [("feedback", i) for i in range(n)],
@@ -236,11 +236,11 @@ class Ddm(Worker):
             starving=esc,
             latency=self.latency,
         )
-        self.kernel_path = kp
-        self.ex = kp.ex
-        self.out_recs = kp.out
-        self.seq = kp.seq
-        self.last_out = kp.last_out
+        self.kernel_path = kpath
+        self.ex = kpath.ex
+        self.out_recs = kpath.out
+        self.seq = kpath.seq
+        self.last_out = kpath.last_out
         # the robots in turn: the first send of a step wakes its ESC ddm on
         # the other CPU, the next robot's waits behind it (30-40 µs on two
         # vCPUs); a fixed order would make one robot the late one every cycle
@@ -250,13 +250,13 @@ class Ddm(Worker):
         # a transport on stream sockets: the records received and admitted,
         # and sent, by the kernels, without the interpreter between the
         # system calls and the records (ddm_recv, ddm_send)
-        self.socket_kernels = self.accel.admit_with(kp.recv_call, kp.admit_plan, kp.state)
+        self.socket_kernels = self.accel.admit_with(kpath.recv_call, kpath.admit_plan, kpath.state)
         # an ESC that replies on a stream socket: its usual step is one
         # kernel call (ddm_reply: the command received and admitted, the
         # feedback emitted and sent back)
         self.replies_in_kernel = self.socket_kernels and self.replying
-        self.publish_call = kp.publish_call
-        self.publish_plan = kp.publish_plan
+        self.publish_call = kpath.publish_call
+        self.publish_plan = kpath.publish_plan
         if not self.socket_kernels:
             self.answers.offer(ld)
 
@@ -402,11 +402,11 @@ class Ddm(Worker):
                 ex["foreign"] += refused - self.refused_seen
             self.refused_seen = refused
             self.dirty = self.urgent = True
-        kp = self.kernel_path
+        kpath = self.kernel_path
         for raw in received:
             self.dirty = True
-            if kp is not None:
-                i = kp.admit_call(kp.admit_plan, raw)
+            if kpath is not None:
+                i = kpath.admit_call(kpath.admit_plan, raw)
                 if i >= 0:
                     taken += 1  # admitted, published and counted (KernelPath.admit)
                     if self.corrupting:
