@@ -90,6 +90,15 @@ def _twin(tmp_path: Path, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> Tw
     return Twin(esc, ssc_end, esc_ends[gid], feedback, [ssc])
 
 
+def _close(pair: tuple[Twin, Twin]) -> None:
+    """Every node of both twins: its ddm cleaned up, its Local Data removed."""
+    for t in pair:
+        for n in [t.esc, *t.others]:
+            n.ddm.cleanup()
+            n.ld.close()
+            n.ld.unlink()
+
+
 @pytest.fixture(scope="module")
 def twins(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Twin, Twin, Traffic]]:
     mp = pytest.MonkeyPatch()
@@ -97,11 +106,7 @@ def twins(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Twin, Twin
     pair = (_twin(tmp, True, mp), _twin(tmp, False, mp))
     yield pair[0], pair[1], Traffic()
     mp.undo()
-    for t in pair:
-        for n in [t.esc, *t.others]:
-            n.ddm.cleanup()
-            n.ld.close()
-            n.ld.unlink()
+    _close(pair)
 
 
 def _record(kind: str, traffic: Traffic, mark: float, gid: int) -> bytes:
@@ -197,8 +202,8 @@ def test_the_compiled_step_writes_what_the_python_step_writes(
 def test_the_kernel_took_its_share_of_that_traffic(twins: tuple[Twin, Twin, Traffic]) -> None:
     if twins[2].seq == 0:
         pytest.skip("the traffic test above was not run")
-    fast = twins[0].esc.ddm.kernel_path
-    assert fast is not None and int(fast.taken) > 100
+    kpath = twins[0].esc.ddm.kernel_path
+    assert kpath is not None and int(kpath.taken) > 100
     assert twins[1].esc.ddm.kernel_path is None  # (and the other twin had none)
 
 
@@ -220,11 +225,7 @@ def answering(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     answer = ddm_a.answers.compiled(puts[0].append, [], fallen[0].append, lambda: None)
     yield pair, answer, puts, fallen, Traffic()
     mp.undo()
-    for t in pair:
-        for n in [t.esc, *t.others]:
-            n.ddm.cleanup()
-            n.ld.close()
-            n.ld.unlink()
+    _close(pair)
 
 
 @EXAMPLES
@@ -290,13 +291,13 @@ def _socket_fast(ld: Any) -> Any:
     from redistro.ddm.kernel_path import KernelPath
     from redistro.process.stats import Samples
 
-    fast = KernelPath(
+    kpath = KernelPath(
         ld, [1], [("command", 0)], [("feedback", 0)], wire.KIND_COMMAND, wire.KIND_FEEDBACK,
         "esc.r2", RUN_KEY, starving=True, latency=Samples(16),
     )  # fmt: skip
-    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
-    fast.ex[0]["fresh"] = 1
-    return fast
+    kpath.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    kpath.ex[0]["fresh"] = 1
+    return kpath
 
 
 @pytest.fixture(scope="module")
@@ -334,24 +335,24 @@ def test_recv_and_reply_do_what_recv_admit_emit_and_send_do(
         for ld in (lda, ldb):
             ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
     outs = []
-    for ld, fast, use_reply in ((lda, fa, True), (ldb, fb_, False)):
+    for ld, kpath, use_reply in ((lda, fa, True), (ldb, fb_, False)):
         a, b = socket.socketpair()
         try:
             a.setblocking(False)
-            fast.send_fds[0] = a.fileno()
+            kpath.send_fds[0] = a.fileno()
             if records:
                 b.sendall(records)
             rx = bytearray(64 * wire.SIZE)
             if use_reply:
-                got = fast.reply_call(
-                    fast.admit_plan, fast.emit_plan, fast.send_plan, rx, a.fileno()
+                got = kpath.reply_call(
+                    kpath.admit_plan, kpath.emit_plan, kpath.send_plan, rx, a.fileno()
                 )
                 replied = got == REPLIED
                 traffic.replied += replied
                 if not cut and set(kinds) == {"next"}:  # the usual step: done whole
                     assert replied, got
                 left = b"" if replied else bytes(rx[: max(got, 0)])
-                taken = [k for k in range(len(records) // wire.SIZE) if int(fast.mask) >> k & 1]
+                taken = [k for k in range(len(records) // wire.SIZE) if int(kpath.mask) >> k & 1]
                 if not replied and got > 0 and got % wire.SIZE == 0:
                     left = b"".join(
                         left[k * wire.SIZE : (k + 1) * wire.SIZE]
@@ -364,14 +365,14 @@ def test_recv_and_reply_do_what_recv_admit_emit_and_send_do(
                 kept, all_taken = [], bool(whole)
                 for k in range(len(data) // wire.SIZE if whole else 0):
                     rec = data[k * wire.SIZE : (k + 1) * wire.SIZE]
-                    if fast.admit_call(fast.admit_plan, rec) < 0:
+                    if kpath.admit_call(kpath.admit_plan, rec) < 0:
                         kept.append(rec)
                         all_taken = False
                 left = b"".join(kept) if whole else data
                 if all_taken:
-                    mask = fast.emit_call(fast.emit_plan)
+                    mask = kpath.emit_call(kpath.emit_plan)
                     if mask > 0:
-                        a.send(bytes(fast.wire_views[0]))
+                        a.send(bytes(kpath.wire_views[0]))
             b.setblocking(False)
             try:
                 sent = b.recv(8 * wire.SIZE)
@@ -380,8 +381,8 @@ def test_recv_and_reply_do_what_recv_admit_emit_and_send_do(
             outs.append(
                 (
                     ld.block("command", 0).read().tobytes(),
-                    int(fast.ex[0]["updates"]),
-                    int(fast.ex[0]["sent"]),
+                    int(kpath.ex[0]["updates"]),
+                    int(kpath.ex[0]["sent"]),
                     [_restamped(sent[k : k + wire.SIZE]) for k in range(0, len(sent), wire.SIZE)],
                     left,
                 )

@@ -129,7 +129,7 @@ def ld() -> Iterator[LocalData]:
         yield seg
 
 
-def _esc_fast(ld: LocalData, latency: Samples) -> KernelPath:
+def _esc_kernel_path(ld: LocalData, latency: Samples) -> KernelPath:
     return KernelPath(
         ld,
         [1],
@@ -165,7 +165,7 @@ def _command(
 
 def test_admit_takes_only_the_common_case(ld: LocalData) -> None:
     latency = Samples(64)
-    fast = _esc_fast(ld, latency)
+    kpath = _esc_kernel_path(ld, latency)
     admission = wire.Admission()
     command = ld.block("command", 0)
     sent = ld.writer("starving_sent", role="sender")
@@ -174,12 +174,12 @@ def test_admit_takes_only_the_common_case(ld: LocalData) -> None:
     sent.publish(counter.bytes)
 
     first = _command(1, 100)
-    assert fast.admit(first) == -1  # no source has claimed the robot yet
+    assert kpath.admit(first) == -1  # no source has claimed the robot yet
     assert command.seq == 0  # ... and nothing was written
     # the Python path admits it: the source claims the row
-    assert fast.refuse(admission, 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100) == ""
-    assert fast.admit(_command(2, 200)) == -1  # the exchange is not fresh yet
-    fast.ex[0]["fresh"] = 1
+    assert kpath.refuse(admission, 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100) == ""
+    assert kpath.admit(_command(2, 200)) == -1  # the exchange is not fresh yet
+    kpath.ex[0]["fresh"] = 1
 
     for bad in (
         _command(3, 300, estop=True),  # an e-stop: the Python path raises it
@@ -191,49 +191,49 @@ def test_admit_takes_only_the_common_case(ld: LocalData) -> None:
         _command(3, 100),  # a replay: a newer seq, an old stamp
         _command(3, 300)[:-1],  # short
     ):
-        assert fast.admit(bad) == -1
+        assert kpath.admit(bad) == -1
     flipped = bytearray(_command(3, 300))
     flipped[70] ^= 4
-    assert fast.admit(bytes(flipped)) == -1
-    assert command.seq == 0 and int(fast.ex[0]["updates"]) == 0
+    assert kpath.admit(bytes(flipped)) == -1
+    assert command.seq == 0 and int(kpath.ex[0]["updates"]) == 0
 
-    assert fast.admit(_command(3, 300, mark=2.5)) == 0
+    assert kpath.admit(_command(3, 300, mark=2.5)) == 0
     got = command.read()
     assert float(got["tau_nm"][0]) == 2.5 and int(got["seq_src"]) == 3
-    assert int(fast.ex[0]["updates"]) == 1 and int(fast.ex[0]["last_update_ns"]) > 0
+    assert int(kpath.ex[0]["updates"]) == 1 and int(kpath.ex[0]["last_update_ns"]) > 0
     paid = ld.block("starving_delivered").read()
     assert int(paid["count"]) == 17 and int(paid["stamp_ns"]) > 0
-    assert fast.latency_count() == 1 and latency._buf[0] > 0  # in the ddm's ring
+    assert kpath.latency_count() == 1 and latency._buf[0] > 0  # in the ddm's ring
     # the Python path sees the kernel's admission state
     ssc = b"ssc".ljust(16, b"\0")
-    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 3, 300) == "duplicate"
-    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 2, 400) == "out_of_order"
-    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 4, 300) == "stale"
-    assert fast.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 4, 400) == ""
-    assert fast.admit(_command(4, 400)) == -1  # ... and the kernel the Python path's
-    assert fast.admit(_command(5, 500)) == 0
+    assert kpath.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 3, 300) == "duplicate"
+    assert kpath.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 2, 400) == "out_of_order"
+    assert kpath.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 4, 300) == "stale"
+    assert kpath.refuse(admission, 0, ssc, wire.KIND_COMMAND, 1, 4, 400) == ""
+    assert kpath.admit(_command(4, 400)) == -1  # ... and the kernel the Python path's
+    assert kpath.admit(_command(5, 500)) == 0
 
 
 def test_emit_encodes_each_new_sample_once(ld: LocalData) -> None:
-    fast = _esc_fast(ld, Samples(8))
+    kpath = _esc_kernel_path(ld, Samples(8))
     feedback = ld.writer("feedback", 0, role="acquisition")
-    assert fast.emit() == 0  # nothing produced yet
+    assert kpath.emit() == 0  # nothing produced yet
     rec = Record(FEEDBACK)
     rec["seq_src"] = 5
     rec["stamp_ns"] = 123
     feedback.publish(rec.bytes)
-    assert fast.emit() == 1
-    d = wire.decode(bytes(fast.wire_views[0]), KEY)
+    assert kpath.emit() == 1
+    d = wire.decode(bytes(kpath.wire_views[0]), KEY)
     assert (d.kind, d.robot, d.source.rstrip("\0"), d.seq) == (wire.KIND_FEEDBACK, 1, "esc.r2", 1)
     assert not d.estop and d.payload.tobytes() == rec.bytes.tobytes()
-    assert int(fast.out[0]["seq_src"]) == 5  # the Python path sees what was read
-    assert int(fast.ex[0]["sent"]) == 1
-    assert fast.emit() == 0  # the same sample: nothing new
+    assert int(kpath.out[0]["seq_src"]) == 5  # the Python path sees what was read
+    assert int(kpath.ex[0]["sent"]) == 1
+    assert kpath.emit() == 0  # the same sample: nothing new
     rec["seq_src"] = 6
     feedback.publish(rec.bytes)
-    assert fast.emit() == 1
-    assert wire.decode(bytes(fast.wire_views[0]), KEY).seq == 2
-    assert list(fast.seq) == [2] and list(fast.last_out) == [6]
+    assert kpath.emit() == 1
+    assert wire.decode(bytes(kpath.wire_views[0]), KEY).seq == 2
+    assert list(kpath.seq) == [2] and list(kpath.last_out) == [6]
 
 
 # -- the socket calls: ddm_recv and ddm_send, on a real stream socket pair --
@@ -243,26 +243,26 @@ def test_recv_admits_whole_records_and_leaves_the_rest(ld: LocalData) -> None:
     import errno
     import socket
 
-    fast = _esc_fast(ld, Samples(8))
-    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
-    fast.ex[0]["fresh"] = 1
+    kpath = _esc_kernel_path(ld, Samples(8))
+    kpath.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    kpath.ex[0]["fresh"] = 1
     rx = bytearray(64 * wire.SIZE)
     a, b = socket.socketpair()
     try:
         a.setblocking(False)
-        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == -errno.EAGAIN
+        assert kpath.recv_call(kpath.admit_plan, rx, a.fileno()) == -errno.EAGAIN
         forged = _command(3, 300, key=LONG_KEY)
         b.sendall(_command(2, 200, mark=1.5) + forged)
-        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == 2 * wire.SIZE
-        assert int(fast.state["mask"]) == 0b01  # the first admitted, the forged one left
+        assert kpath.recv_call(kpath.admit_plan, rx, a.fileno()) == 2 * wire.SIZE
+        assert int(kpath.state["mask"]) == 0b01  # the first admitted, the forged one left
         assert bytes(rx[wire.SIZE : 2 * wire.SIZE]) == forged
         assert float(ld.block("command", 0).read()["tau_nm"][0]) == 1.5
-        assert int(fast.ex[0]["updates"]) == 1
+        assert int(kpath.ex[0]["updates"]) == 1
         b.sendall(_command(3, 300)[:100])  # a part record: received, not admitted
-        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == 100
-        assert int(fast.state["mask"]) == 0 and int(fast.ex[0]["updates"]) == 1
+        assert kpath.recv_call(kpath.admit_plan, rx, a.fileno()) == 100
+        assert int(kpath.state["mask"]) == 0 and int(kpath.ex[0]["updates"]) == 1
         b.close()
-        assert fast.recv_call(fast.admit_plan, rx, a.fileno()) == 0  # closed by the peer
+        assert kpath.recv_call(kpath.admit_plan, rx, a.fileno()) == 0  # closed by the peer
     finally:
         a.close()
         b.close()
@@ -272,24 +272,24 @@ def test_send_sends_whole_records_and_returns_what_it_could_not(ld: LocalData) -
     import errno
     import socket
 
-    fast = _esc_fast(ld, Samples(8))
+    kpath = _esc_kernel_path(ld, Samples(8))
     feedback = ld.writer("feedback", 0, role="acquisition")
     rec = Record(FEEDBACK)
     rec["seq_src"] = 1
     feedback.publish(rec.bytes)
-    assert fast.emit() == 1
-    assert fast.send_call(fast.send_plan, 1, 0) == 1  # no socket: the caller's
-    assert int(fast.send_status[0]) == 0
+    assert kpath.emit() == 1
+    assert kpath.send_call(kpath.send_plan, 1, 0) == 1  # no socket: the caller's
+    assert int(kpath.send_status[0]) == 0
     a, b = socket.socketpair()
     try:
-        fast.send_fds[0] = a.fileno()
-        assert fast.send_call(fast.send_plan, 1, 1) == 0
-        assert int(fast.send_status[0]) == wire.SIZE
-        assert b.recv(4 * wire.SIZE) == bytes(fast.wire_views[0])
-        assert fast.send_call(fast.send_plan, 0, 0) == 0  # nothing to send
+        kpath.send_fds[0] = a.fileno()
+        assert kpath.send_call(kpath.send_plan, 1, 1) == 0
+        assert int(kpath.send_status[0]) == wire.SIZE
+        assert b.recv(4 * wire.SIZE) == bytes(kpath.wire_views[0])
+        assert kpath.send_call(kpath.send_plan, 0, 0) == 0  # nothing to send
         b.close()
-        assert fast.send_call(fast.send_plan, 1, 0) == 1  # the peer gone
-        assert int(fast.send_status[0]) == -errno.EPIPE
+        assert kpath.send_call(kpath.send_plan, 1, 0) == 1  # the peer gone
+        assert int(kpath.send_status[0]) == -errno.EPIPE
     finally:
         a.close()
         b.close()
@@ -305,24 +305,26 @@ def test_reply_receives_admits_and_sends_back_in_one_call(ld: LocalData) -> None
 
     from redistro.ddm.socket_steps import NOTHING, REPLIED
 
-    fast = _esc_fast(ld, Samples(8))
-    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
-    fast.ex[0]["fresh"] = 1
+    kpath = _esc_kernel_path(ld, Samples(8))
+    kpath.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    kpath.ex[0]["fresh"] = 1
     feedback = ld.writer("feedback", 0, role="acquisition")
     rec = Record(FEEDBACK)
     rx = bytearray(64 * wire.SIZE)
     a, b = socket.socketpair()
 
     def reply() -> int:
-        got: int = fast.reply_call(fast.admit_plan, fast.emit_plan, fast.send_plan, rx, a.fileno())
+        got: int = kpath.reply_call(
+            kpath.admit_plan, kpath.emit_plan, kpath.send_plan, rx, a.fileno()
+        )
         return got
 
     try:
         a.setblocking(False)
         b.settimeout(2.0)
-        fast.send_fds[0] = a.fileno()
+        kpath.send_fds[0] = a.fileno()
         assert reply() == NOTHING == -errno.EAGAIN
-        assert int(fast.reply["emitted"]) == -2  # no emit
+        assert int(kpath.reply["emitted"]) == -2  # no emit
 
         rec["seq_src"] = 7
         feedback.publish(rec.bytes)
@@ -331,26 +333,26 @@ def test_reply_receives_admits_and_sends_back_in_one_call(ld: LocalData) -> None
         assert float(ld.block("command", 0).read()["tau_nm"][0]) == 1.5
         back = wire.decode(b.recv(4 * wire.SIZE), KEY)
         assert back.kind == wire.KIND_FEEDBACK and int(back.payload["seq_src"]) == 7
-        assert int(fast.ex[0]["updates"]) == 1 and int(fast.ex[0]["sent"]) == 1
+        assert int(kpath.ex[0]["updates"]) == 1 and int(kpath.ex[0]["sent"]) == 1
 
         b.sendall(_command(3, 300))  # no new feedback: admitted, nothing to send
         assert reply() == REPLIED
-        assert int(fast.reply["emitted"]) == 0 and int(fast.ex[0]["sent"]) == 1
-        assert int(fast.ex[0]["updates"]) == 2
+        assert int(kpath.reply["emitted"]) == 0 and int(kpath.ex[0]["sent"]) == 1
+        assert int(kpath.ex[0]["updates"]) == 2
 
         rec["seq_src"] = 8
         feedback.publish(rec.bytes)
         forged = _command(4, 400, key=LONG_KEY)
         b.sendall(forged)  # refused by the kernel: the general path's, no reply
         assert reply() == wire.SIZE
-        assert int(fast.state["mask"]) == 0 and int(fast.reply["emitted"]) == -2
+        assert int(kpath.state["mask"]) == 0 and int(kpath.reply["emitted"]) == -2
         assert bytes(rx[: wire.SIZE]) == forged
         b.setblocking(False)
         with pytest.raises(BlockingIOError):
             b.recv(4 * wire.SIZE)
 
         b.sendall(_command(4, 400)[:100])  # a part record
-        assert reply() == 100 and int(fast.reply["emitted"]) == -2
+        assert reply() == 100 and int(kpath.reply["emitted"]) == -2
     finally:
         a.close()
         b.close()
@@ -370,9 +372,9 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     from redistro.localdata.layout import EXCHANGE, MANAGER
 
     assert KERNELS is not None
-    fast = _esc_fast(ld, Samples(8))
-    fast.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
-    fast.ex[0]["fresh"] = 1
+    kpath = _esc_kernel_path(ld, Samples(8))
+    kpath.refuse(wire.Admission(), 0, b"ssc".ljust(16, b"\0"), wire.KIND_COMMAND, 1, 1, 100)
+    kpath.ex[0]["fresh"] = 1
     feedback = ld.writer("feedback", 0, role="acquisition")
     rec = Record(FEEDBACK)
     state = np.zeros((), wire_layout.ANSWER_STATE)
@@ -401,9 +403,9 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
 
     def answerer(put_call: object) -> Any:
         return KERNELS.CompiledAnswer(
-            fast.admit_plan,
-            fast.emit_plan,
-            fast.publish_plan,
+            kpath.admit_plan,
+            kpath.emit_plan,
+            kpath.publish_plan,
             state,
             estop_at,
             lock,
@@ -417,7 +419,7 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     answer = answerer(put.append)
     first = _command(2, 200, mark=1.5)
     answer(Sample(first))  # the state closed (not yet commanded): the Python path's
-    assert fallen == [first] and not put and int(fast.ex[0]["updates"]) == 0
+    assert fallen == [first] and not put and int(kpath.ex[0]["updates"]) == 0
     assert before == [1]
 
     state["answering"] = 1
@@ -426,7 +428,7 @@ def test_the_compiled_answer_takes_the_usual_command_and_leaves_the_rest(ld: Loc
     answer(Sample(_command(3, 300, mark=2.5)))
     assert float(ld.block("command", 0).read()["tau_nm"][0]) == 2.5
     assert len(put) == 1 and int(wire.decode(put[0], KEY).payload["seq_src"]) == 7
-    assert int(state["answered"]) == 1 and int(fast.ex[0]["updates"]) == 1
+    assert int(state["answered"]) == 1 and int(kpath.ex[0]["updates"]) == 1
     answer(_command(4, 400))  # bytes; no new feedback: admitted, nothing put
     assert len(put) == 1 and int(state["answered"]) == 2
 
@@ -493,7 +495,7 @@ def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -
         memory=True,
     )
     try:
-        fast = KernelPath(
+        kpath = KernelPath(
             seg,
             [0, 1],
             [("feedback", 0), ("feedback", 1)],
@@ -507,16 +509,16 @@ def test_the_sscs_compiled_answer_admits_feedback_and_publishes_the_exchange() -
         )
         for i, name in enumerate(("esc.r1", "esc.r2")):
             source = name.encode().ljust(16, b"\0")
-            fast.refuse(wire.Admission(), i, source, wire.KIND_FEEDBACK, i, 1, 100)
-            fast.ex[i]["fresh"] = 1
+            kpath.refuse(wire.Admission(), i, source, wire.KIND_FEEDBACK, i, 1, 100)
+            kpath.ex[i]["fresh"] = 1
         state = np.zeros((), wire_layout.ANSWER_STATE)
         state["answering"] = 1
         _, manager_at, _ = seg.block_offsets("manager")
         fallen: list[bytes] = []
         answer = KERNELS.CompiledAnswer(
-            fast.admit_plan,
-            fast.emit_plan,
-            fast.publish_plan,
+            kpath.admit_plan,
+            kpath.emit_plan,
+            kpath.publish_plan,
             state,
             manager_at + int(MANAGER.fields["estop"][1]),  # type: ignore[index]
             threading.Lock(),
