@@ -20,6 +20,7 @@ import numpy as np
 
 from redistro.ddm.exchange import exchange_report
 from redistro.drivers import positions
+from redistro.drivers.io.bank import PlantWatch
 from redistro.drivers.robot import RobotDriver
 from redistro.errors import NodeFault
 from redistro.esc.common import EscContext, plant_session
@@ -30,6 +31,10 @@ from redistro.process.result import EscResult
 from redistro.process.spec import NodeSpec
 
 log = logging.getLogger(__name__)
+
+# How long a node waits for the plant it drives to come up (the plant's own
+# start-up bound: PlantProcess.start's).
+PLANT_START_S = 30.0
 
 
 class EscManager(Manager):
@@ -71,6 +76,12 @@ class EscManager(Manager):
         self.setpoint_block = self.blocks["setpoint"]
         self.guard = Record(GUARD)
         self.sp = Record(SETPOINT)
+        # the plant is started beside the nodes: its start-up overlaps theirs
+        plant = PlantWatch(plant_session(self.spec))
+        try:
+            self.wait_until(plant.running, "the plant not running", PLANT_START_S)
+        finally:
+            plant.close()
         driver = self.ctx.driver(plant_session(self.spec))
         driver.open()  # checks the chassis, then freezes: brakes on, DAC zero
         self.driver = driver

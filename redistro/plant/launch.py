@@ -21,13 +21,17 @@ from redistro.process.spawn import spawn
 
 
 class PlantProcess:
-    """A running plant: ``start()`` returns once its bank says RUNNING."""
+    """The plant process: ``start()`` returns once its bank says RUNNING;
+    ``launch()`` at once (``started()`` then tells)."""
 
     def __init__(self, proc: subprocess.Popen[bytes], session_id: str, result_path: Path) -> None:
         self.proc = proc
         self.session_id = session_id
         self.result_path = result_path
         self.bank: RegisterBank | None = None
+        self.up = False
+        self.deadline = float("inf")
+        self.timeout_s = 0.0
 
     @property
     def pid(self) -> int:
@@ -44,10 +48,32 @@ class PlantProcess:
         timeout_s: float = 30.0,
         hardware: dict[str, RobotHardware] | None = None,
     ) -> PlantProcess:
-        """cfg: the plant's config, loaded and checked by the caller, and the
-        robots' hardware (read and checked here unless the caller did):
-        handed down resolved (``plant.config.json`` in ``run_dir``), never
-        re-read from their files."""
+        """The plant launched, once it is running (see ``launch``)."""
+        plant = cls.launch(session, run_dir, cfg, gui=gui, timeout_s=timeout_s, hardware=hardware)
+        try:
+            while not plant.started():
+                time.sleep(0.005)  # polling a condition, with a deadline (started's)
+        except BaseException:
+            plant.stop()
+            raise
+        return plant
+
+    @classmethod
+    def launch(
+        cls,
+        session: Session,
+        run_dir: Path,
+        cfg: Config,
+        *,
+        gui: bool = False,
+        timeout_s: float = 30.0,
+        hardware: dict[str, RobotHardware] | None = None,
+    ) -> PlantProcess:
+        """The plant process started, not waited for: ``started()`` says when
+        it is running. cfg: the plant's config, loaded and checked by the
+        caller, and the robots' hardware (read and checked here unless the
+        caller did): handed down resolved (``plant.config.json`` in
+        ``run_dir``), never re-read from their files."""
         files.make_folder(run_dir, "run folder")
         result = run_dir / "plant.json"
         resolved_path = run_dir / "plant.config.json"
@@ -60,29 +86,29 @@ class PlantProcess:
             args.append("--gui")
         proc = spawn(args, pass_fds=[session.lock_fd], env=session.child_env())
         plant = cls(proc, session.id, result)
-        try:
-            plant._wait_running(timeout_s)
-        except BaseException:
-            plant.stop()
-            raise
+        plant.deadline = time.monotonic() + timeout_s
+        plant.timeout_s = timeout_s
         return plant
 
-    def _wait_running(self, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                why = self.result().get("error", f"exit code {self.proc.returncode}")
-                raise RedistroError(f"plant failed to start: {why}")
-            if self.bank is None:
-                try:
-                    self.bank = RegisterBank.attach(self.session_id)
-                except (IPCError, LayoutError):
-                    time.sleep(0.01)  # not created yet (polling a condition, with a deadline)
-                    continue
-            if int(self.bank.status.read()["state"]) == PlantState.RUNNING:
-                return
-            time.sleep(0.005)
-        raise RedistroError(f"plant not running after {timeout_s} s")
+    def started(self) -> bool:
+        """True once the plant's bank says RUNNING; False while it starts.
+        Raises RedistroError when it ended, or did not come up in time."""
+        if self.up:
+            return True
+        if self.proc.poll() is not None:
+            why = self.result().get("error", f"exit code {self.proc.returncode}")
+            raise RedistroError(f"plant failed to start: {why}")
+        if self.bank is None:
+            try:
+                self.bank = RegisterBank.attach(self.session_id)
+            except (IPCError, LayoutError):
+                self.bank = None  # not created yet
+        if self.bank is not None and int(self.bank.status.read()["state"]) == PlantState.RUNNING:
+            self.up = True
+            return True
+        if time.monotonic() > self.deadline:
+            raise RedistroError(f"plant not running after {self.timeout_s:g} s")
+        return False
 
     def status(self) -> dict[str, Any]:
         assert self.bank is not None

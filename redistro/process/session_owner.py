@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from redistro.errors import RedistroError
 from redistro.ipc import signals
 from redistro.ipc.session import Session
 from redistro.localdata.view import NodeView
@@ -54,6 +55,7 @@ def run_nodes(
     later: list[NodeSpec] | None = None,
     later_ready: Callable[[], bool] | None = None,
     clock: Callable[[], float | None] | None = None,
+    beside: Callable[[], bool] | None = None,
 ) -> list[NodeResult]:
     """Run nodes side by side to their ends; return each manager's result.
 
@@ -71,9 +73,14 @@ def run_nodes(
     clock: the task's own clock [s] (the simulated plant's time; None when it
     cannot be read): budget_s then counts on it, so a slow plant is not a
     fault, with a wall-clock backstop at MIN_CLOCK_RATE of real time.
+    beside: whether a process started beside the nodes is up yet (the plant,
+    whose start-up overlaps theirs; they wait for it themselves): polled
+    until true. When it raises RedistroError every node is stopped, and the
+    error is raised once they have ended.
     """
     signals.become_subreaper()
     nodes: list[_Node] = []
+    side = _Beside(beside)
     all_specs = specs + list(later or [])
 
     def start(spec: NodeSpec) -> None:
@@ -93,7 +100,7 @@ def run_nodes(
         for spec in specs:
             start(spec)
         pending = _Later(list(later or []), later_ready, start)
-        _wait_nodes(nodes, budget_s, on_wait, pending, clock)
+        _wait_nodes(nodes, budget_s, on_wait, pending, clock, side)
     finally:
         for n in nodes:
             os.close(n.pidfd)
@@ -110,7 +117,29 @@ def run_nodes(
             # the manager saw our SIGTERM; the reason is why we sent it
             result.result, result.reason = "abnormal", f"interrupted by {n.interrupted}"
         results.append(result)
+    if side.error is not None:
+        raise side.error
     return results
+
+
+class _Beside:
+    """A process started beside the nodes, polled until it is up."""
+
+    def __init__(self, up: Callable[[], bool] | None) -> None:
+        self.up = up
+        self.done = up is None
+        self.error: RedistroError | None = None
+
+    def poll(self, nodes: list[_Node], now: float) -> None:
+        if self.done or self.up is None:
+            return
+        try:
+            self.done = self.up()
+        except RedistroError as exc:
+            self.done, self.error = True, exc
+            log.error("%s", exc)
+            for n in nodes:
+                n.stop(str(exc), now)
 
 
 class _Later:
@@ -321,6 +350,7 @@ def _wait_nodes(
     on_wait: Callable[[], None] | None,
     pending: _Later | None = None,
     clock: Callable[[], float | None] | None = None,
+    side: _Beside | None = None,
 ) -> None:
     start = time.monotonic()
     specs = [n.spec for n in nodes]
@@ -338,7 +368,7 @@ def _wait_nodes(
     if raised:
         raised = sched.apply(OWNER_PRIORITY, None, "rr").policy == "SCHED_RR"
     try:
-        _wait_loop(nodes, budget, on_wait, pending, relay)
+        _wait_loop(nodes, budget, on_wait, pending, relay, side or _Beside(None))
     finally:
         relay.close()
         if raised:
@@ -351,11 +381,12 @@ def _wait_loop(
     on_wait: Callable[[], None] | None,
     pending: _Later | None,
     relay: _Relay,
+    side: _Beside,
 ) -> None:
     spent = False
     group_stop: tuple[float, str] | None = None  # (when, why): the fallback stop
     while any(n.status is None for n in nodes):
-        busy = (pending is not None and pending.specs) or group_stop is not None
+        busy = (pending is not None and pending.specs) or group_stop is not None or not side.done
         timeout = 0.02 if busy else 0.2
         if relay.next_s is not None:
             timeout = max(0.0, min(timeout, relay.next_s - time.monotonic()))
@@ -364,6 +395,9 @@ def _wait_loop(
         if info is not None and info.si_signo == signal.SIGCHLD and info.si_code == SI_USER:
             relay.request(info.si_pid, now)  # a manager faulted: relay its e-stop
         relay.poll(now)
+        _chore(side.poll, nodes, now)
+        if side.error is not None and pending is not None:
+            pending.specs = []  # (the SSC never starts beside a failed plant)
         if pending is not None and not _chore(pending.poll, now):
             log.error("%s", pending.failed)
             for n in nodes:

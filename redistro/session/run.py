@@ -17,7 +17,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from redistro import files
 from redistro.config.hardware import load_hardware
@@ -31,6 +31,9 @@ from redistro.process.spec import NodeSpec
 from redistro.session.preflight import positions_file, preflight, unknown_positions
 from redistro.session.progress import Progress, ddm_pace
 from redistro.session.summary import budget_s, build_summary, segment_line
+
+if TYPE_CHECKING:
+    from redistro.plant.launch import PlantProcess
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +135,9 @@ def _run_task(
         os.close(files.create(messages))  # (new: the managers only append to it)
         say(f"session {s.id}")
         say(f"task {task.task} ({task.kind}) on {', '.join(task.robots)}; run folder {run_dir}")
-        plant = PlantProcess.start(s, run_dir, plant_config(cfg), hardware=hardware)
-        say(f"plant running ({cfg.plant.backplane} backplane, {cfg.plant.physics_hz:g} Hz)")
+        # the plant starts beside the first nodes (each waits for it before
+        # it opens its driver): their start-ups overlap
+        plant = PlantProcess.launch(s, run_dir, plant_config(cfg), hardware=hardware)
         try:
             order = task.calibration.order if task.kind == "self_calibration" else "together"
             groups = [task.robots] if order == "together" else [[r] for r in task.robots]
@@ -179,7 +183,7 @@ def _run_group(
     task: Task,
     hardware: Any,
     s: ipc_session.Session,
-    plant: Any,
+    plant: PlantProcess,
     group: list[str],
     run_dir: Path,
     messages: str,
@@ -207,6 +211,15 @@ def _run_group(
     else:
         say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
     progress = Progress(s.id, specs + later, say)
+    up = plant.up
+
+    def plant_up() -> bool:
+        nonlocal up
+        if not up and plant.started():
+            up = True
+            say(f"plant running ({cfg.plant.backplane} backplane, {cfg.plant.physics_hz:g} Hz)")
+        return up
+
     progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
     try:
         results = run_nodes(
@@ -218,6 +231,7 @@ def _run_group(
             keep=frozenset({plant.pid}),
             later=later,
             later_ready=_esc_ready(s.id, [sp.node for sp in specs]) if later else None,
+            beside=plant_up,
         )
     finally:
         progress.close()

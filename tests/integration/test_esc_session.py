@@ -280,3 +280,35 @@ def test_ctrl_c_or_sigterm_freezes_and_ends_in_order(tmp_path: Path, sig: int) -
         assert all(w["exit"] == "exited with code 0" for w in node["workers"]), node["workers"]
         # the calibration did not finish: the positions are recorded as unknown
         assert summary["positions"][r]["known_at_end"] is False
+
+
+def test_a_plant_that_dies_starting_stops_the_nodes_started_beside_it(
+    calibrated: Path, tmp_path: Path
+) -> None:
+    """The ESCs start beside the plant and wait for it before they open their
+    drivers. A plant that dies in its start-up ends the session with its
+    error (one line, exit 1); the waiting ESCs end without having touched a
+    robot (their positions files stay clean), the SSC never starts, and
+    nothing is left behind."""
+    from tests.helpers import copy_runs, session_entries
+
+    runs = copy_runs(calibrated, tmp_path)
+    out = tmp_path / "run"
+    done = run_cli(
+        "--set", f"session.runs_dir={runs}", "session", "tasks/fault_drill.yaml",
+        "--out", str(out), env={"REDISTRO_HOOKS": "tests.integration.plant_never_starts"},
+    )  # fmt: skip
+    assert done.returncode == 1, done.stdout + done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("redistro: plant failed to start: RuntimeError: this plant never"), last
+    assert "starting esc.r1, esc.r2" in done.stdout and "plant running" not in done.stdout
+    messages = (out / "messages.log").read_text()
+    for robot in ("r1", "r2"):  # started, and waiting for the plant
+        assert f"[esc.{robot}/manager] abnormal: interrupted by SIGTERM during start-up" in messages
+    assert "ssc/" not in messages
+    assert not (out / "summary.json").exists()
+    for robot in ("r1", "r2"):
+        assert _positions_clean(runs, robot)
+    sid = done.stdout.split()[1]
+    assert session_entries(sid) == []
+    assert subprocess.run(["pgrep", "-f", sid], capture_output=True).stdout == b""

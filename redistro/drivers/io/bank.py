@@ -235,3 +235,25 @@ class RegisterBank:
 
     def unlink(self) -> None:
         self.shm.unlink()
+
+
+class PlantWatch:
+    """Whether the plant of a session is up (its bank says RUNNING): what a
+    node started beside a plant still starting waits for."""
+
+    def __init__(self, session_id: str) -> None:
+        self.session_id = session_id
+        self.bank: RegisterBank | None = None
+
+    def running(self) -> bool:
+        if self.bank is None:
+            try:
+                self.bank = RegisterBank.attach(self.session_id)
+            except (IPCError, LayoutError):
+                return False  # not created yet
+        return int(self.bank.status.read()["state"]) == PlantState.RUNNING
+
+    def close(self) -> None:
+        if self.bank is not None:
+            self.bank.close()
+            self.bank = None
