@@ -26,7 +26,7 @@ from redistro.errors import NodeFault
 from redistro.esc.common import EscContext, plant_session
 from redistro.localdata.block import Block, Record
 from redistro.localdata.layout import COMMAND, COUNTER, GUARD, SETPOINT, SessionStatus
-from redistro.process.manager import Manager
+from redistro.process.manager import Manager, wait_in_start
 from redistro.process.result import EscResult
 from redistro.process.spec import NodeSpec
 
@@ -79,7 +79,7 @@ class EscManager(Manager):
         # the plant is started beside the nodes: its start-up overlaps theirs
         plant = PlantWatch(plant_session(self.spec))
         try:
-            self.wait_until(plant.running, "the plant not running", PLANT_START_S)
+            wait_in_start(self.spec, plant.running, "the plant not running", PLANT_START_S)
         finally:
             plant.close()
         driver = self.ctx.driver(plant_session(self.spec))

@@ -232,25 +232,6 @@ class Manager:
         self.on_cycle = [c for c, w in zip(self.children, spec.workers, strict=True) if w.on_cycle]
         self._wait_ready()
 
-    def _start_signal(self, info: signal.struct_siginfo | None) -> None:
-        """A signal taken during start-up ends the node."""
-        if info is not None and info.si_signo == signals.SIG_ESTOP:
-            # another node faulted while this one started: its robot
-            # stays frozen, and the node ends on the group's e-stop
-            raise NodeFault("estop", relayed_estop(self.spec) + " during start-up")
-        if info is not None:
-            raise NodeFault("abnormal", stop_text(info.si_signo) + " during start-up")
-
-    def wait_until(self, ready: Callable[[], bool], what: str, timeout_s: float) -> None:
-        """In Initialization, wait for ``ready()`` (polled every 5 ms) while
-        still taking the start-up signals (an e-stop or a stop ends the node).
-        what: what did not happen, for the fault's reason."""
-        deadline = time.monotonic() + timeout_s
-        while not ready():
-            self._start_signal(signals.wait(START_WAIT, 0.005))
-            if time.monotonic() > deadline:
-                raise NodeFault("abnormal", f"{what} within {timeout_s:g} s")
-
     def _wait_ready(self) -> None:
         deadline = time.monotonic() + self.spec.startup_timeout_s
         n_ready = 0
@@ -259,7 +240,7 @@ class Manager:
                 n_ready += 1
                 continue
             self._check_children()
-            self._start_signal(signals.wait(START_WAIT, 0))
+            start_signal(self.spec, signals.wait(START_WAIT, 0))
             self.watch.drain_messages()
             if time.monotonic() > deadline:
                 late = [
@@ -563,6 +544,27 @@ def stop_text(sig: int) -> str:
     if sig == signals.SIG_ORPHAN:
         return "session owner died"
     return f"interrupted by {signal.Signals(sig).name}"
+
+
+def start_signal(spec: NodeSpec, info: signal.struct_siginfo | None) -> None:
+    """A signal taken during a node's start-up ends the node."""
+    if info is not None and info.si_signo == signals.SIG_ESTOP:
+        # another node faulted while this one started: its robot stays
+        # frozen, and the node ends on the group's e-stop
+        raise NodeFault("estop", relayed_estop(spec) + " during start-up")
+    if info is not None:
+        raise NodeFault("abnormal", stop_text(info.si_signo) + " during start-up")
+
+
+def wait_in_start(spec: NodeSpec, ready: Callable[[], bool], what: str, timeout_s: float) -> None:
+    """In a manager's Initialization, wait for ``ready()`` (polled every 5 ms)
+    while still taking the start-up signals (an e-stop or a stop ends the
+    node). what: what did not happen, for the fault's reason."""
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        start_signal(spec, signals.wait(START_WAIT, 0.005))
+        if time.monotonic() > deadline:
+            raise NodeFault("abnormal", f"{what} within {timeout_s:g} s")
 
 
 def relayed_estop(spec: NodeSpec) -> str:

@@ -230,10 +230,12 @@ class _Budget:
         clock: Callable[[], float | None] | None,
     ) -> None:
         self.budget_s, self.margin_s, self.clock = budget_s, margin_s, clock
+        # the clock counts from its first reading (a plant still starting
+        # beside the nodes has none yet)
         self.clock_start = clock() if clock is not None and budget_s is not None else None
         self.wall_deadline: float | None = None
         if budget_s is not None:
-            rate = 1.0 if self.clock_start is None else MIN_CLOCK_RATE
+            rate = 1.0 if clock is None else MIN_CLOCK_RATE
             self.wall_deadline = start + margin_s + budget_s / rate
 
     def exceeded(self, now: float) -> str | None:
@@ -241,19 +243,21 @@ class _Budget:
         if self.budget_s is None or self.wall_deadline is None:
             return None
         if now > self.wall_deadline:
-            if self.clock_start is None:
+            if self.clock is None:
                 return f"nodes ran past their time budget ({self.budget_s:.1f} s); stopping them"
             return (
                 f"the task's clock ran below {MIN_CLOCK_RATE:g} of real time past its "
                 f"budget ({self.budget_s:.1f} s); stopping the nodes"
             )
-        if self.clock is not None and self.clock_start is not None:
+        if self.clock is not None:
             t = self.clock()
-            if t is not None and t - self.clock_start > self.margin_s + self.budget_s:
+            if t is not None and self.clock_start is None:
+                self.clock_start = t
+            ran = None if t is None or self.clock_start is None else t - self.clock_start
+            if ran is not None and ran > self.margin_s + self.budget_s:
                 return (
                     f"nodes ran past their time budget ({self.budget_s:.1f} s of the "
-                    f"plant's time, {t - self.clock_start:.1f} s since they started); "
-                    "stopping them"
+                    f"plant's time, {ran:.1f} s since they started); stopping them"
                 )
         return None
 

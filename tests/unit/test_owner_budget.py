@@ -46,9 +46,24 @@ def test_without_a_clock_the_budget_is_wall_time() -> None:
     assert b.exceeded(34.9) is None
     why = b.exceeded(35.1)
     assert why is not None and "(20.0 s)" in why
-    # a plant that cannot be read at the start: the wall clock, not the backstop
-    b = _Budget(20.0, 5.0, start=10.0, clock=FakeClock(None))
-    assert b.exceeded(35.1) is not None
+
+
+def test_a_clock_not_yet_readable_counts_from_its_first_reading() -> None:
+    """The plant starts beside the nodes: its clock comes later."""
+    clock = FakeClock(None)
+    b = _Budget(20.0, 5.0, start=10.0, clock=clock)
+    assert b.exceeded(35.1) is None  # not the wall clock: the backstop
+    clock.t = 0.5
+    assert b.exceeded(36.0) is None  # (the first reading)
+    clock.t = 0.5 + 24.9
+    assert b.exceeded(80.0) is None
+    clock.t = 0.5 + 25.1
+    why = b.exceeded(81.0)
+    assert why is not None and "25.1 s since they started" in why
+    clock.t = None  # a plant never read: the backstop
+    b = _Budget(20.0, 5.0, start=10.0, clock=clock)
+    why = b.exceeded(10.0 + 5.0 + 20.0 / MIN_CLOCK_RATE + 0.1)
+    assert why is not None and "below" in why
 
 
 def test_no_budget_never_stops() -> None:
