@@ -306,3 +306,30 @@ def test_a_forged_or_replayed_can_reply_is_not_taken() -> None:
     finally:
         for bus in (port.bus, drv.bus, sniffer):
             bus.shutdown()
+
+
+def test_a_node_started_beside_the_plant_sees_it_come_up_or_end() -> None:
+    """PlantWatch: no bank yet or STARTING is not up; RUNNING is; a plant that
+    ended (STOPPED or FAILED) before that ends the waiting node."""
+    from redistro.drivers.io.bank import PlantState, PlantWatch, RegisterBank
+    from redistro.errors import NodeFault
+    from redistro.ipc.session import Session
+
+    with Session.create() as session:
+        watch = PlantWatch(session.id)
+        assert not watch.running()  # (no bank yet)
+        bank = RegisterBank.create(session.id, BOARDS, ["r1"], 1000.0, session.manifest)
+        try:
+            assert not watch.running()  # STARTING
+            for state, up in ((PlantState.RUNNING, True), (PlantState.FAILED, None)):
+                with bank.status.write() as d:
+                    d["state"] = state
+                if up:
+                    assert watch.running()
+                else:
+                    with pytest.raises(NodeFault, match="the plant ended before"):
+                        watch.running()
+        finally:
+            watch.close()
+            bank.close()
+            bank.unlink()

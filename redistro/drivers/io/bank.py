@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from redistro.drivers.io.registers import BANKS, BoardType
-from redistro.errors import IPCError, LayoutError
+from redistro.errors import IPCError, LayoutError, NodeFault
 from redistro.ipc import names
 from redistro.ipc.session import Manifest
 from redistro.ipc.shm import SharedMemory
@@ -246,12 +246,16 @@ class PlantWatch:
         self.bank: RegisterBank | None = None
 
     def running(self) -> bool:
+        """True once RUNNING; NodeFault when the plant ended before that."""
         if self.bank is None:
             try:
                 self.bank = RegisterBank.attach(self.session_id)
             except (IPCError, LayoutError):
                 return False  # not created yet
-        return int(self.bank.status.read()["state"]) == PlantState.RUNNING
+        state = int(self.bank.status.read()["state"])
+        if state in (PlantState.STOPPED, PlantState.FAILED):
+            raise NodeFault("abnormal", "the plant ended before the node started")
+        return state == PlantState.RUNNING
 
     def close(self) -> None:
         if self.bank is not None:
