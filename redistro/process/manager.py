@@ -46,7 +46,7 @@ from redistro.process.children import (
 )
 from redistro.process.result import NodeResult
 from redistro.process.spec import EXIT_FAILED, NodeSpec
-from redistro.process.states import Event, Lifecycle, State
+from redistro.process.states import CODE, Event, Lifecycle, State
 from redistro.process.stats import Samples
 from redistro.process.watch import WorkerWatch, node_local_data
 from redistro.process.worker import IDLE_GUARD_NS
@@ -113,6 +113,7 @@ class Manager:
         self.granted: sched.Granted | None = None
         self.block: Block | None = None
         self.mine = Record(MANAGER)  # the manager's own block, published whole each tick
+        self._state_word = self.mine.word("state")
         self._due_ns = 0
         self._tick_ns = 0
         self._estop = False
@@ -130,7 +131,7 @@ class Manager:
         """The state into the manager's block: at once when the node starts
         or ends its routine; the cycle's Routine and Idle ride in the block
         each tick publishes."""
-        self.mine["state"] = new.value
+        self._state_word[0] = CODE[new]
         if self.block is not None and new in (State.ROUTINE, State.CLEANUP) and old != State.IDLE:
             with self.block.write() as d:
                 d["state"] = new.value

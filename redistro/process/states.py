@@ -22,6 +22,8 @@ from redistro.localdata.layout import ProcState
 
 
 class Event(enum.Enum):
+    __hash__ = object.__hash__  # (as State's)
+
     READY = "every worker is ready"
     TICK = "a timer tick"
     SYNCED = "the cycle's syncs went out"
@@ -31,12 +33,19 @@ class Event(enum.Enum):
 
 
 class State(enum.Enum):
+    # (members are singletons, equal only to themselves: the identity hash,
+    # in C, spares each move two calls of Enum's own, in Python)
+    __hash__ = object.__hash__
+
     INITIALIZATION = ProcState.INITIALIZATION
     ROUTINE = ProcState.ROUTINE
     IDLE = ProcState.IDLE
     CLEANUP = ProcState.CLEANUP
     OVER = ProcState.NONE
 
+
+# each state's number in Local Data (ProcState), for the manager's block
+CODE: dict[State, int] = {s: int(s.value) for s in State}
 
 MOVES: dict[tuple[State, Event], State] = {
     (State.INITIALIZATION, Event.READY): State.ROUTINE,
@@ -65,12 +74,13 @@ class Lifecycle:
         """Move on ``event``; InvalidMove if the table has no such move. A
         fault in Cleanup (a second one) changes nothing: the first is the
         cause."""
-        if event is Event.FAULT and self.state in (State.CLEANUP, State.OVER):
-            return self.state
-        new = MOVES.get((self.state, event))
+        old = self.state
+        new = MOVES.get((old, event))
         if new is None:
-            raise InvalidMove(f"{event.value} in {self.state.name.lower()}")
-        old, self.state = self.state, new
+            if event is Event.FAULT and old in (State.CLEANUP, State.OVER):
+                return old
+            raise InvalidMove(f"{event.value} in {old.name.lower()}")
+        self.state = new
         self.moves += 1
         if self.on_change is not None:
             self.on_change(old, new)
