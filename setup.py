@@ -68,7 +68,18 @@ setup(
                 "redistro/ddm/step.h",
             ],
             libraries=["crypto", "z"],
-            extra_compile_args=["-O2", "-std=c11", "-Wall", "-Wextra", "-Wno-unused-parameter"],
+            # one module from many files: only its init is exported, and the
+            # link inlines across the files (-flto), as one file would
+            extra_compile_args=[
+                "-O2",
+                "-std=c11",
+                "-Wall",
+                "-Wextra",
+                "-Wno-unused-parameter",
+                "-fvisibility=hidden",
+                "-flto=auto",
+            ],
+            extra_link_args=["-O2", "-flto=auto"],
         )
     ],
 )

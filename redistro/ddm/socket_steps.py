@@ -7,9 +7,13 @@ ddm's general path."""
 from __future__ import annotations
 
 import errno
-from typing import TYPE_CHECKING
+import functools
+from typing import TYPE_CHECKING, Any
+
+from redistro.ddm.transport import NO_ACCELERATOR, Accelerator
 
 if TYPE_CHECKING:
+    from redistro.ddm.kernel_path import KernelPath
     from redistro.ddm.worker import Ddm
 
 REPLIED = 1 << 40  # ddm_reply: the usual step done whole
@@ -17,11 +21,25 @@ NOTHING = -errno.EAGAIN  # ... nothing had come
 
 
 class SocketSteps:
-    """One ddm's kernel calls on its transport's sockets."""
+    """One ddm's kernel calls on its transport's sockets. (An ESC's usual
+    step is the hot path: its call is bound once, with its plans and the
+    receive buffer, and the object keeps its few fields in slots.)"""
+
+    __slots__ = ("accel", "call", "d", "generation")
 
     def __init__(self, ddm: Ddm) -> None:
         self.d = ddm
+        self.accel: Accelerator = NO_ACCELERATOR  # (bind)
         self.generation = -1  # the transport's peers the send fds are for
+        self.call: Any = None  # ddm_reply(fd), bound (bind)
+
+    def bind(self, kpath: KernelPath, accel: Accelerator) -> None:
+        """ddm_reply bound to the kernel path's plans and the socket's
+        receive buffer (both made once), for :meth:`reply`."""
+        self.accel = accel
+        self.call = functools.partial(
+            kpath.reply_call, kpath.admit_plan, kpath.emit_plan, kpath.send_plan, accel.rx
+        )
 
     def reply(self) -> bool:
         """An ESC's usual step in one kernel call. True when that was the
@@ -29,17 +47,15 @@ class SocketSteps:
         exchange counted, the starving index paid back, the latency taken by
         the kernel). Else the general path takes the step on, with what the
         call received."""
-        d = self.d
-        fd = d.accel.reply_fd(d.ready_fds)
+        accel = self.accel
+        fd = accel.reply_fd(self.d.ready_fds)
         if fd < 0:
             return False
-        kpath = d.kernel_path
-        assert kpath is not None
-        if d.accel.generation != self.generation:
+        if accel.generation != self.generation:
             self.refresh_fds()
-        got = kpath.reply_call(kpath.admit_plan, kpath.emit_plan, kpath.send_plan, d.accel.rx, fd)
+        got = self.call(fd)
         if got == REPLIED:
-            d.dirty = True
+            self.d.dirty = True
             return True
         if got == NOTHING:
             return True

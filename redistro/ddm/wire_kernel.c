@@ -2,35 +2,39 @@
  * A DDM record's crc32 and its HMAC-SHA256 tag (their reference:
  * ddm/record.py, Python's zlib and hmac), from zlib and libcrypto, linked.
  *
- * The tag is HMAC (RFC 2104) over libcrypto's SHA-256 through its EVP digest
- * API. For each key (a process holds one or two; the cache holds 16) the
- * inner and outer states, SHA-256 of the padded key, are computed once and
- * kept as digest contexts; a record copies each (EVP_MD_CTX_copy_ex) and
- * goes on from it, as libcrypto's own HMAC does inside. Its EVP_MAC front
- * costs on OpenSSL 3.0 about 3 us more per record with the caches cold, as
- * a node woken every cycle finds them (docs/PERFORMANCE.md). Every caller
- * holds the GIL, which serializes the cache.
+ * The tag is HMAC (RFC 2104) over libcrypto's SHA-256 (SHA256_Init,
+ * SHA256_Update, SHA256_Final: <openssl/sha.h>, its SHA256_CTX a plain
+ * struct declared there). For each key (a process holds one or two; the
+ * cache holds 16) the inner and outer states, SHA-256 of the padded key,
+ * are computed once and kept; a record copies each (a struct assignment)
+ * and goes on from it, as libcrypto's own HMAC does inside. OpenSSL 3
+ * marks these functions deprecated in favour of its EVP API, whose copy of
+ * a digest context frees, allocates and cleanses on every record: with the
+ * caches cold, as a node woken every cycle finds them, EVP_MD_CTX_copy_ex
+ * costs 1.5-2.3 us more per check and seal, and EVP_MAC about 3 us more
+ * (docs/PERFORMANCE.md). Every caller holds the GIL, which serializes the
+ * cache.
  */
+#define OPENSSL_SUPPRESS_DEPRECATED /* SHA256_*: see above */
 #include "wire.h"
 
 #include <openssl/crypto.h>
-#include <openssl/evp.h>
+#include <openssl/sha.h>
 #include <zlib.h>
 
 #define KEY_MAX WIRE_CODEC_KEY__LEN
 #define CACHED 16
-#define BLOCK 64 /* SHA-256's block: the HMAC key's padded length */
+#define BLOCK SHA256_CBLOCK /* SHA-256's block: the HMAC key's padded length */
 
 typedef struct {
     uint8_t key[KEY_MAX];
     size_t key_len;
-    EVP_MD_CTX *inner, *outer; /* SHA-256 of (key ^ ipad), of (key ^ opad) */
+    int made;
+    SHA256_CTX inner, outer; /* SHA-256 of (key ^ ipad), of (key ^ opad) */
 } Keyed;
 
 static Keyed CACHE[CACHED];
 static int NEXT_EVICT, LAST_HIT;
-static EVP_MD *SHA256_MD;
-static EVP_MD_CTX *WORK;
 
 int codec_read(const uint8_t *p, Codec *c) {
     c->key = p + WIRE_CODEC_KEY;
@@ -59,58 +63,49 @@ static int crypto_error(const char *what) {
 }
 
 /* ctx := SHA-256 begun on (k ^ pad), k a block-sized key. */
-static int padded(EVP_MD_CTX *ctx, const uint8_t k[BLOCK], uint8_t pad) {
+static int padded(SHA256_CTX *ctx, const uint8_t k[BLOCK], uint8_t pad) {
     uint8_t block[BLOCK];
     for (int i = 0; i < BLOCK; i++)
         block[i] = k[i] ^ pad;
-    int ok = EVP_DigestInit_ex2(ctx, SHA256_MD, NULL) && EVP_DigestUpdate(ctx, block, BLOCK);
+    int ok = SHA256_Init(ctx) && SHA256_Update(ctx, block, BLOCK);
     OPENSSL_cleanse(block, BLOCK);
     return ok;
+}
+
+static int same_key(const Keyed *k, const Codec *c) {
+    return k->made && k->key_len == c->key_len && memcmp(k->key, c->key, c->key_len) == 0;
 }
 
 /* The cache's entry for c's key, its states made on a miss (NULL: an error is set). */
 static Keyed *keyed(const Codec *c) {
     Keyed *k = &CACHE[LAST_HIT];
-    if (k->inner != NULL && k->key_len == c->key_len && memcmp(k->key, c->key, c->key_len) == 0)
+    if (same_key(k, c))
         return k;
     for (int i = 0; i < CACHED; i++) {
-        k = &CACHE[i];
-        if (k->inner != NULL && k->key_len == c->key_len &&
-            memcmp(k->key, c->key, c->key_len) == 0) {
+        if (same_key(&CACHE[i], c)) {
             LAST_HIT = i;
-            return k;
+            return &CACHE[i];
         }
     }
-    if (SHA256_MD == NULL && (SHA256_MD = EVP_MD_fetch(NULL, "SHA256", NULL)) == NULL)
-        return crypto_error("EVP_MD_fetch(SHA256)"), NULL;
-    if (WORK == NULL && (WORK = EVP_MD_CTX_new()) == NULL)
-        return crypto_error("EVP_MD_CTX_new"), NULL;
     /* the key as a block: hashed first when longer than one (RFC 2104) */
     uint8_t kb[BLOCK] = {0};
-    unsigned int n = 0;
     if (c->key_len > BLOCK) {
-        if (!EVP_Digest(c->key, c->key_len, kb, &n, SHA256_MD, NULL))
+        if (SHA256(c->key, c->key_len, kb) == NULL)
             return crypto_error("SHA-256 of the key"), NULL;
     } else {
         memcpy(kb, c->key, c->key_len);
     }
-    EVP_MD_CTX *inner = EVP_MD_CTX_new(), *outer = EVP_MD_CTX_new();
-    int ok = inner && outer && padded(inner, kb, 0x36) && padded(outer, kb, 0x5c);
-    OPENSSL_cleanse(kb, BLOCK);
-    if (!ok) {
-        EVP_MD_CTX_free(inner);
-        EVP_MD_CTX_free(outer);
-        return crypto_error("HMAC key states"), NULL;
-    }
     int i = NEXT_EVICT;
     NEXT_EVICT = (NEXT_EVICT + 1) % CACHED;
     k = &CACHE[i];
-    EVP_MD_CTX_free(k->inner); /* (NULL: nothing) */
-    EVP_MD_CTX_free(k->outer);
+    k->made = padded(&k->inner, kb, 0x36) && padded(&k->outer, kb, 0x5c);
+    OPENSSL_cleanse(kb, BLOCK);
+    if (!k->made) {
+        OPENSSL_cleanse(k, sizeof *k);
+        return crypto_error("HMAC key states"), NULL;
+    }
     memcpy(k->key, c->key, c->key_len);
     k->key_len = c->key_len;
-    k->inner = inner;
-    k->outer = outer;
     LAST_HIT = i;
     return k;
 }
@@ -120,14 +115,12 @@ int codec_tag(const Codec *c, const uint8_t *data, size_t n, uint8_t out[TAG_SIZ
     if (k == NULL)
         return 0;
     uint8_t in[TAG_SIZE];
-    unsigned int a = 0, b = 0;
-    int ok = EVP_MD_CTX_copy_ex(WORK, k->inner) && EVP_DigestUpdate(WORK, data, n) &&
-             EVP_DigestFinal_ex(WORK, in, &a) && EVP_MD_CTX_copy_ex(WORK, k->outer) &&
-             EVP_DigestUpdate(WORK, in, TAG_SIZE) && EVP_DigestFinal_ex(WORK, out, &b);
+    SHA256_CTX w = k->inner;
+    int ok = SHA256_Update(&w, data, n) && SHA256_Final(in, &w);
+    w = k->outer;
+    ok = ok && SHA256_Update(&w, in, TAG_SIZE) && SHA256_Final(out, &w);
     OPENSSL_cleanse(in, TAG_SIZE);
-    if (!ok || a != TAG_SIZE || b != TAG_SIZE)
-        return crypto_error("HMAC-SHA256");
-    return 1;
+    return ok ? 1 : crypto_error("HMAC-SHA256");
 }
 
 int codec_check(const Codec *c, const uint8_t *r) {

@@ -255,6 +255,8 @@ class Ddm(Worker):
         # kernel call (ddm_reply: the command received and admitted, the
         # feedback emitted and sent back)
         self.replies_in_kernel = self.socket_kernels and self.replying
+        if self.replies_in_kernel:
+            self.socket_steps.bind(kpath, self.accel)
         self.publish_call = kpath.publish_call
         self.publish_plan = kpath.publish_plan
         if not self.socket_kernels:
