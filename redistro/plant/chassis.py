@@ -235,7 +235,10 @@ class Chassis:
         """The chassis' state: one buffer (the truth is copied out of it in one call)."""
         st = self.state = kernels.Arena(64 * n + 1024 + 160 * n_wrists)
         self.step_rec = st.take("step", chassis_layout.STEP, ())  # the plant's step
-        self.step_now = self.step_rec["step"]
+        # the step as a Python int, written through to the record per step
+        # (an in-place add on a 0-d field costs numpy's ufunc machinery)
+        self.steps = 0
+        self.step_word = self.step_rec["step"].reshape(1)
         self.q = st.take("q", np.float64, n)
         self.qd = st.take("qd", np.float64, n)
         self.tau = st.take("tau", np.float64, n)  # at the joint: motor, or brake on a braked joint
@@ -381,7 +384,7 @@ class Chassis:
 
     @property
     def step_count(self) -> int:
-        return int(self.step_now)
+        return self.steps
 
     def read_outputs(self, port: Any) -> None:
         """Take every board's latest ``out`` bank from the backplane's board side
@@ -483,7 +486,8 @@ class Chassis:
         if self.disturbance is not None:
             self.disturbance.before_physics(self)
         self.world.step()
-        self.step_now += 1
+        self.steps += 1
+        self.step_word[0] = self.steps
 
     def sample(self) -> None:
         """Joint states -> every board's ``in`` bank and the truth."""
