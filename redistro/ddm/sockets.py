@@ -196,6 +196,8 @@ class SocketTransport(Transport):
                 _, writable, _ = select.select([], [p.sock], [], 0)
                 if writable:
                     err = p.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+                    if err == 0 and _self_connected(p.sock):
+                        err = errno.EADDRINUSE  # its port taken by itself: try again
                     if err == 0:
                         link = self.conns[robot] = _Link(p.sock, p.name)
                         del self.pending[robot]
@@ -451,6 +453,16 @@ class _SocketLinks(Links):
 
     def lost_links(self) -> dict[int, str]:
         return self.t.lost_robots
+
+
+def _self_connected(sock: socket.socket) -> bool:
+    """A TCP self-connect: connecting on loopback to a port no one listens
+    on yet, the socket's own ephemeral port came out as the peer's (it
+    would hold the peer's port)."""
+    try:
+        return bool(sock.getsockname() == sock.getpeername())
+    except OSError:
+        return False
 
 
 class _SocketAccelerator(Accelerator):

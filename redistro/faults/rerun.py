@@ -56,6 +56,11 @@ def _replay(port: int, records: bytes, until: float, proc: subprocess.Popen[str]
         except OSError:
             time.sleep(0.005)  # r2's ddm does not listen yet: try again (to a deadline)
             continue
+        if sock.getsockname() == sock.getpeername():
+            # a TCP self-connect: on loopback the client's ephemeral port came
+            # out as r2's, which would keep r2's ddm from listening
+            sock.close()
+            continue
         out["connected"] = True
         with sock:
             sock.settimeout(0.2)

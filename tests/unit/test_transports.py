@@ -683,3 +683,22 @@ def test_a_connecting_side_given_up_before_the_handshake_connects_again() -> Non
             squatter.close()
         ssc.close()
         esc.close()
+
+
+def test_a_tcp_self_connect_is_recognized() -> None:
+    """On loopback a socket connecting to a port no one listens on can come
+    out connected to itself (its ephemeral port the peer's): the connecting
+    side tries again instead of holding the port its peer would listen on."""
+    import socket
+
+    from redistro.ddm.sockets import _self_connected
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.connect(s.getsockname())  # a simultaneous open with itself
+        assert _self_connected(s)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as srv:
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(1)
+        with socket.create_connection(srv.getsockname()) as c:
+            assert not _self_connected(c)
