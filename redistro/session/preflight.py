@@ -45,7 +45,8 @@ def check_motion(cfg: Config, task: Task) -> None:
     further than a joint can be pushed (``RECOVERY_BAND_RAD``: beyond, the
     file cannot be right), every joint goal inside them less the margin,
     every joint move within the speed limit, after a Cartesian segment too,
-    and every goal wrench within the guard's limits (redistro/config/limits.py)."""
+    every goal wrench within the guard's limits (redistro/config/limits.py),
+    and the arms kept apart all along (redistro/ssc/clearance.py)."""
     from redistro.config.limits import RECOVERY_BAND_RAD, joint_limits, task_motion_problems
     from redistro.ssc.reach import goal_postures
 
@@ -65,6 +66,10 @@ def check_motion(cfg: Config, task: Task) -> None:
             )
         start[r] = q
     for problem in task_motion_problems(cfg, task, start, goal_postures(cfg, task, start)):
+        raise ConfigError(problem)
+    from redistro.ssc.clearance import clearance_problems
+
+    for problem in clearance_problems(cfg, task, start):
         raise ConfigError(problem)
 
 
