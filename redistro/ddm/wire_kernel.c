@@ -98,6 +98,7 @@ static Keyed *keyed(const Codec *c) {
     int i = NEXT_EVICT;
     NEXT_EVICT = (NEXT_EVICT + 1) % CACHED;
     k = &CACHE[i];
+    OPENSSL_cleanse(k, sizeof *k); /* (nothing of an evicted key stays) */
     k->made = padded(&k->inner, kb, 0x36) && padded(&k->outer, kb, 0x5c);
     OPENSSL_cleanse(kb, BLOCK);
     if (!k->made) {
