@@ -196,7 +196,7 @@ class SocketTransport(Transport):
                 _, writable, _ = select.select([], [p.sock], [], 0)
                 if writable:
                     err = p.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
-                    if err == 0 and _self_connected(p.sock):
+                    if err == 0 and self_connected(p.sock):
                         err = errno.EADDRINUSE  # its port taken by itself: try again
                     if err == 0:
                         link = self.conns[robot] = _Link(p.sock, p.name)
@@ -455,7 +455,7 @@ class _SocketLinks(Links):
         return self.t.lost_robots
 
 
-def _self_connected(sock: socket.socket) -> bool:
+def self_connected(sock: socket.socket) -> bool:
     """A TCP self-connect: connecting on loopback to a port no one listens
     on yet, the socket's own ephemeral port came out as the peer's (it
     would hold the peer's port)."""

@@ -48,6 +48,7 @@ def _replay(port: int, records: bytes, until: float, proc: subprocess.Popen[str]
     """Connect to r2's ddm as soon as it listens and send the recording;
     what the ddm answered, and whether it gave the connection up."""
     from redistro.ddm import record as wire
+    from redistro.ddm.sockets import self_connected
 
     out: dict[str, Any] = {"connected": False, "answers": 0, "given_up": False}
     while time.monotonic() < until and proc.poll() is None:
@@ -56,9 +57,7 @@ def _replay(port: int, records: bytes, until: float, proc: subprocess.Popen[str]
         except OSError:
             time.sleep(0.005)  # r2's ddm does not listen yet: try again (to a deadline)
             continue
-        if sock.getsockname() == sock.getpeername():
-            # a TCP self-connect: on loopback the client's ephemeral port came
-            # out as r2's, which would keep r2's ddm from listening
+        if self_connected(sock):  # (it would keep r2's ddm from listening)
             sock.close()
             continue
         out["connected"] = True

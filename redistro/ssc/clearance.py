@@ -49,19 +49,17 @@ class GroupGeometry:
         import coal
         import pinocchio as pin
 
-        from redistro.robotmodel import Peg, write_arm_urdf
+        from redistro.robotmodel import write_arm_urdf
+        from redistro.ssc.reach import arm_tool
 
         self._pin = pin
-        self.robots = robots
-        peg = cfg.workcell.peg
         model, geom = pin.Model(), pin.GeometryModel()
         meshes = coal.CachedMeshLoader()  # (every arm's links: the same meshes, loaded once)
         self.offsets: dict[str, int] = {}  # each robot's first index in q
         with tempfile.TemporaryDirectory(prefix="redistro-clearance-") as tmp:
             for r in robots:
                 rc = cfg.robots[r]
-                pg = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
-                path = str(write_arm_urdf(Path(tmp), r, pg))
+                path = str(write_arm_urdf(Path(tmp), r, arm_tool(cfg, r)))
                 m = pin.buildModelFromUrdf(path)
                 g = pin.buildGeomFromUrdf(m, path, pin.GeometryType.COLLISION, mesh_loader=meshes)
                 for i in range(1, m.njoints):  # one model holds every arm: names apart
@@ -131,11 +129,14 @@ def _path(model: Any, q0: np.ndarray, pose: np.ndarray, lo: Any, hi: Any) -> lis
 
 
 def _time_at(fraction: float, move_s: float) -> float:
-    """When the quintic profile 10s^3 - 15s^4 + 6s^5 reaches ``fraction``."""
+    """When the move's quintic profile (control/trajectory.py) reaches ``fraction``."""
+    from redistro.control.trajectory import quintic
+
+    zero, one = np.zeros(1), np.ones(1)
     lo, hi = 0.0, 1.0
     for _ in range(30):
         mid = 0.5 * (lo + hi)
-        if mid**3 * (10.0 - 15.0 * mid + 6.0 * mid * mid) < fraction:
+        if quintic(zero, one, 1.0, mid)[0][0] < fraction:
             lo = mid
         else:
             hi = mid
@@ -153,9 +154,8 @@ def clearance_problems(cfg: Config, task: Task, start_q: dict[str, list[float]])
     if task.kind != "strategy" or len(task.robots) < 2:
         return []
     from redistro.config.limits import joint_limits
-    from redistro.control.dynamics import ArmModel
-    from redistro.robotmodel import Peg
     from redistro.ssc.plan import segment_plans
+    from redistro.ssc.reach import arm_model
 
     limits = joint_limits(cfg)
     group = GroupGeometry(cfg, list(task.robots))
@@ -163,18 +163,13 @@ def clearance_problems(cfg: Config, task: Task, start_q: dict[str, list[float]])
         r: np.asarray(start_q.get(r, cfg.robots[r].initial_q_rad), dtype=np.float64)
         for r in task.robots
     }
-    peg = cfg.workcell.peg
     models: dict[str, Any] = {}
     for i, (seg, plan) in enumerate(zip(task.segments, segment_plans(task, cfg), strict=True)):
         r = plan.robot
         if plan.scheme == "joint":
             path = _joint_path(q[r], np.asarray(plan.q_goal, dtype=np.float64))
         else:
-            model = models.get(r)
-            if model is None:
-                rc = cfg.robots[r]
-                pg = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
-                model = models[r] = ArmModel(pg, rc.base_xyz_m)
+            model = arm_model(cfg, r, models)
             path = _path(model, q[r], plan.pose, limits.inner_lower, limits.inner_upper)
         move_s = plan.move_s
         for k, qk in enumerate(path):

@@ -21,6 +21,24 @@ ROT_TOL_RAD = 0.02
 ITERATIONS = 300
 
 
+def arm_tool(cfg: Config, robot: str) -> Any:
+    """The robot's tool as the URDF draws it: the work-cell's peg, or None."""
+    from redistro.robotmodel import Peg
+
+    peg = cfg.workcell.peg
+    return Peg(peg.side_m, peg.length_m, peg.mass_kg) if cfg.robots[robot].peg else None
+
+
+def arm_model(cfg: Config, robot: str, models: dict[str, Any]) -> Any:
+    """The robot's ArmModel (its tool, at its base), made once into ``models``."""
+    from redistro.control.dynamics import ArmModel
+
+    model = models.get(robot)
+    if model is None:
+        model = models[robot] = ArmModel(arm_tool(cfg, robot), cfg.robots[robot].base_xyz_m)
+    return model
+
+
 def _ik_error(
     model: Any, q: np.ndarray, p_goal: np.ndarray, R_goal: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -82,11 +100,8 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
     if task.kind != "strategy":
         return []
     from redistro.config.limits import joint_limits
-    from redistro.control.dynamics import ArmModel
-    from redistro.robotmodel import Peg
     from redistro.ssc.plan import segment_plans
 
-    peg = cfg.workcell.peg
     limits = joint_limits(cfg)
     models: dict[str, Any] = {}
     out: list[str] = []
@@ -94,10 +109,7 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
         if plan.scheme not in ("position", "force"):
             continue
         rc = cfg.robots[plan.robot]
-        model = models.get(plan.robot)
-        if model is None:
-            pg = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
-            model = models[plan.robot] = ArmModel(pg, rc.base_xyz_m)
+        model = arm_model(cfg, plan.robot, models)
         starts = [
             np.asarray(rc.initial_q_rad, dtype=np.float64),
             np.array([0.0, 0.6, 0.0, -1.4, 0.0, 1.0, 0.0]),
@@ -123,11 +135,8 @@ def goal_postures(
     if task.kind != "strategy":
         return {}
     from redistro.config.limits import joint_limits
-    from redistro.control.dynamics import ArmModel
-    from redistro.robotmodel import Peg
     from redistro.ssc.plan import segment_plans
 
-    peg = cfg.workcell.peg
     limits = joint_limits(cfg)
     models: dict[str, Any] = {}
     before: dict[str, np.ndarray] = {
@@ -139,10 +148,7 @@ def goal_postures(
         if seg.scheme == "joint":
             before[seg.robot] = np.asarray(seg.goal.q_rad, dtype=np.float64)
             continue
-        model = models.get(seg.robot)
-        if model is None:
-            pg = Peg(peg.side_m, peg.length_m, peg.mass_kg) if rc.peg else None
-            model = models[seg.robot] = ArmModel(pg, rc.base_xyz_m)
+        model = arm_model(cfg, seg.robot, models)
         first = before.get(seg.robot, np.asarray(rc.initial_q_rad, dtype=np.float64))
         ok, _, q = solve(model, plan.pose, [first], limits.inner_lower, limits.inner_upper)
         if ok and q is not None:

@@ -691,14 +691,14 @@ def test_a_tcp_self_connect_is_recognized() -> None:
     side tries again instead of holding the port its peer would listen on."""
     import socket
 
-    from redistro.ddm.sockets import _self_connected
+    from redistro.ddm.sockets import self_connected
 
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         s.connect(s.getsockname())  # a simultaneous open with itself
-        assert _self_connected(s)
+        assert self_connected(s)
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as srv:
         srv.bind(("127.0.0.1", 0))
         srv.listen(1)
         with socket.create_connection(srv.getsockname()) as c:
-            assert not _self_connected(c)
+            assert not self_connected(c)
