@@ -182,6 +182,11 @@ class Ddm(Worker):
         """This ddm's end of the link (wrapped by a fault harness's hooks),
         its links and accelerator, and the compiled path over it."""
         ld = self.ld
+        # what acts on this ddm from outside (the fault harness; none normally)
+        make = hooks.factory("ddm_hooks")
+        self.hooks = make(self.spec.node, self.kind) if make else None
+        if self.hooks is not None:
+            self.hooks.before_open()
         self.transport: Transport = self._given or open_transport(
             self.cfg,
             self.spec.session_id,
@@ -197,9 +202,6 @@ class Ddm(Worker):
         self.socket_steps = SocketSteps(self)
         self.greeted = self.kind == "esc"  # the SSC's hellos are not all answered yet
         self.shaken = False  # every local robot's handshake done (the usual step's test)
-        # what acts on this ddm from outside (the fault harness; none normally)
-        make = hooks.factory("ddm_hooks")
-        self.hooks = make(self.spec.node, self.kind) if make else None
         if self.hooks is not None:
             names = {g: r for r, g in self.gid.items()}
             self.transport = self.hooks.transport(self.transport, names)

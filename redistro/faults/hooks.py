@@ -11,12 +11,15 @@ the plant and the ddms then ask it for their part:
   ``plant.home-stuck-on`` / ``-off`` (every home switch of the robot stuck),
   ``plant.sensor-nan`` (the wrist receiver's calibration memory corrupted);
 - :func:`ddm_hooks`: a ddm's faults: its transport wrapped
-  (:mod:`redistro.faults.wire`), and ``ddm.command``, a bad command written
-  into an ESC's Local Data.
+  (:mod:`redistro.faults.wire`), ``ddm.command``, a bad command written
+  into an ESC's Local Data, and ``ddm.hold``: the ddm opens its link only
+  once the trigger exists (at most ``HOLD_MAX_S``; a node that comes late,
+  for a scenario that needs something to reach a peer before it).
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -26,6 +29,7 @@ from redistro.faults.wire import POINTS, InjectedTransport, Relay
 from redistro.localdata.layout import COMMAND
 
 STUCK = {"home-stuck-on": True, "home-stuck-off": False}
+HOLD_MAX_S = 5.0  # (within the node's start-up timeout)
 
 
 class PlantFaults:
@@ -78,6 +82,16 @@ class DdmFaults:
         self.node = node
         self.command_injection = inject.injection("ddm.command", node) if kind == "esc" else None
         self.wire = [inj for p in POINTS if (inj := inject.injection(p, node)) is not None]
+        self.hold = inject.injection("ddm.hold", node)
+
+    def before_open(self) -> None:
+        """Called before the ddm opens its link: with ``ddm.hold`` armed,
+        wait for the trigger (polled, to a deadline of ``HOLD_MAX_S``)."""
+        if self.hold is None:
+            return
+        deadline = time.monotonic() + HOLD_MAX_S
+        while not self.hold.live() and time.monotonic() < deadline:
+            time.sleep(inject.CHECK_EVERY_NS / 1e9)  # polling the trigger file
 
     def transport(self, transport: Any, names: dict[int, str]) -> Any:
         """The transport with the armed link and record faults around it
@@ -108,4 +122,5 @@ class DdmFaults:
 def ddm_hooks(node: str, kind: str) -> DdmFaults | None:
     """The ddm's armed points, or None."""
     hooks = DdmFaults(node, kind)
-    return hooks if hooks.command_injection is not None or hooks.wire else None
+    armed = hooks.command_injection is not None or hooks.wire or hooks.hold is not None
+    return hooks if armed else None

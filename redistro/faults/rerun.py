@@ -6,11 +6,13 @@ runs the drill's first segment while an eavesdropper records every record
 its SSC sends to r2 (the ``ddm.capture`` point); a second session with the
 same key file starts, and before its SSC comes up a client without the key
 connects to r2's ddm and sends the recording (the SSC's hello, then its
-commands). The second session must end ``ok``: r2's ddm answers the hello
-with a challenge the client cannot meet, refuses every recorded command
-(not signed with this run's key: counted ``forged``), gives the client's
-connection up, and takes its own SSC when it comes; no recorded command
-is ever admitted (the command latency would show run 1's stamps).
+commands; the session's SSC, started beside its ESCs, has its ddm held by
+``ddm.hold`` until the client is done). The second session must end
+``ok``: r2's ddm answers the hello with a challenge the client cannot
+meet, refuses every recorded command (not signed with this run's key:
+counted ``forged``), gives the client's connection up, and takes its own
+SSC when it comes; no recorded command is ever admitted (the command
+latency would show run 1's stamps).
 """
 
 from __future__ import annotations
@@ -114,17 +116,23 @@ def run_rerun_replay(
         "recorded_commands": kinds.count(wire.KIND_COMMAND),
     }
     # run 2, with the recording sent to r2's ddm before its own SSC comes
-    second = _session(keyed, task, out_dir / "run2")
+    release = out_dir / "hold.trigger"
+    env2 = os.environ.copy()
+    env2[ENV] = arm("ddm.hold", str(release), node="ssc")
+    env2[hooks.ENV] = "redistro.faults.hooks"
+    second = _session(keyed, task, out_dir / "run2", env2)
     assert second.stdout is not None
     deadline = time.monotonic() + SESSION_TIMEOUT_S
     sid = ""
     try:
         sid = session_id(second, deadline)
         row.update(_replay(esc_port(cfg, sid, "r2"), records, deadline, second))
+        release.touch()  # the SSC's ddm may connect now
         second.communicate(timeout=max(1.0, deadline - time.monotonic()))
     except (RedistroError, subprocess.TimeoutExpired) as exc:
         row["error"] = str(exc) or "the second session did not end in time"
     finally:
+        release.touch()
         if second.poll() is None:
             second.kill()
             second.communicate()

@@ -52,8 +52,6 @@ def run_nodes(
     budget_s: float | None = None,
     on_wait: Callable[[], None] | None = None,
     keep: frozenset[int] = frozenset(),
-    later: list[NodeSpec] | None = None,
-    later_ready: Callable[[], bool] | None = None,
     clock: Callable[[], float | None] | None = None,
     beside: Callable[[], bool] | None = None,
 ) -> list[NodeResult]:
@@ -67,9 +65,6 @@ def run_nodes(
     (start-up and shutdown time come on top); None: until they end (or their
     ``cycles`` run out). on_wait: called about five times a second while
     waiting. keep: pids of other children (the plant) not to reap here.
-    later, later_ready: nodes started only once ``later_ready()`` is true (the
-    SSC waits for every ESC's first feedback: the start-up datum); if that
-    does not happen within their start-up timeout, every node is stopped.
     clock: the task's own clock [s] (the simulated plant's time; None when it
     cannot be read): budget_s then counts on it, so a slow plant is not a
     fault, with a wall-clock backstop at MIN_CLOCK_RATE of real time.
@@ -81,7 +76,6 @@ def run_nodes(
     signals.become_subreaper()
     nodes: list[_Node] = []
     side = _Beside(beside)
-    all_specs = specs + list(later or [])
 
     def start(spec: NodeSpec) -> None:
         spec.owner_pid = os.getpid()
@@ -99,13 +93,12 @@ def run_nodes(
     try:
         for spec in specs:
             start(spec)
-        pending = _Later(list(later or []), later_ready, start)
-        _wait_nodes(nodes, budget_s, on_wait, pending, clock, side)
+        _wait_nodes(nodes, budget_s, on_wait, clock, side)
     finally:
         for n in nodes:
             os.close(n.pidfd)
         stragglers = reap_descendants(
-            max((s.shutdown_timeout_s for s in all_specs), default=3.0), keep=keep
+            max((s.shutdown_timeout_s for s in specs), default=3.0), keep=keep
         )
     results = []
     for n in nodes:
@@ -140,41 +133,6 @@ class _Beside:
             log.error("%s", exc)
             for n in nodes:
                 n.stop(str(exc), now)
-
-
-class _Later:
-    """Nodes waiting for a start-up datum."""
-
-    def __init__(
-        self,
-        specs: list[NodeSpec],
-        ready: Callable[[], bool] | None,
-        start: Callable[[NodeSpec], None],
-    ) -> None:
-        self.specs = specs
-        self.ready = ready
-        self.start = start
-        self.since = time.monotonic()
-        self.timeout_s = max((s.startup_timeout_s for s in specs), default=0.0)
-        self.failed = ""
-
-    def poll(self, now: float) -> bool:
-        """Start the waiting nodes when ready; False when they waited too long."""
-        if not self.specs:
-            return True
-        if self.ready is None or self.ready():
-            specs, self.specs = self.specs, []
-            for spec in specs:
-                self.start(spec)
-            return True
-        if now - self.since > self.timeout_s:
-            names = ", ".join(s.node for s in self.specs)
-            self.failed = (
-                f"{names} not started: the start-up datum did not come within {self.timeout_s:g} s"
-            )
-            self.specs = []
-            return False
-        return True
 
 
 class _Node:
@@ -352,7 +310,6 @@ def _wait_nodes(
     nodes: list[_Node],
     budget_s: float | None,
     on_wait: Callable[[], None] | None,
-    pending: _Later | None = None,
     clock: Callable[[], float | None] | None = None,
     side: _Beside | None = None,
 ) -> None:
@@ -372,7 +329,7 @@ def _wait_nodes(
     if raised:
         raised = sched.apply(OWNER_PRIORITY, None, "rr").policy == "SCHED_RR"
     try:
-        _wait_loop(nodes, budget, on_wait, pending, relay, side or _Beside(None))
+        _wait_loop(nodes, budget, on_wait, relay, side or _Beside(None))
     finally:
         relay.close()
         if raised:
@@ -383,14 +340,13 @@ def _wait_loop(
     nodes: list[_Node],
     budget: _Budget,
     on_wait: Callable[[], None] | None,
-    pending: _Later | None,
     relay: _Relay,
     side: _Beside,
 ) -> None:
     spent = False
     group_stop: tuple[float, str] | None = None  # (when, why): the fallback stop
     while any(n.status is None for n in nodes):
-        busy = (pending is not None and pending.specs) or group_stop is not None or not side.done
+        busy = group_stop is not None or not side.done
         timeout = 0.02 if busy else 0.2
         if relay.next_s is not None:
             timeout = max(0.0, min(timeout, relay.next_s - time.monotonic()))
@@ -400,12 +356,6 @@ def _wait_loop(
             relay.request(info.si_pid, now)  # a manager faulted: relay its e-stop
         relay.poll(now)
         _chore(side.poll, nodes, now)
-        if side.error is not None and pending is not None:
-            pending.specs = []  # (the SSC never starts beside a failed plant)
-        if pending is not None and not _chore(pending.poll, now):
-            log.error("%s", pending.failed)
-            for n in nodes:
-                n.stop(pending.failed, now)
         for n in nodes:
             if n.status is None:
                 pid, status = os.waitpid(n.pid, os.WNOHANG)

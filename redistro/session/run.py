@@ -27,7 +27,6 @@ from redistro.esc.plan import esc_spec
 from redistro.ipc import session as ipc_session
 from redistro.process.result import NodeResult
 from redistro.process.session_owner import run_nodes, write_json
-from redistro.process.spec import NodeSpec
 from redistro.session.preflight import positions_file, preflight, unknown_positions
 from redistro.session.progress import Progress, ddm_pace
 from redistro.session.summary import budget_s, build_summary, segment_line
@@ -87,30 +86,6 @@ def calibration_first(task: Task, robots: list[str]) -> Task:
         calibration=task.calibration,
         source=task.source,
     )
-
-
-def _esc_ready(session_id: str, nodes: list[str]) -> Callable[[], bool]:
-    """True once every ESC's acquisition has published its first feedback."""
-    from redistro.localdata.view import NodeView
-
-    seen: set[str] = set()
-
-    def ready() -> bool:
-        for node in nodes:
-            if node in seen:
-                continue
-            view = NodeView.open(session_id, node)
-            if view is None:
-                return False
-            with view:
-                try:
-                    if int(view.read("feedback", 0)["seq_src"]) > 0:
-                        seen.add(node)
-                except Exception:
-                    return False
-        return len(seen) == len(nodes)
-
-    return ready
 
 
 def _run_task(
@@ -190,7 +165,7 @@ def _run_group(
     say: Callable[[str], None],
 ) -> list[NodeResult]:
     """One group of robots' nodes run to their end: their ESCs, and for a
-    strategy task the SSC once every ESC has published its robot's state."""
+    strategy task the SSC beside them."""
     from redistro.ssc.plan import ssc_spec
 
     specs = [
@@ -200,17 +175,18 @@ def _run_group(
         )
         for r in group
     ]  # fmt: skip
-    later: list[NodeSpec] = []
     if task.kind == "strategy":
-        later = [ssc_spec(cfg, task, s.id, run_dir=str(run_dir), messages_path=messages)]
-        say(
-            f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz; "
-            f"ssc at {cfg.ssc.rate_hz:g} Hz once every ESC has published its "
-            f"robot's state; ddm {cfg.ddm.transport} {ddm_pace(cfg)}"
-        )
-    else:
-        say(f"starting {', '.join(sp.node for sp in specs)} at {cfg.esc.rate_hz:g} Hz")
-    progress = Progress(s.id, specs + later, say)
+        # the SSC starts beside the ESCs: its worker waits for every robot's
+        # first feedback (the start-up datum) before its task starts, its
+        # manager fails it as starving if that does not come within
+        # ddm.connect_timeout_s, and its ddm connects until then
+        specs.append(ssc_spec(cfg, task, s.id, run_dir=str(run_dir), messages_path=messages))
+    say(
+        f"starting {', '.join(sp.node for sp in specs)}: ESCs at {cfg.esc.rate_hz:g} Hz"
+        + (f", ssc at {cfg.ssc.rate_hz:g} Hz; ddm {cfg.ddm.transport} {ddm_pace(cfg)}"
+           if task.kind == "strategy" else "")
+    )  # fmt: skip
+    progress = Progress(s.id, specs, say)
     up = plant.up
 
     def plant_up() -> bool:
@@ -229,8 +205,6 @@ def _run_group(
             clock=plant.clock_s,
             on_wait=progress,
             keep=frozenset({plant.pid}),
-            later=later,
-            later_ready=_esc_ready(s.id, [sp.node for sp in specs]) if later else None,
             beside=plant_up,
         )
     finally:
