@@ -161,6 +161,7 @@ def _figures(
             "feedback_latency_us": (ssc.get("feedback_latency_us") or {}).get(r),
             "commands_sent": (ssc.get("sent") or {}).get(r, 0),
             "commands_taken": esc.get("taken", 0),
+            "commands_superseded": esc.get("superseded", 0),
             "feedback_taken": (ssc.get("taken") or {}).get(r, 0),
             "feedback_seen": (ssc.get("seen") or {}).get(r, 0),
             "answered_in_transport": esc.get("answered", 0),
@@ -175,6 +176,7 @@ def _figures(
     measured = ssc.get("measured_s") or 0.0
     sent = sum(v["commands_sent"] for v in per_robot.values())
     taken = sum(v["commands_taken"] for v in per_robot.values())
+    superseded = sum(v["commands_superseded"] for v in per_robot.values())
     lat = [v["command_latency_us"] for v in per_robot.values() if v["command_latency_us"]]
     fb = [v["feedback_latency_us"] for v in per_robot.values() if v["feedback_latency_us"]]
     esc_cpu = [v["cpu_percent"] for v in per_robot.values() if v["cpu_percent"] is not None]
@@ -202,7 +204,9 @@ def _figures(
         "feedback_per_s": round(sum(v["feedback_taken"] for v in per_robot.values()) / measured, 1)
         if measured
         else 0.0,
-        "lost_commands": max(0, sent - taken),
+        # (commands neither taken nor overwritten on a card by a newer one)
+        "lost_commands": max(0, sent - taken - superseded),
+        "superseded_commands": superseded,
         "dropped": sum(v["dropped"] for v in per_robot.values()),
         "ssc_answered_in_transport": ssc.get("answered", 0),
         "ssc_cpu_percent": ssc.get("cpu_percent"),
@@ -306,6 +310,9 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     if kind == "esc":
         out["command_latency_us"] = ddm.latency.summary_us()
         out["taken"] = int(ex[0]["updates"])
+        # commands a newer one overwrote on the card before this ddm read it
+        # (reflective memory keeps the latest record of each slot)
+        out["superseded"] = int(getattr(ddm.transport, "superseded", 0))
     # the records the ddm took whole in its transport's thread (zenoh's),
     # without a step of its own
     out["answered"] = ddm.answers.taken
@@ -566,7 +573,8 @@ def print_figures(out: dict[str, Any]) -> None:
     )
     print(
         f"  {out['commands_per_s']} commands/s, {out['feedback_per_s']} feedback/s; "
-        f"lost {out['lost_commands']}, dropped {out['dropped']}; CPU: SSC ddm "
+        f"lost {out['lost_commands']} (superseded {out['superseded_commands']}), "
+        f"dropped {out['dropped']}; CPU: SSC ddm "
         f"{out['ssc_cpu_percent']} %, ESC ddm up to {out['esc_cpu_percent_max']} % of a vCPU"
     )
     step = out.get("ssc_step_cpu_us") or {}

@@ -16,7 +16,9 @@ included. A node sends from a socket of its own that is not a member of the
 group, so its own writes do not come back to wake it; an authentic record
 of its own that a peer on another host sends back is not written again.
 Nobody blocks and nobody waits for anybody: a card always holds the latest
-record of each slot, whoever wrote it last. Each slot is seqlocked (a
+record of each slot, whoever wrote it last: a record overwritten before
+the ddm read it is lost to it, as on the real network, and counted
+(``superseded``). Each slot is seqlocked (a
 counter, odd while written) so a reader never takes a torn copy. Hellos
 (the handshake's records) have no slot: they are broadcast and handed over.
 """
@@ -100,6 +102,7 @@ class ReflectiveTransport(Transport):
         self.peers = list(peers or [])
         self.card = Card.create_new(KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
+        self.superseded = 0  # records overwritten on the card before a receive handed them over
         self.pending: list[bytes] = []  # written this step, not yet sent (flush)
         self.check: Callable[[bytes], bool] | None = None  # (links.verify_with)
         self.links = _Links(self)
@@ -194,6 +197,8 @@ class ReflectiveTransport(Transport):
                 if 1 <= kind <= KINDS and robot < MAX_ROBOTS:
                     slot = self._slot(rec, robot)
                     self._write_card(slot, rec)
+                    if slot in written:
+                        self.superseded += 1  # (a node that fell behind reads the latest)
                     written[slot] = (kind, robot)
                 else:
                     out.append(rec)  # a hello

@@ -83,19 +83,11 @@ def _replay(port: int, records: bytes, until: float, proc: subprocess.Popen[str]
     return out
 
 
-def run_rerun_replay(
-    sc: Scenario, out_dir: Path, cfg: Config, args: list[str], task: str
-) -> dict[str, Any]:
-    from redistro.ddm import record as wire
-    from redistro.ddm.sockets import esc_port
-    from redistro.errors import RedistroError
+def _record_run1(out_dir: Path, keyed: list[str], task: str) -> bytes:
+    """Run 1, with every record its SSC sends to r2 recorded (``ddm.capture``)."""
     from redistro.faults.inject import ENV, arm
     from redistro.process import hooks
 
-    key = out_dir / "link.key"
-    wire.new_key(key)
-    keyed = [*args, "--set", f"ddm.key_file={key}", "--set", "ddm.transport=socket"]
-    # run 1, recorded
     trigger = out_dir / "capture.trigger"
     trigger.touch()  # recording from the start
     env = os.environ.copy()
@@ -109,7 +101,22 @@ def run_rerun_replay(
             first.kill()
             first.communicate()
     recording = Path(f"{trigger}.records")
-    records = recording.read_bytes() if recording.exists() else b""
+    return recording.read_bytes() if recording.exists() else b""
+
+
+def run_rerun_replay(
+    sc: Scenario, out_dir: Path, cfg: Config, args: list[str], task: str
+) -> dict[str, Any]:
+    from redistro.ddm import record as wire
+    from redistro.ddm.sockets import esc_port
+    from redistro.errors import RedistroError
+    from redistro.faults.inject import ENV, arm
+    from redistro.process import hooks
+
+    key = out_dir / "link.key"
+    wire.new_key(key)
+    keyed = [*args, "--set", f"ddm.key_file={key}", "--set", "ddm.transport=socket"]
+    records = _record_run1(out_dir, keyed, task)
     kinds = [records[i + 6] for i in range(0, len(records) - wire.SIZE + 1, wire.SIZE)]
     row: dict[str, Any] = {
         "recorded_hellos": kinds.count(wire.KIND_HELLO),
