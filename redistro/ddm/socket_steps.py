@@ -25,18 +25,20 @@ class SocketSteps:
     step is the hot path: its call is bound once, with its plans and the
     receive buffer, and the object keeps its few fields in slots.)"""
 
-    __slots__ = ("accel", "call", "d", "generation")
+    __slots__ = ("accel", "call", "d", "generation", "reply_fd")
 
     def __init__(self, ddm: Ddm) -> None:
         self.d = ddm
         self.accel: Accelerator = NO_ACCELERATOR  # (bind)
         self.generation = -1  # the transport's peers the send fds are for
         self.call: Any = None  # ddm_reply(fd), bound (bind)
+        self.reply_fd: Any = None  # the accelerator's reply_fd, bound (bind)
 
     def bind(self, kpath: KernelPath, accel: Accelerator) -> None:
         """ddm_reply bound to the kernel path's plans and the socket's
         receive buffer (both made once), for :meth:`reply`."""
         self.accel = accel
+        self.reply_fd = accel.reply_fd
         self.call = functools.partial(
             kpath.reply_call, kpath.admit_plan, kpath.emit_plan, kpath.send_plan, accel.rx
         )
@@ -47,13 +49,10 @@ class SocketSteps:
         exchange counted, the starving index paid back, the latency taken by
         the kernel). Else the general path takes the step on, with what the
         call received."""
-        accel = self.accel
-        fd = accel.reply_fd(self.d.ready_fds)
+        fd = self.reply_fd(self.d.ready_fds)
         if fd < 0:
             return False
-        if accel.generation != self.generation:
-            self.refresh_fds()
-        got = self.call(fd)
+        got = self.call(fd)  # (the reply goes back on fd: no send fds to refresh)
         if got == REPLIED:
             self.d.dirty = True
             return True

@@ -333,7 +333,8 @@ static PyObject *ddm_send(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
 
 /* ddm_reply(admit_plan, emit_plan, send_plan, rx, fd) -> int: ddm_recv,
  * and when every record received was admitted, ddm_emit and ddm_send (the
- * node's new feedback sealed and sent back, row 0). Returns what recv
+ * node's new feedback sealed and sent back on fd, the socket the command
+ * came on: the send plan's row 0 is set to it). Returns what recv
  * returned (bytes, 0 closed, -errno), or DDM_REPLIED (2^40, not a byte
  * count) when the step was done whole (every record admitted, the reply
  * sent or none new). The send plan's reply record holds the emit's mask
@@ -357,6 +358,7 @@ static PyObject *ddm_reply(PyObject *mod, PyObject *const *args, Py_ssize_t narg
         PyObject_GetBuffer(args[3], &b, PyBUF_WRITABLE) < 0)
         return NULL;
     int64_t *reply = I64(sp, DS_REPLY);
+    I64(sp, DS_FDS)[0] = fd;
     reply[DDM_SEND_REPLY_EMITTED] = -2;
     reply[DDM_SEND_REPLY_TROUBLE] = 0;
     ssize_t got = recv(fd, b.buf, (size_t)b.len, MSG_DONTWAIT);

@@ -289,7 +289,9 @@ class Ddm(Worker):
         return max(1, (quiet * period + period // 2 - phase) // 1_000_000) / 1e3
 
     def step(self, cycle: int) -> None:
-        if self.answers.on:
+        if self.replies_in_kernel:  # (the usual ESC over sockets: nobody else answers)
+            self._step(cycle)
+        elif self.answers.on:
             with self.answers.lock:  # (zenoh's thread may be answering)
                 self._step(cycle)
         else:
