@@ -187,14 +187,9 @@ class Ddm(Worker):
         self.hooks = make(self.spec.node, self.kind) if make else None
         if self.hooks is not None:
             self.hooks.before_open()
+        s = self.spec
         self.transport: Transport = self._given or open_transport(
-            self.cfg,
-            self.spec.session_id,
-            link_id(self.spec),
-            self.spec.node,
-            self.kind,
-            self.robots,
-            self.link_key,
+            self.cfg, s.session_id, link_id(s), s.node, self.kind, self.robots, self.link_key
         )
         self.refused_seen = 0
         self.greeting = Greeting(self)
@@ -289,9 +284,8 @@ class Ddm(Worker):
         return max(1, (quiet * period + period // 2 - phase) // 1_000_000) / 1e3
 
     def step(self, cycle: int) -> None:
-        if self.replies_in_kernel:  # (the usual ESC over sockets: nobody else answers)
-            self._step(cycle)
-        elif self.answers.on:
+        # (the usual ESC over sockets is tested first: nobody else answers)
+        if not self.replies_in_kernel and self.answers.on:
             with self.answers.lock:  # (zenoh's thread may be answering)
                 self._step(cycle)
         else:

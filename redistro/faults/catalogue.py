@@ -30,7 +30,8 @@ detecting node; ``guard``: 2 cycles, the check before a command; ``heartbeat``:
 the heartbeat limit; ``starving``: the starving limit; ``io``: the I/O
 timeout; ``""``: no bound, physics decides), every robot frozen, nothing left.
 ``count``: for a fault the controller must ride out, the counter (in the
-summary) that must show it refused the bad data.
+summary) that must show it refused the bad data. ``apart``: the plant's
+truth (``summary.plant.arms``) must show that the arms never touched.
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ class Scenario:
     sets: tuple[str, ...] = ()
     count: str = ""
     what: str = ""  # one line: the fault, for the table
+    apart: bool = False  # the plant's truth must show the arms never touched
 
 
 def _process_scenarios() -> list[Scenario]:
@@ -204,6 +206,10 @@ def _other_scenarios() -> list[Scenario]:
                  count="forged_writes",
                  what="r2's joint-1 brake-release writes recorded on the CAN bus, sent again "
                       "for 1 s once the driver's sequence moved on 70 000 writes"),
+        Scenario("arms-collide", "inject", "ssc", "worker", "ssc.collide", ("estop",),
+                 "apart", "", apart=True,
+                 what="a command override in the SSC steers the holding r1 into r2 (past "
+                      "the task's load check): the group frozen with the arms apart"),
         Scenario("replay-earlier-run", "rerun", "esc.r2", "ddm", "rerun", ("ok",), "", "",
                  count="forged",
                  what="a session's hello and commands to r2, recorded, sent to r2's ddm in a "

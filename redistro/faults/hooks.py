@@ -14,7 +14,11 @@ the plant and the ddms then ask it for their part:
   (:mod:`redistro.faults.wire`), ``ddm.command``, a bad command written
   into an ESC's Local Data, and ``ddm.hold``: the ddm opens its link only
   once the trigger exists (at most ``HOLD_MAX_S``; a node that comes late,
-  for a scenario that needs something to reach a peer before it).
+  for a scenario that needs something to reach a peer before it);
+- :func:`ssc_hooks`: ``ssc.collide``, a command override in the SSC: from
+  the trigger on, the holding robot (r1) is steered at ``COLLIDE_RAD_S``
+  toward ``INTO_R2``, a posture that swings it into r2 (past the task's
+  load check: nothing in the task asks for it).
 """
 
 from __future__ import annotations
@@ -124,3 +128,30 @@ def ddm_hooks(node: str, kind: str) -> DdmFaults | None:
     hooks = DdmFaults(node, kind)
     armed = hooks.command_injection is not None or hooks.wire or hooks.hold is not None
     return hooks if armed else None
+
+
+COLLIDE_RAD_S = 0.4  # the override's joint speed (under the guard's limits)
+INTO_R2 = np.array([-1.5708, 1.3, 0.0, -0.4, 0.0, 0.3, 0.0])  # r1 reaching into r2
+
+
+class SscFaults:
+    """The SSC's armed point: a holding robot steered into the other."""
+
+    def __init__(self, injection: inject.Injection) -> None:
+        self.injection = injection
+
+    def steer(self, states: list[Any], dt: float) -> None:
+        """Before the cycle's laws: move the holding robot's hold posture
+        toward INTO_R2, at most COLLIDE_RAD_S per joint."""
+        if not self.injection.live():
+            return
+        step = COLLIDE_RAD_S * dt
+        for st in states:
+            if st.name == "r1":
+                st.hold_q[...] += np.clip(INTO_R2 - st.hold_q, -step, step)
+
+
+def ssc_hooks(node: str) -> SscFaults | None:
+    """The SSC's armed point, or None."""
+    inj = inject.injection("ssc.collide", node)
+    return None if inj is None else SscFaults(inj)

@@ -391,6 +391,10 @@ def _verdict(
     row["positions_valid"] = valid == ["r1", "r2"]
     if sc.count:
         row["count"] = {sc.count: count_of(summary, sc.count)}
+    if sc.apart:  # the plant's truth
+        arms = summary.get("plant", {}).get("arms") or {}
+        row["arms_touched"] = arms.get("touched", True)
+        row["arms_min_distance_m"] = arms.get("min_distance_m")
     row["passed"] = _passed(sc, got, row)
     return row
 
@@ -408,6 +412,7 @@ def _passed(sc: Scenario, got: str, row: dict[str, Any]) -> bool:
         and (not fault_expected or (sc.node == "plant" and sc.kind == "process")
              or row.get("all_frozen"))
         and (not sc.count or row["count"][sc.count] > 0)
+        and (not sc.apart or row.get("arms_touched") is False)
         and row["processes_left"] == 0
         and not row["ipc_left"]
     )  # fmt: skip

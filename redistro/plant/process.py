@@ -33,6 +33,7 @@ from redistro.drivers.io.shm import ShmPort
 from redistro.ipc import signals
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
+from redistro.plant.truth import ArmsTruth
 from redistro.process import hooks
 
 log = logging.getLogger(__name__)
@@ -225,8 +226,9 @@ def _loop(
     gc.freeze()
     gc.disable()  # no collector pauses inside steps: a step allocates little
     io = (read_outputs, publish_truth, publish_boards)
+    arms = ArmsTruth(chassis.world)
     while True:
-        _step(chassis, io, whole, physics)
+        _step(chassis, io, whole, physics, arms)
         now = monotonic_ns()
         if disturbance is not None:
             disturbance.on_boards(now)  # this step's disturbance is on the boards
@@ -250,7 +252,7 @@ def _loop(
                 skipped, next_ns = skipped + int(behind), now
         port.service(next_ns)
     gc.enable()
-    counts = {"late_steps": late, "skipped_steps": skipped}
+    counts = {"late_steps": late, "skipped_steps": skipped, "arms": arms.report()}
     return _result(
         chassis,
         port,
@@ -267,11 +269,14 @@ def _loop(
     )
 
 
-def _step(chassis: Any, io: tuple[Any, Any, Any], whole: Any, physics: Any) -> None:
+def _step(
+    chassis: Any, io: tuple[Any, Any, Any], whole: Any, physics: Any, arms: ArmsTruth
+) -> None:
     """One step: the controller's outputs applied, PyBullet's step, the
     joints sampled into the boards, the truth then the boards published
     (a reader that sees a board sample can find the truth of the same
-    step); its CPU time, and PyBullet's part, timed."""
+    step), the arms' contacts looked at; its CPU time, and PyBullet's
+    part, timed."""
     read_outputs, publish_truth, publish_boards = io
     cpu_ns = time.thread_time_ns
     c0 = cpu_ns()
@@ -284,6 +289,7 @@ def _step(chassis: Any, io: tuple[Any, Any, Any], whole: Any, physics: Any) -> N
     chassis.fill_truth()
     publish_truth()
     publish_boards()
+    arms.sample(chassis.step_count)
     whole.add(cpu_ns() - c0)
     physics.add(ph1 - ph0)
 
@@ -316,7 +322,7 @@ def _result(
     cpu0: float,
     dt_ns: int,
     physics_hz: float,
-    counts: dict[str, int],
+    counts: dict[str, Any],
     gap: tuple[int, int],
     whole: Any,
     physics: Any,

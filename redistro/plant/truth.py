@@ -1,7 +1,8 @@
-"""Where the plant's hole really is: the work-cell's drawn pose
-(``workcell.hole``) moved by ``plant.hole``'s fixed offset and its random
-draw. Only the plant and the tools that judge a run (the peg campaign, the
-summary) use this; controller nodes never get ``plant.hole``.
+"""The plant's truth: where the hole really is (the work-cell's drawn pose,
+``workcell.hole``, moved by ``plant.hole``'s fixed offset and its random
+draw), and whether the arms touched (:class:`ArmsTruth`). Only the plant
+and the tools that judge a run (the peg campaign, the summary, the fault
+harness) use this; controller nodes never get ``plant.hole``.
 """
 
 from __future__ import annotations
@@ -116,3 +117,44 @@ def placement_problem(cfg: Config) -> str:
                 f"y {-hy:.2f}..{hy:.2f} m)"
             )
     return ""
+
+
+class ArmsTruth:
+    """Did two arms touch, and how near did they come? PyBullet's own
+    view, sampled in the plant's loop: every ``TOUCH_EVERY`` steps the
+    contacts of the last step between each two arms (touching: a contact
+    at distance <= 0), every ``NEAR_EVERY`` steps their closest points
+    within ``NEAR_M``."""
+
+    TOUCH_EVERY = 8
+    NEAR_EVERY = 64
+    NEAR_M = 0.3
+
+    def __init__(self, world: Any) -> None:
+        self.pb, self.cid = world.pb, world.client
+        bodies = [(name, arm.body) for name, arm in world.arms.items()]
+        self.pairs = [(a, b) for i, a in enumerate(bodies) for b in bodies[i + 1 :]]
+        self.min_m = math.inf  # the least distance seen (inf: never within NEAR_M)
+        self.touched_step = 0  # the first step at which two arms touched (0: never)
+
+    def sample(self, step: int) -> None:
+        if step % self.TOUCH_EVERY:
+            return
+        pb, cid = self.pb, self.cid
+        near = not step % self.NEAR_EVERY
+        for (_, a), (_, b) in self.pairs:
+            points = pb.getContactPoints(a, b, physicsClientId=cid)
+            if near:
+                points = points + pb.getClosestPoints(a, b, self.NEAR_M, physicsClientId=cid)
+            for p in points:
+                d = float(p[8])  # contactDistance [m] (negative: through each other)
+                self.min_m = min(self.min_m, d)
+                if d <= 0.0 and not self.touched_step:
+                    self.touched_step = step
+
+    def report(self) -> dict[str, Any]:
+        return {
+            "min_distance_m": round(self.min_m, 4) if math.isfinite(self.min_m) else None,
+            "touched": bool(self.touched_step),
+            "touched_at_step": self.touched_step,
+        }

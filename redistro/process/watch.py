@@ -169,7 +169,9 @@ class WorkerWatch:
         self.raise_estop(snaps)
 
     def estop_text(self, name: str) -> str:
-        """Why a worker asked for an e-stop: the node it came from, when a ddm says."""
+        """Why a worker asked for an e-stop: the node it came from, when a
+        ddm says; else what the worker said last as an error (its message
+        box drained first: it posts why before it asks)."""
         assert self.ld is not None
         for r in range(len(self.spec.robots)):
             with contextlib.suppress(Exception):
@@ -177,7 +179,9 @@ class WorkerWatch:
                 if ex["estop_in"]:
                     src = bytes(ex["estop_source"]).decode(errors="replace")
                     return f"e-stop from {src} (through {name})"
-        return f"e-stop requested by {name}"
+        self.drain_messages()
+        said = self.last_error.get(name)
+        return f"e-stop requested by {name}: {said}" if said else f"e-stop requested by {name}"
 
     # -- message boxes --
 

@@ -232,6 +232,7 @@ def build_summary(
             "freezes",
             "watchdog_trips",
             "hole",
+            "arms",
         )
         if k in plant
     }

@@ -46,8 +46,10 @@ from redistro.control.search import Phase, SpiralSearch
 from redistro.control.trajectory import QuinticRef
 from redistro.localdata.block import Record
 from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
+from redistro.process import hooks
 from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
+from redistro.ssc.clearance import TRIP_M, ClearanceWatch
 from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
 from redistro.ssc.search_steps import steer
 
@@ -243,6 +245,12 @@ class SscWorker(Worker):
         self.failed = ""  # why the task could not be done (a search found no hole)
         self.retreat_end_t = 0.0  # when the failed task's lift is over
         self.produced = 0
+        # the arms' clearance, in every cycle (ssc/clearance.py), and what
+        # acts on this worker from outside (the fault harness; none normally)
+        self.watch = ClearanceWatch(cfg, self.robots, 1.0 / cfg.ssc.rate_hz) if n >= 2 else None
+        self.qs = [st.views["q"] for st in self.states]
+        make = hooks.factory("ssc_hooks")
+        self.hooks = make(self.spec.node) if make else None
 
     # -- the cycle --
 
@@ -263,6 +271,10 @@ class SscWorker(Worker):
         t = (step_now - self.t0_step) / self.physics_hz
         dt = max(0.0, t - self.last_t)
         self.last_t = t
+        if self.watch is not None and not self.estop_request:
+            self._clearance(t)
+        if self.hooks is not None:
+            self.hooks.steer(self.states, dt)
         self._advance(t)
         seg_t = t - self.seg_start_t
         law_t = t - self.law_start_t
@@ -298,6 +310,21 @@ class SscWorker(Worker):
             c["session_status"] = status
             self.cmd_blocks[i].publish(c.bytes)
         self.wake_ddm()
+
+    def _clearance(self, t: float) -> None:
+        """Ask for the group's e-stop when two measured arms come within
+        TRIP_M of each other (before their links touch)."""
+        assert self.watch is not None
+        hit = self.watch.check(self.qs, t)
+        if hit is None:
+            return
+        self.estop_request = True
+        self.post(
+            f"{hit.links[0]} and {hit.links[1]} {hit.distance_m * 100:.1f} cm apart at "
+            f"t={t:.2f} s, {max(hit.ahead_m, 0.0) * 100:.1f} cm once stopped at the speed "
+            f"they close (under {TRIP_M * 100:g} cm): e-stop",
+            logging.ERROR,
+        )
 
     # -- task planning --
 
