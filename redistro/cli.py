@@ -152,6 +152,15 @@ def _parser() -> argparse.ArgumentParser:
     kb.add_argument("--calls", type=int, default=5000, help="calls timed per piece")
     kb.add_argument("--json", dest="json_path", default=None, help="write the figures here")
 
+    cl = bsub.add_parser(
+        "clearance",
+        help="the SSC's arm-to-arm watch: CPU per cycle, arms at rest and one swinging in",
+        parents=[common],
+    )
+    cl.add_argument("--rate", type=float, default=None, help="cycles per second (ssc.rate_hz)")
+    cl.add_argument("--seconds", type=float, default=10.0, help="the arms at rest this long")
+    cl.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+
     pl = sub.add_parser("plant", help="run the simulated plant alone", parents=[common])
     pl.add_argument("--gui", action="store_true", help="open the PyBullet window")
     pl.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")

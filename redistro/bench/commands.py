@@ -31,6 +31,8 @@ def run_bench(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
         return _bench_kernels(args, cfg)
     if args.bench == "ddm":
         return _bench_ddm(args, cfg)
+    if args.bench == "clearance":
+        return _bench_clearance(args, cfg)
     raise ConfigError(f"bench {args.bench}: no such benchmark")
 
 
@@ -184,6 +186,28 @@ def _bench_kernels(args: argparse.Namespace, cfg: Any) -> int:
     _writable("--json", args.json_path)
     out = kernels.run(cfg, args.calls)
     kernels.print_figures(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    return 0
+
+
+def _bench_clearance(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from redistro.bench import clearance
+    from redistro.process.session_owner import write_json
+
+    rate = args.rate if args.rate is not None else cfg.ssc.rate_hz
+    if not 1 <= rate <= 10_000:
+        raise ConfigError(f"--rate {rate:g}: expected 1-10000 Hz")
+    if not 0 < args.seconds <= 600:
+        raise ConfigError(f"--seconds {args.seconds:g}: expected more than 0, at most 600")
+    if not {"r1", "r2"} <= set(cfg.robots):
+        raise ConfigError(f"{cfg.source}: bench clearance needs robots r1 and r2")
+    _writable("--json", args.json_path)
+    out = clearance.run(cfg, rate, args.seconds)
+    clearance.print_figures(out)
     if args.json_path:
         write_json(Path(args.json_path), out)
         print(f"wrote {args.json_path}")

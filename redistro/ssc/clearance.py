@@ -23,7 +23,9 @@ the joints before it of the joint's limit times the link's reach from
 that joint. A pair measured ``d`` apart at ``t`` therefore stays over
 ``TRIP_M`` until ``t + (d - TRIP_M) / v``, and each cycle measures (GJK on
 the hulls) only the pairs due before the next one: all of them in the
-first cycle, then the near ones often and the far ones seldom.
+first cycle, then the near ones often and the far ones seldom. Each pair
+comes due early by its own fraction (``EARLY``, spread over the pairs), so
+the pairs measured together at the start do not stay due together.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ MIN_CLEARANCE_M = 0.03
 TRIP_M = 0.01  # in a cycle: closer than this, the group is e-stopped
 GJK_GAP_M = 1e-5  # a measured distance is within this of the true one
 ALL_AT = 16  # more pairs due than this: every pair measured in one call
+EARLY = 0.5  # a pair comes due early by up to this share of its time
 STOP_S = 0.03  # a sample's age, the e-stop's way to the robots and their brakes [s]
 RATE_S = 0.05  # a pair measured again within this: its closing speed is known [s]
 STEP_RAD = 0.0125  # joint-space sampling (a point 0.8 m out moves 1 cm)
@@ -239,6 +242,9 @@ class ClearanceWatch:
         # touches a few)
         self.v = [speed[p.first] + speed[p.second] + 1e-9 for p in pairs]
         n = len(pairs)
+        # each pair's share of its time to come due, early by 0-EARLY
+        # (spread by the golden ratio: never late, and not all at once)
+        self.share = [1.0 - EARLY * ((k * 0.6180339887) % 1.0) for k in range(n)]
         self.d = [math.inf] * n
         self.at = [-math.inf] * n
         self.due = np.full(n, -np.inf)  # when each must be measured again (task time) [s]
@@ -263,7 +269,7 @@ class ClearanceWatch:
         for sl, q in zip(self.slices, qs, strict=True):
             g.q[sl] = q
         pin.updateGeometryPlacements(g.model, g.data, g.geom, g.gdata, g.q)
-        d, at, v, when = self.d, self.at, self.v, self.due
+        d, at, v, when, share = self.d, self.at, self.v, self.due, self.share
         results = None
         if due.size > ALL_AT:  # (the first cycle: every pair, in one call)
             pin.computeDistances(g.geom, g.gdata)
@@ -273,7 +279,7 @@ class ClearanceWatch:
             res = results[k] if results is not None else pin.computeDistance(g.geom, g.gdata, k)
             now, before, since = res.min_distance, d[k], t - at[k]
             d[k], at[k] = now, t
-            when[k] = t + (now - TRIP_M) / v[k] - self.period
+            when[k] = t + share[k] * (now - TRIP_M) / v[k] - self.period
             nearest = min(nearest, now)
             # where it will be once the group has stopped, closing as it
             # did since it was last measured (if lately: a near pair)
