@@ -154,7 +154,7 @@ def _parser() -> argparse.ArgumentParser:
 
     cl = bsub.add_parser(
         "clearance",
-        help="the SSC's arm-to-arm watch: CPU per cycle, arms at rest and one swinging in",
+        help="the SSC's clearance watch: CPU per cycle, arms at rest and one swinging in",
         parents=[common],
     )
     cl.add_argument("--rate", type=float, default=None, help="cycles per second (ssc.rate_hz)")

@@ -1,7 +1,7 @@
-"""``redistro bench clearance``: the SSC's arm-to-arm watch, CPU per cycle.
+"""``redistro bench clearance``: the SSC's clearance watch, CPU per cycle.
 
-The watch (:class:`redistro.ssc.clearance.ClearanceWatch`, both arms of the
-config) is fed postures as the SSC feeds it measured ones, at the SSC's
+The watch (:class:`redistro.ssc.clearance.ClearanceWatch`: both arms of the
+config and the work-cell) is fed postures as the SSC feeds it measured ones, at the SSC's
 rate, and each call is timed with ``thread_time``:
 
 - ``rest``: both arms at their configured postures, ``seconds`` long;
@@ -82,7 +82,7 @@ def run(cfg: Config, rate_hz: float, seconds: float) -> dict[str, Any]:
 
 
 def print_figures(f: dict[str, Any], out: Any = sys.stdout) -> None:
-    print(f"bench clearance: the SSC's arm-to-arm watch at {f['rate_hz']:g} Hz", file=out)
+    print(f"bench clearance: the SSC's clearance watch at {f['rate_hz']:g} Hz", file=out)
     for case in ("rest", "approach"):
         r = f[case]
         c = r["cpu_us"]

@@ -471,6 +471,12 @@ class PegConfig:
     mass_kg: float = field(default=0.1, metadata={"gt": 0, "le": 5})
 
 
+# The work-cell's drawing around the hole (both the controller's belief,
+# from workcell.hole, and the plant's build, where plant.hole moves it)
+FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
+TABLE_HALF_XY_M = (0.3, 0.6)  # the table's half extents; centred at (hole x, 0)
+
+
 @dataclass(frozen=True)
 class WorkcellConfig:
     """The work-cell as the controller knows it (the paper's Work-cell

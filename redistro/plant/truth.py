@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config.model import Config
+from redistro.config.model import FIXTURE_FLOOR_M, TABLE_HALF_XY_M, Config
 
 
 @dataclass(frozen=True)
@@ -88,8 +88,6 @@ def hole_pose(cfg: Config) -> HolePose:
     )
 
 
-FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
-TABLE_HALF_XY_M = (0.3, 0.6)  # the table's half extents; centred at (hole x, 0)
 BASE_RADIUS_M = 0.12  # an arm's base link, as a cylinder about its axis
 
 

@@ -473,12 +473,8 @@ def _box(
 def build_table_and_fixture(w: World) -> list[int]:
     """The table, and on it the fixture as drawn (``workcell.hole``) but
     where the plant's truth puts it (``plant.hole``: offset, yaw, tilt)."""
-    from redistro.plant.truth import (
-        FIXTURE_FLOOR_M,
-        TABLE_HALF_XY_M,
-        hole_pose,
-        placement_problem,
-    )
+    from redistro.config.model import FIXTURE_FLOOR_M, TABLE_HALF_XY_M
+    from redistro.plant.truth import hole_pose, placement_problem
 
     hole = w.cfg.workcell.hole
     peg = w.cfg.workcell.peg

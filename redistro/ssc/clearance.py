@@ -7,7 +7,9 @@ the one before (:mod:`redistro.ssc.reach`), while every other robot holds
 where it is. At each sample the arms' collision geometry (each link's mesh
 from the URDF, through Pinocchio's geometry model, as its convex hull:
 coal's GJK) must keep every link of one arm at least ``MIN_CLEARANCE_M``
-from every link of another. The first sample closer than that is refused
+from every link of another, and every link but the tool from the fixed
+work-cell as drawn (the table, the fixture's block: the task puts the tool
+into the fixture). The first sample closer than that is refused
 with the segment, the time and the two links named.
 
 Samples: one per ``STEP_RAD`` of the largest joint's travel (a Cartesian
@@ -54,7 +56,7 @@ STEP_M = 0.01  # Cartesian sampling (the TCP's path)
 
 @dataclass
 class Closest:
-    """The closest two links of two arms at one configuration."""
+    """The closest pair (two arms' links, or a link and the work-cell) at one configuration."""
 
     distance_m: float
     links: tuple[str, str]  # "r1 lbr_iiwa_link_5", "r2 lbr_iiwa_link_6"
@@ -63,7 +65,8 @@ class Closest:
 
 class GroupGeometry:
     """The robots' collision geometry in one Pinocchio model (each arm at
-    its base), with every pair of links of two different arms to measure."""
+    its base) and the work-cell's boxes, with the pairs to measure: every
+    two links of two different arms, every link and a work-cell box."""
 
     def __init__(self, cfg: Config, robots: list[str]) -> None:
         import coal
@@ -96,10 +99,15 @@ class GroupGeometry:
         for go in geom.geometryObjects:  # GJK on the meshes' hulls, not their trees
             if hasattr(go.geometry, "vertices"):
                 go.geometry = _hull(coal, go.geometry)
-        owner = [go.name.split(" ", 1)[0] for go in geom.geometryObjects]
+        for name, half, centre in workcell_boxes(cfg):
+            box = coal.Box(*(2 * np.asarray(half)))
+            where = pin.SE3(np.eye(3), np.asarray(centre, dtype=np.float64))
+            geom.addGeometryObject(pin.GeometryObject(f"workcell {name}", 0, 0, where, box))
+        objs = [go.name for go in geom.geometryObjects]
+        owner = [n.split(" ", 1)[0] for n in objs]
         for i in range(len(owner)):
             for j in range(i + 1, len(owner)):
-                if owner[i] != owner[j]:
+                if owner[i] != owner[j] and not _meant_to_touch(objs[i], objs[j]):
                     geom.addCollisionPair(pin.CollisionPair(i, j))
         self.model, self.geom = model, geom
         self.data = model.createData()
@@ -174,9 +182,10 @@ def _joint_path(q0: np.ndarray, q1: np.ndarray) -> list[np.ndarray]:
 
 
 def clearance_problems(cfg: Config, task: Task, start_q: dict[str, list[float]]) -> list[str]:
-    """One line for the first sample of the task's motion where two arms
-    come closer than MIN_CLEARANCE_M (empty: they keep apart)."""
-    if task.kind != "strategy" or len(task.robots) < 2:
+    """One line for the first sample of the task's motion where an arm comes
+    closer than MIN_CLEARANCE_M to another or to the work-cell (empty: they
+    keep apart)."""
+    if task.kind != "strategy":
         return []
     from redistro.config.limits import joint_limits
     from redistro.ssc.plan import segment_plans
@@ -213,6 +222,30 @@ def clearance_problems(cfg: Config, task: Task, start_q: dict[str, list[float]])
         if path:
             q[r] = path[-1]
     return []
+
+
+def workcell_boxes(cfg: Config) -> list[tuple[str, list[float], list[float]]]:
+    """The fixed work-cell as drawn (``workcell.hole``; the plant builds the
+    same drawing where ``plant.hole`` moves it): (name, half extents,
+    centre) of the table and of the fixture's outer block [m]."""
+    from redistro.config.model import FIXTURE_FLOOR_M, TABLE_HALF_XY_M
+
+    hole, peg = cfg.workcell.hole, cfg.workcell.peg
+    x, y, top = (float(v) for v in hole.xyz_m)
+    table_top = top - hole.depth_m - FIXTURE_FLOOR_M
+    outer = (peg.side_m + hole.clearance_m) / 2 + hole.wall_m
+    block = (hole.depth_m + FIXTURE_FLOOR_M) / 2
+    return [
+        ("table", [*TABLE_HALF_XY_M, table_top / 2], [x, 0.0, table_top / 2]),
+        ("fixture", [outer, outer, block], [x, y, top - block]),
+    ]
+
+
+def _meant_to_touch(a: str, b: str) -> bool:
+    """A tool and the work-cell: a task puts the peg into the fixture, its
+    tip 1 cm over the table at the bottom (a tool's contacts there are the
+    force law's and the guard's, which limits the wrist's force)."""
+    return a.endswith(" tool") and b.startswith("workcell ")
 
 
 def _hull(coal: Any, mesh: Any) -> Any:

@@ -247,7 +247,7 @@ class SscWorker(Worker):
         self.produced = 0
         # the arms' clearance, in every cycle (ssc/clearance.py), and what
         # acts on this worker from outside (the fault harness; none normally)
-        self.watch = ClearanceWatch(cfg, self.robots, 1.0 / cfg.ssc.rate_hz) if n >= 2 else None
+        self.watch = ClearanceWatch(cfg, self.robots, 1.0 / cfg.ssc.rate_hz)
         self.qs = [st.views["q"] for st in self.states]
         make = hooks.factory("ssc_hooks")
         self.hooks = make(self.spec.node) if make else None
@@ -271,7 +271,7 @@ class SscWorker(Worker):
         t = (step_now - self.t0_step) / self.physics_hz
         dt = max(0.0, t - self.last_t)
         self.last_t = t
-        if self.watch is not None and not self.estop_request:
+        if not self.estop_request:
             self._clearance(t)
         if self.hooks is not None:
             self.hooks.steer(self.states, dt)
@@ -312,9 +312,8 @@ class SscWorker(Worker):
         self.wake_ddm()
 
     def _clearance(self, t: float) -> None:
-        """Ask for the group's e-stop when two measured arms come within
-        TRIP_M of each other (before their links touch)."""
-        assert self.watch is not None
+        """Ask for the group's e-stop when a measured arm comes within TRIP_M
+        of another or of the work-cell (before they touch)."""
         hit = self.watch.check(self.qs, t)
         if hit is None:
             return

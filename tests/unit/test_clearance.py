@@ -43,12 +43,11 @@ def group() -> GroupGeometry:
     return GroupGeometry(load_config(None), ["r1", "r2"])
 
 
-def test_the_arms_at_their_initial_postures_are_far_apart(group: GroupGeometry) -> None:
+def test_the_arms_at_their_initial_postures_are_clear_of_everything(group: GroupGeometry) -> None:
     cfg = load_config(None)
     q = {r: np.asarray(cfg.robots[r].initial_q_rad) for r in ("r1", "r2")}
-    c = group.closest(q)
-    assert c.distance_m > 0.3, c
-    assert c.links[0].startswith("r1 ") and c.links[1].startswith("r2 "), c
+    c = group.closest(q)  # (the nearest: a base and the table's edge, 13 cm)
+    assert c.distance_m > 0.1, c
 
 
 def test_an_arm_reaching_into_the_other_is_measured_in_contact(group: GroupGeometry) -> None:
@@ -103,7 +102,7 @@ def test_the_watch_measures_every_pair_first_then_only_those_due(watch_cfg: Any)
     q = [np.asarray(watch_cfg.robots[r].initial_q_rad, dtype=np.float64) for r in ("r1", "r2")]
     assert w.check(q, 0.0) is None
     assert w.measured == len(w.v)  # all of them, in the first cycle
-    assert w.closest > 0.3
+    assert w.closest > 0.1
     for k in range(1, 200):  # the arms at rest: 1 s at 200 Hz
         assert w.check(q, k * 0.005) is None
     # a pair is measured again only when it could have closed in by then
@@ -154,3 +153,27 @@ def test_an_arm_swinging_into_the_other_trips_the_watch_while_they_are_apart(
     truth = group.closest({"r1": q1, "r2": q2}).distance_m
     assert truth >= TRIP_M and hit.distance_m == pytest.approx(truth, abs=1e-4)
     assert hit.links[0].startswith("r1 ") and hit.links[1].startswith("r2 "), hit
+
+
+def test_the_work_cell_is_in_the_geometry_for_every_link_but_the_tools(
+    group: GroupGeometry,
+) -> None:
+    objs = group.geom.geometryObjects
+    pairs = {(objs[p.first].name, objs[p.second].name) for p in group.geom.collisionPairs}
+    links = [go.name for go in objs if not go.name.startswith("workcell ")]
+    for link in links:
+        for box in ("workcell table", "workcell fixture"):
+            # (a task puts the tool into the fixture, 1 cm over the table)
+            assert ((link, box) in pairs) == (not link.endswith(" tool")), (link, box)
+
+
+def test_a_task_that_reaches_down_into_the_table_is_refused_at_load(tmp_path: Path) -> None:
+    task = tmp_path / "down.yaml"
+    task.write_text(
+        SWING.replace("robot: r1", "robot: r2").format(q=[0.0, 1.8, 0.0, -0.3, 0.0, 0.3, 0.0])
+    )
+    done = run_cli("--set", f"session.runs_dir={tmp_path / 'runs'}", "check", str(task))
+    assert done.returncode == 2, done.stdout + done.stderr
+    line = done.stderr.strip()
+    assert "\n" not in line and "Traceback" not in line, line
+    assert "segments[0] (reach over)" in line and "and workcell table " in line, line
