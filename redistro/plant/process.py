@@ -33,7 +33,7 @@ from redistro.drivers.io.shm import ShmPort
 from redistro.ipc import signals
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
-from redistro.plant.truth import ArmsTruth
+from redistro.plant.truth import ArmsTruth, PegTruth
 from redistro.process import hooks
 
 log = logging.getLogger(__name__)
@@ -226,9 +226,9 @@ def _loop(
     gc.freeze()
     gc.disable()  # no collector pauses inside steps: a step allocates little
     io = (read_outputs, publish_truth, publish_boards)
-    arms = ArmsTruth(chassis.world)
+    truth = (ArmsTruth(chassis.world), PegTruth(chassis.world))
     while True:
-        _step(chassis, io, whole, physics, arms)
+        _step(chassis, io, whole, physics, truth)
         now = monotonic_ns()
         if disturbance is not None:
             disturbance.on_boards(now)  # this step's disturbance is on the boards
@@ -252,7 +252,8 @@ def _loop(
                 skipped, next_ns = skipped + int(behind), now
         port.service(next_ns)
     gc.enable()
-    counts = {"late_steps": late, "skipped_steps": skipped, "arms": arms.report()}
+    counts: dict[str, Any] = {"late_steps": late, "skipped_steps": skipped}
+    counts.update(arms=truth[0].report(), pegs=truth[1].report())
     return _result(
         chassis,
         port,
@@ -270,13 +271,17 @@ def _loop(
 
 
 def _step(
-    chassis: Any, io: tuple[Any, Any, Any], whole: Any, physics: Any, arms: ArmsTruth
+    chassis: Any,
+    io: tuple[Any, Any, Any],
+    whole: Any,
+    physics: Any,
+    truth: tuple[ArmsTruth, PegTruth],
 ) -> None:
     """One step: the controller's outputs applied, PyBullet's step, the
     joints sampled into the boards, the truth then the boards published
     (a reader that sees a board sample can find the truth of the same
-    step), the arms' contacts looked at; its CPU time, and PyBullet's
-    part, timed."""
+    step), the truth's looks (the arms' contacts, the pegs' depth); its
+    CPU time, and PyBullet's part, timed."""
     read_outputs, publish_truth, publish_boards = io
     cpu_ns = time.thread_time_ns
     c0 = cpu_ns()
@@ -289,7 +294,8 @@ def _step(
     chassis.fill_truth()
     publish_truth()
     publish_boards()
-    arms.sample(chassis.step_count)
+    for t in truth:
+        t.sample(chassis.step_count)
     whole.add(cpu_ns() - c0)
     physics.add(ph1 - ph0)
 

@@ -1,6 +1,7 @@
 """The plant's truth: where the hole really is (the work-cell's drawn pose,
 ``workcell.hole``, moved by ``plant.hole``'s fixed offset and its random
-draw), and whether the arms touched (:class:`ArmsTruth`). Only the plant
+draw), whether the arms touched (:class:`ArmsTruth`) and how deep a peg
+went into the real hole (:class:`PegTruth`). Only the plant
 and the tools that judge a run (the peg campaign, the summary, the fault
 harness) use this; controller nodes never get ``plant.hole``.
 """
@@ -156,3 +157,45 @@ class ArmsTruth:
             "touched": bool(self.touched_step),
             "touched_at_step": self.touched_step,
         }
+
+
+class PegTruth:
+    """How deep each peg's tip went into the real hole: every
+    ``EVERY`` steps the tip (the tool frame's origin, the flange face, plus
+    the peg's length along its axis) in the hole's frame; a tip within the
+    hole's mouth (laterally inside its square) counts, and the deepest one
+    is kept. PyBullet's link state, the plant's own view."""
+
+    EVERY = 8
+
+    def __init__(self, world: Any) -> None:
+        self.pb, self.cid = world.pb, world.client
+        cfg = world.cfg
+        hole = world.hole
+        self.mouth = np.asarray(hole.xyz_m, dtype=np.float64)
+        self.R = hole.rotation()  # world from the hole's frame (its z: out of the hole)
+        self.half = (cfg.workcell.peg.side_m + cfg.workcell.hole.clearance_m) / 2
+        length = cfg.workcell.peg.length_m
+        self.pegs = [
+            (name, arm.body, arm.tool_link, length)
+            for name, arm in world.arms.items()
+            if cfg.robots[name].peg
+        ]
+        self.depth = {name: 0.0 for name, *_ in self.pegs}  # the deepest [m]
+
+    def sample(self, step: int) -> None:
+        if step % self.EVERY:
+            return
+        pb = self.pb
+        for name, body, link, length in self.pegs:
+            state = pb.getLinkState(
+                body, link, computeForwardKinematics=True, physicsClientId=self.cid
+            )
+            pos, quat = np.asarray(state[4]), state[5]
+            axis = np.asarray(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)[:, 2]
+            tip = self.R.T @ (pos + length * axis - self.mouth)  # in the hole's frame
+            if abs(tip[0]) <= self.half and abs(tip[1]) <= self.half and -tip[2] > self.depth[name]:
+                self.depth[name] = float(-tip[2])
+
+    def report(self) -> dict[str, Any]:
+        return {name: {"depth_m": round(d, 6)} for name, d in self.depth.items()}

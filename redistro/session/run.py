@@ -225,8 +225,15 @@ def _say_summary(summary: dict[str, Any], say: Callable[[str], None]) -> None:
     for seg in summary.get("segments", []):
         say(segment_line(seg))
     if "inserted" in summary:
+        belief = f"{summary['insertion_depth_m'] * 1e3:.2f} mm"
+        if "plant_insertion_depth_m" in summary:  # the plant's truth, the belief beside it
+            flag = ", they disagree" if summary["belief_disagrees"] else ""
+            belief = (
+                f"{summary['plant_insertion_depth_m'] * 1e3:.2f} mm by the plant, "
+                f"{belief} by the controller{flag}"
+            )
         say(
-            f"inserted: {summary['inserted']} (depth {summary['insertion_depth_m'] * 1e3:.2f} mm "
+            f"inserted: {summary['inserted']} (depth {belief} "
             f"of {summary['hole_depth_m'] * 1e3:.1f} mm)"
         )
 

@@ -20,6 +20,30 @@ RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal", "failed")
 MIN_STRATEGY_RTF = 0.15
 
 
+INSERTED_WITHIN_M = 0.002  # a peg this close to the hole's depth is in
+DISAGREE_M = 0.001  # the controller's depth this far from the plant's is flagged
+
+
+def _inserted(
+    summary: dict[str, Any], ran: bool, depth: float, hole_depth: float, pegs: dict[str, Any]
+) -> None:
+    """``inserted`` from the plant's truth (the deepest a peg's tip went
+    into the real hole), the controller's belief beside it
+    (``inserted_belief``, from its own kinematics against the hole as
+    drawn), and ``belief_disagrees`` when the two depths differ by more
+    than DISAGREE_M. Without a plant's peg (a node started alone): the
+    belief."""
+    belief = ran and hole_depth > 0 and abs(depth - hole_depth) <= INSERTED_WITHIN_M
+    truth = max((float(p["depth_m"]) for p in pegs.values()), default=None)
+    if truth is None or not ran or hole_depth <= 0:
+        summary["inserted"] = belief
+        return
+    summary["inserted"] = abs(truth - hole_depth) <= INSERTED_WITHIN_M
+    summary["inserted_belief"] = belief
+    summary["plant_insertion_depth_m"] = round(truth, 6)
+    summary["belief_disagrees"] = abs(truth - depth) > DISAGREE_M
+
+
 def budget_s(task: Task) -> float:
     """How long a task's nodes may run [s of the plant's clock]: the task
     counts on the boards' sample clock, so its budget does too (a loaded host
@@ -207,9 +231,7 @@ def build_summary(
         summary["hole_depth_m"] = hole_depth
         if ssc is not None and ssc.search:
             summary["search"] = ssc.search
-        summary["inserted"] = (
-            ssc is not None and hole_depth > 0 and abs(depth - hole_depth) <= 0.002
-        )
+        _inserted(summary, ssc is not None, depth, hole_depth, plant.get("pegs") or {})
         summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}
     summary["plant"] = {
         k: plant.get(k)
@@ -233,6 +255,7 @@ def build_summary(
             "watchdog_trips",
             "hole",
             "arms",
+            "pegs",
         )
         if k in plant
     }

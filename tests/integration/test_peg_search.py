@@ -101,6 +101,7 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
         "ssc": "failed",
     }
     assert summary["inserted"] is False and summary["search"]["phase"] == "not_found"
+    assert summary["plant_insertion_depth_m"] < 0.005  # (the plant's truth: never in)
     assert summary["plant"]["hole"]["lateral_offset_m"] == pytest.approx(0.004)
     # the insertion's figures cover the whole segment: the search, then the 2 s lift
     insertion = next(s for s in summary["segments"] if s.get("name") == "insertion")

@@ -105,3 +105,22 @@ def test_every_result_figure_is_shown_or_left_out_on_purpose() -> None:
         assert summary.node_entry(r)["idle_slices"] == 5
     finally:
         summary.NODE_FIGURES = summary.NODE_FIGURES[:-1]
+
+
+def test_inserted_comes_from_the_plant_with_the_belief_beside_it() -> None:
+    from redistro.session.summary import _inserted
+
+    s: dict = {}
+    _inserted(s, True, 0.0400, 0.04, {"r2": {"depth_m": 0.0401}})
+    assert s == {
+        "inserted": True,
+        "inserted_belief": True,
+        "plant_insertion_depth_m": 0.0401,
+        "belief_disagrees": False,
+    }
+    s = {}  # the controller believes it in; the real hole sits 3 mm lower
+    _inserted(s, True, 0.0400, 0.04, {"r2": {"depth_m": 0.0370}})
+    assert s["inserted"] is False and s["inserted_belief"] is True and s["belief_disagrees"]
+    s = {}  # no plant's peg (a node alone): the belief
+    _inserted(s, True, 0.0400, 0.04, {})
+    assert s == {"inserted": True}
