@@ -22,9 +22,6 @@ import numpy as np
 
 from redistro.config.model import Config
 
-INTO_R2 = np.array([-1.5708, 1.3, 0.0, -0.4, 0.0, 0.3, 0.0])  # r1 reaching into r2
-STEER_RAD_S = 0.4
-
 
 def _figures(times_ns: list[int], pairs: list[int]) -> dict[str, Any]:
     us = np.asarray(times_ns, dtype=np.float64) / 1e3
@@ -41,12 +38,13 @@ def _figures(times_ns: list[int], pairs: list[int]) -> dict[str, Any]:
 
 
 def _case(cfg: Config, rate_hz: float, cycles: int, steer: bool) -> dict[str, Any]:
+    from redistro.faults.hooks import COLLIDE_RAD_S, INTO_R2
     from redistro.ssc.clearance import ClearanceWatch
 
     watch = ClearanceWatch(cfg, ["r1", "r2"], 1.0 / rate_hz)
     q1 = np.asarray(cfg.robots["r1"].initial_q_rad, dtype=np.float64).copy()
     q2 = np.asarray(cfg.robots["r2"].initial_q_rad, dtype=np.float64)
-    step = STEER_RAD_S / rate_hz
+    step = COLLIDE_RAD_S / rate_hz
     clock = time.thread_time_ns
     times, pairs, hit = [], [], None
     for k in range(cycles):

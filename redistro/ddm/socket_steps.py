@@ -10,7 +10,7 @@ import errno
 import functools
 from typing import TYPE_CHECKING, Any
 
-from redistro.ddm.transport import NO_ACCELERATOR, Accelerator
+from redistro.ddm.transport import Accelerator
 
 if TYPE_CHECKING:
     from redistro.ddm.kernel_path import KernelPath
@@ -25,11 +25,10 @@ class SocketSteps:
     step is the hot path: its call is bound once, with its plans and the
     receive buffer, and the object keeps its few fields in slots.)"""
 
-    __slots__ = ("accel", "call", "d", "generation", "reply_fd")
+    __slots__ = ("call", "d", "generation", "reply_fd")
 
     def __init__(self, ddm: Ddm) -> None:
         self.d = ddm
-        self.accel: Accelerator = NO_ACCELERATOR  # (bind)
         self.generation = -1  # the transport's peers the send fds are for
         self.call: Any = None  # ddm_reply(fd), bound (bind)
         self.reply_fd: Any = None  # the accelerator's reply_fd, bound (bind)
@@ -37,7 +36,6 @@ class SocketSteps:
     def bind(self, kpath: KernelPath, accel: Accelerator) -> None:
         """ddm_reply bound to the kernel path's plans and the socket's
         receive buffer (both made once), for :meth:`reply`."""
-        self.accel = accel
         self.reply_fd = accel.reply_fd
         self.call = functools.partial(
             kpath.reply_call, kpath.admit_plan, kpath.emit_plan, kpath.send_plan, accel.rx

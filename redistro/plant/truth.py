@@ -131,7 +131,7 @@ class ArmsTruth:
 
     def __init__(self, world: Any) -> None:
         self.pb, self.cid = world.pb, world.client
-        bodies = [(name, arm.body) for name, arm in world.arms.items()]
+        bodies = [arm.body for arm in world.arms.values()]
         self.pairs = [(a, b) for i, a in enumerate(bodies) for b in bodies[i + 1 :]]
         self.min_m = math.inf  # the least distance seen (inf: never within NEAR_M)
         self.touched_step = 0  # the first step at which two arms touched (0: never)
@@ -141,7 +141,7 @@ class ArmsTruth:
             return
         pb, cid = self.pb, self.cid
         near = not step % self.NEAR_EVERY
-        for (_, a), (_, b) in self.pairs:
+        for a, b in self.pairs:
             points = pb.getContactPoints(a, b, physicsClientId=cid)
             if near:
                 points = points + pb.getClosestPoints(a, b, self.NEAR_M, physicsClientId=cid)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from redistro.config.loader import load_config
+from redistro.faults import hooks
 from redistro.ssc.clearance import (
     GJK_GAP_M,
     MIN_CLEARANCE_M,
@@ -21,7 +22,7 @@ from redistro.ssc.clearance import (
 from tests.helpers import run_cli
 
 # r1 turned to face r2 (its base 0.9 m away along -y) and reaching out
-INTO_R2 = [-1.5708, 1.3, 0.0, -0.4, 0.0, 0.3, 0.0]
+INTO_R2 = [float(v) for v in hooks.INTO_R2]  # (the arms-collide fault's posture)
 
 SWING = """\
 task: swing
@@ -141,7 +142,7 @@ def test_an_arm_swinging_into_the_other_trips_the_watch_while_they_are_apart(
     w = _watch(watch_cfg)
     q1 = np.asarray(watch_cfg.robots["r1"].initial_q_rad, dtype=np.float64).copy()
     q2 = np.asarray(watch_cfg.robots["r2"].initial_q_rad, dtype=np.float64)
-    into, step = np.asarray(INTO_R2), 0.4 * 0.005
+    into, step = np.asarray(INTO_R2), hooks.COLLIDE_RAD_S * 0.005
     hit = None
     for k in range(2000):
         q1 += np.clip(into - q1, -step, step)
