@@ -280,6 +280,7 @@ class ClearanceWatch:
         self.share = [1.0 - EARLY * ((k * 0.6180339887) % 1.0) for k in range(n)]
         self.d = [math.inf] * n
         self.at = [-math.inf] * n
+        self.rate = [0.0] * n  # each pair's closing speed, as last measured [m/s]
         self.due = np.full(n, -np.inf)  # when each must be measured again (task time) [s]
         self.period = period_s
         self.measured = 0  # pair measurements made
@@ -289,6 +290,7 @@ class ClearanceWatch:
         # measurement's one-time costs (about 0.6 ms) stay out of the cycles
         self.check([np.asarray(cfg.robots[r].initial_q_rad, dtype=np.float64) for r in robots], 0.0)
         self.d[:], self.at[:], self.due[:] = [math.inf] * n, [-math.inf] * n, -np.inf
+        self.rate[:] = [0.0] * n
         self.measured, self.cycles, self.closest = 0, 0, math.inf
 
     def check(self, qs: list[np.ndarray], t: float) -> Closest | None:
@@ -302,7 +304,7 @@ class ClearanceWatch:
         for sl, q in zip(self.slices, qs, strict=True):
             g.q[sl] = q
         pin.updateGeometryPlacements(g.model, g.data, g.geom, g.gdata, g.q)
-        d, at, v, when, share = self.d, self.at, self.v, self.due, self.share
+        d, at, v, when, share, rate = self.d, self.at, self.v, self.due, self.share, self.rate
         results = None
         if due.size > ALL_AT:  # (the first cycle: every pair, in one call)
             pin.computeDistances(g.geom, g.gdata)
@@ -310,13 +312,17 @@ class ClearanceWatch:
         worst, hit, nearest = math.inf, -1, math.inf
         for k in due.tolist():
             res = results[k] if results is not None else pin.computeDistance(g.geom, g.gdata, k)
-            now, before, since = res.min_distance, d[k], t - at[k]
-            d[k], at[k] = now, t
+            now, since = res.min_distance, t - at[k]
+            if since > 0:  # (at the same sample time, as when the plant's
+                # clock stalls: the closing speed measured last holds, and
+                # the next one is read from the sample before)
+                rate[k] = max(0.0, d[k] - now) / since if since <= RATE_S else 0.0
+                d[k], at[k] = now, t
             when[k] = t + share[k] * (now - TRIP_M) / v[k] - self.period
             nearest = min(nearest, now)
             # where it will be once the group has stopped, closing as it
             # did since it was last measured (if lately: a near pair)
-            ahead = now - max(0.0, before - now) / since * STOP_S if since <= RATE_S else now
+            ahead = now - rate[k] * STOP_S
             if ahead < worst:
                 worst, hit = ahead, k
         self.measured += due.size

@@ -156,6 +156,25 @@ def test_an_arm_swinging_into_the_other_trips_the_watch_while_they_are_apart(
     assert hit.links[0].startswith("r1 ") and hit.links[1].startswith("r2 "), hit
 
 
+def test_a_stalled_plant_clock_is_no_error_and_the_watch_still_trips(watch_cfg: Any) -> None:
+    """The SSC's task time comes from the plant's steps: a slow plant gives
+    two cycles the same time. A pair measured again at the same time has no
+    closing speed to read; the watch goes on, and trips as before."""
+    w = _watch(watch_cfg)
+    q1 = np.asarray(watch_cfg.robots["r1"].initial_q_rad, dtype=np.float64).copy()
+    q2 = np.asarray(watch_cfg.robots["r2"].initial_q_rad, dtype=np.float64)
+    into, step = np.asarray(INTO_R2), hooks.COLLIDE_RAD_S * 0.005
+    hit = None
+    for k in range(4000):
+        if k % 2:  # every other cycle: the plant's clock stood still
+            q1 += np.clip(into - q1, -step, step)
+        hit = w.check([q1, q2], (k // 2) * 0.005)
+        if hit is not None:
+            break
+    assert hit is not None, "the watch never tripped"
+    assert hit.distance_m >= TRIP_M, hit
+
+
 def test_the_work_cell_is_in_the_geometry_for_every_link_but_the_tools(
     group: GroupGeometry,
 ) -> None:
