@@ -80,9 +80,10 @@ def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
         raise RedistroError(f"self-calibration before the scenarios failed: {done.stdout[-500:]}")
 
 
-def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> bool:
-    """Wait until r2 has been moving ``seconds`` into its first segment."""
-    view = None
+def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> None:
+    """Wait until r2 has been moving ``seconds`` into its first segment
+    (else RedistroError, saying what was seen last)."""
+    view, seen = None, "the SSC's Local Data never attached"
     try:
         while time.monotonic() < deadline and proc.poll() is None:
             if view is None:
@@ -90,12 +91,15 @@ def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline
             if view is not None:
                 try:
                     plan = view.read("plan", ROBOT)
-                    if int(plan["segment"]) >= 1 and float(plan["segment_t_s"]) >= seconds:
-                        return True
-                except Exception:
-                    pass
+                    segment, t = int(plan["segment"]), float(plan["segment_t_s"])
+                    if segment >= 1 and t >= seconds:
+                        return
+                    seen = f"last seen: segment {segment} at {t:.2f} s (wanted {seconds:.2f} s)"
+                except Exception as exc:  # (a node's data torn or going: look again)
+                    seen = f"the SSC's plan unreadable: {exc}"
             time.sleep(0.01)  # polling a condition with a deadline
-        return False
+        ended = "stalled" if proc.poll() is None else f"ended (exit {proc.returncode})"
+        raise RedistroError(f"r2 never moved: the session {ended}; {seen}")
     finally:
         if view is not None:
             view.close()
@@ -215,8 +219,7 @@ def _break_session(
         else:
             delay = rng.uniform(0.5, 2.5)
             row["injected_after_s"] = round(delay, 3)
-            if not _wait_moving(sid, delay, proc, deadline):
-                raise RedistroError("r2 never moved (the session ended or stalled first)")
+            _wait_moving(sid, delay, proc, deadline)
             managers = _managers(sid)
             try:
                 inject_ns = _inject(sc, sid, trigger, cfg, managers, cycles_at)
@@ -562,8 +565,7 @@ def _stale_ipc(
     sid = ""
     try:
         sid = session_id(proc, deadline)
-        if not _wait_moving(sid, rng.uniform(0.5, 2.5), proc, deadline):
-            raise RedistroError("r2 never moved (the session ended or stalled first)")
+        _wait_moving(sid, rng.uniform(0.5, 2.5), proc, deadline)
         victims = [proc.pid, *pids_of(sid)]
         for pid in victims:
             with contextlib.suppress(ProcessLookupError):

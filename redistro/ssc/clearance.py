@@ -33,7 +33,6 @@ the pairs measured together at the start do not stay due together.
 from __future__ import annotations
 
 import math
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,33 +71,34 @@ class GroupGeometry:
         import coal
         import pinocchio as pin
 
-        from redistro.robotmodel import write_arm_urdf
+        from redistro.robotmodel import arm_urdf
         from redistro.ssc.reach import arm_tool
 
         self._pin = pin
         model, geom = pin.Model(), pin.GeometryModel()
-        meshes = coal.CachedMeshLoader()  # (every arm's links: the same meshes, loaded once)
+        hulls: dict[tuple[str, tuple[float, ...]], Any] = {}  # (every arm's: made once)
         self.offsets: dict[str, int] = {}  # each robot's first index in q
-        with tempfile.TemporaryDirectory(prefix="redistro-clearance-") as tmp:
-            for r in robots:
-                rc = cfg.robots[r]
-                path = str(write_arm_urdf(Path(tmp), r, arm_tool(cfg, r)))
-                m = pin.buildModelFromUrdf(path)
-                g = pin.buildGeomFromUrdf(m, path, pin.GeometryType.COLLISION, mesh_loader=meshes)
-                for i in range(1, m.njoints):  # one model holds every arm: names apart
-                    m.names[i] = f"{r} {m.names[i]}"
-                for i in range(m.nframes):
-                    f = m.frames[i]
-                    f.name = f"{r} {f.name}"
-                    m.frames[i] = f
-                for go in g.geometryObjects:
-                    go.name = f"{r} {go.name.rsplit('_', 1)[0]}"
-                base = pin.SE3(np.eye(3), np.asarray(rc.base_xyz_m, dtype=np.float64))
-                self.offsets[r] = model.nq
-                model, geom = pin.appendModel(model, m, geom, g, 0, base)
-        for go in geom.geometryObjects:  # GJK on the meshes' hulls, not their trees
-            if hasattr(go.geometry, "vertices"):
-                go.geometry = _hull(coal, go.geometry)
+        for r in robots:
+            rc = cfg.robots[r]
+            text, meshes = _placeholders(arm_urdf(arm_tool(cfg, r)))
+            m = pin.buildModelFromXML(text)
+            g = pin.buildGeomFromUrdfString(m, text, pin.GeometryType.COLLISION)
+            for i in range(1, m.njoints):  # one model holds every arm: names apart
+                m.names[i] = f"{r} {m.names[i]}"
+            for i in range(m.nframes):
+                f = m.frames[i]
+                f.name = f"{r} {f.name}"
+                m.frames[i] = f
+            for go in g.geometryObjects:
+                mesh = meshes.get(go.name)
+                if mesh is not None:  # GJK on the mesh's hull
+                    if mesh not in hulls:
+                        hulls[mesh] = _hull(coal, mesh_vertices(*mesh))
+                    go.geometry = hulls[mesh]
+                go.name = f"{r} {go.name.rsplit('_', 1)[0]}"
+            base = pin.SE3(np.eye(3), np.asarray(rc.base_xyz_m, dtype=np.float64))
+            self.offsets[r] = model.nq
+            model, geom = pin.appendModel(model, m, geom, g, 0, base)
         for name, half, centre in workcell_boxes(cfg):
             box = coal.Box(*(2 * np.asarray(half)))
             where = pin.SE3(np.eye(3), np.asarray(centre, dtype=np.float64))
@@ -248,13 +248,55 @@ def _meant_to_touch(a: str, b: str) -> bool:
     return a.endswith(" tool") and b.startswith("workcell ")
 
 
-def _hull(coal: Any, mesh: Any) -> Any:
-    """A mesh's convex hull with its hull vertices alone (qhull): GJK's
-    support search climbs the hull's edges, and the mesh's inner vertices
-    (kept by coal's own conversion) stopped it short, overstating the
-    distance by up to 14 cm."""
+def _placeholders(urdf: str) -> tuple[str, dict[str, tuple[str, tuple[float, ...]]]]:
+    """The URDF with each collision mesh a point-sized sphere (Pinocchio
+    places it; its hull replaces it), and each such geometry's (mesh file,
+    scale) by the name Pinocchio gives it (``<link>_<k>``, k the link's
+    collision). Loading the meshes themselves (their bounding-volume
+    trees, unused here) was 60 of the model's 120 ms."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.fromstring(urdf)
+    meshes: dict[str, tuple[str, tuple[float, ...]]] = {}
+    for link in root.iter("link"):
+        for k, col in enumerate(link.iter("collision")):
+            geo = col.find("geometry")
+            mesh = None if geo is None else geo.find("mesh")
+            if geo is None or mesh is None:
+                continue
+            scale = tuple(float(v) for v in mesh.get("scale", "1 1 1").split())
+            meshes[f"{link.get('name')}_{k}"] = (str(mesh.get("filename")), scale)
+            geo.remove(mesh)
+            ET.SubElement(geo, "sphere", radius="0.001")
+    return ET.tostring(root, encoding="unicode"), meshes
+
+
+STL_TRIANGLE = np.dtype([("normal", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+
+
+def mesh_vertices(path: str, scale: tuple[float, ...] = (1.0, 1.0, 1.0)) -> np.ndarray:
+    """A mesh file's distinct vertices, scaled [m] (n x 3): a binary STL
+    read here (its 50-byte triangles), any other file through coal's
+    loader (assimp)."""
+    raw = Path(path).read_bytes()
+    n = int.from_bytes(raw[80:84], "little") if len(raw) >= 84 else -1
+    if n >= 0 and len(raw) == 84 + STL_TRIANGLE.itemsize * n and not raw.startswith(b"solid"):
+        v = np.ascontiguousarray(np.frombuffer(raw, STL_TRIANGLE, n, 84)["v"].reshape(-1, 3))
+        v = np.unique(v.view(np.dtype((np.void, 12))).ravel()).view("<f4").reshape(-1, 3)
+    else:
+        import coal
+
+        v = np.asarray(coal.MeshLoader().load(path, np.ones(3)).vertices())
+    return np.asarray(v, dtype=np.float64) * np.asarray(scale, dtype=np.float64)
+
+
+def _hull(coal: Any, vertices: np.ndarray) -> Any:
+    """The convex hull of a mesh's vertices, with its hull vertices alone
+    (qhull): GJK's support search climbs the hull's edges, and the mesh's
+    inner vertices (kept by coal's own conversion) stopped it short,
+    overstating the distance by up to 14 cm."""
     points = coal.StdVec_Vec3s()
-    points.extend(np.asarray(mesh.vertices(), dtype=np.float64))
+    points.extend(vertices)
     return coal.Convex.convexHull(points, False, "")
 
 

@@ -18,6 +18,7 @@ from redistro.ssc.clearance import (
     ClearanceWatch,
     GroupGeometry,
     _time_at,
+    mesh_vertices,
 )
 from tests.helpers import run_cli
 
@@ -197,3 +198,20 @@ def test_a_task_that_reaches_down_into_the_table_is_refused_at_load(tmp_path: Pa
     line = done.stderr.strip()
     assert "\n" not in line and "Traceback" not in line, line
     assert "segments[0] (reach over)" in line and "and workcell table " in line, line
+
+
+def test_a_binary_stl_read_here_gives_the_vertices_coal_reads() -> None:
+    """The meshes' vertices come from the STL files read with numpy; coal's
+    own loader (assimp) is the reference: the same distinct vertices."""
+    import coal
+    import pybullet_data
+
+    meshes = Path(pybullet_data.getDataPath()) / "kuka_iiwa" / "meshes"
+    for k in range(8):
+        path = str(meshes / f"link_{k}.stl")
+        ours = mesh_vertices(path)
+        ref = np.unique(np.asarray(coal.MeshLoader().load(path, np.ones(3)).vertices()), axis=0)
+        assert ours.shape == ref.shape, path
+        np.testing.assert_array_equal(np.unique(ours, axis=0), ref)
+    scaled = mesh_vertices(str(meshes / "link_3.stl"), (2.0, 1.0, 0.5))
+    np.testing.assert_allclose(scaled, mesh_vertices(str(meshes / "link_3.stl")) * [2, 1, 0.5])
