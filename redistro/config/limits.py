@@ -197,7 +197,7 @@ def task_motion_problems(
     cfg: Config,
     task: Any,
     start_q: dict[str, list[float]] | None = None,
-    cartesian_q: dict[int, np.ndarray] | None = None,
+    cartesian_q: dict[tuple[int, str], np.ndarray] | None = None,
 ) -> list[str]:
     """One line per joint goal outside the limits (less the margin), per
     joint move whose distance over its move time is above ``qd_max_rad_s``
@@ -206,7 +206,7 @@ def task_motion_problems(
     guard would refuse (above ``force_max_n`` or ``moment_max_nm``, which
     the wrist sensor's range bounds). A move's start is the previous joint
     goal of its robot; after a Cartesian segment, the posture its goal puts
-    the arm in (``cartesian_q``, by segment index: the inverse kinematics of
+    the arm in (``cartesian_q``, by segment index and robot: the inverse kinematics of
     the load check); for the first, the robot's position in ``start_q``
     (unknown: the speed of that move is left to the guard)."""
     limits = joint_limits(cfg)
@@ -246,25 +246,28 @@ def task_motion_problems(
             for r, q in seg.q_rad.items():
                 goal(r, q, seg.duration_s, f"segments[{i}].q_rad.{r}")
     elif task.kind == "strategy":
+        from redistro.config.task import move_s, segment_moves
+
         s = cfg.esc.safety
         for i, seg in enumerate(task.segments):
-            if seg.scheme == "joint":
-                move_s = seg.goal.move_s or 0.75 * seg.duration_s
-                goal(seg.robot, seg.goal.q_rad, move_s, f"segments[{i}].goal.q_rad")
-                continue
-            # a Cartesian move ends where its inverse kinematics says
-            prev[seg.robot] = (cartesian_q or {}).get(i)
-            w = np.asarray(seg.goal.force_xyz_torque_xyz, dtype=np.float64)
-            sel = np.asarray(seg.goal.selection_vector, dtype=np.float64)
-            f, m = float(np.linalg.norm(w[:3] * sel[:3])), float(np.linalg.norm(w[3:] * sel[3:]))
-            for what, value, limit, key, unit in (
-                ("force", f, s.force_max_n, "force_max_n", "N"),
-                ("moment", m, s.moment_max_nm, "moment_max_nm", "N m"),
-            ):
-                if value > limit:
-                    out.append(
-                        f"{where}: segments[{i}].goal.force_xyz_torque_xyz: a goal {what} of "
-                        f"{value:.4g} {unit}, over esc.safety.{key} {limit:g} {unit} (the guard "
-                        "would stop it; the wrist sensor's range bounds that limit)"
-                    )
+            for m in segment_moves(seg, i):
+                if m.scheme == "joint":
+                    goal(m.robot, m.goal.q_rad, move_s(seg, m), f"{m.where}.goal.q_rad")
+                    continue
+                # a Cartesian move ends where its inverse kinematics says
+                prev[m.robot] = (cartesian_q or {}).get((i, m.robot))
+                w = np.asarray(m.goal.force_xyz_torque_xyz, dtype=np.float64)
+                sel = np.asarray(m.goal.selection_vector, dtype=np.float64)
+                f = float(np.linalg.norm(w[:3] * sel[:3]))
+                mo = float(np.linalg.norm(w[3:] * sel[3:]))
+                for what, value, limit, key, unit in (
+                    ("force", f, s.force_max_n, "force_max_n", "N"),
+                    ("moment", mo, s.moment_max_nm, "moment_max_nm", "N m"),
+                ):
+                    if value > limit:
+                        out.append(
+                            f"{where}: {m.where}.goal.force_xyz_torque_xyz: a goal {what} of "
+                            f"{value:.4g} {unit}, over esc.safety.{key} {limit:g} {unit} (the "
+                            "guard would stop it; the wrist sensor's range bounds that limit)"
+                        )
     return out

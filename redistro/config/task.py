@@ -10,13 +10,16 @@ A task names its robots and its kind; each kind has its own section.
 - ``joint_move``: ESC-local positioning segments (quintic moves under the
   joint PID) to joint goals; needs known joint positions.
 - ``strategy``: the SSC drives the group (paper Table 6.III): each segment
-  moves one robot under a control scheme (``joint``: joint PID to
-  ``goal.q_rad``; ``position``: Cartesian impedance to a TCP pose; ``force``:
-  hybrid position/force control with a task-frame command) while the other
-  robots hold their pose. Poses may be given relative to the hole fixture
-  (``relative_to: hole``, the hole's pose from the config). A segment ends
-  after ``duration_s``, or earlier when its ``end`` conditions hold for
-  ``end.hold_s``. Needs known joint positions: when they are unknown, a
+  moves one robot (``robot``), or several at once (``moves``: a goal per
+  robot, all on the segment's clock), each under a control scheme
+  (``joint``: joint PID to ``goal.q_rad``; ``position``: Cartesian impedance
+  to a TCP pose; ``force``: hybrid position/force control with a task-frame
+  command) while the other robots hold their pose. Poses may be given
+  relative to the hole fixture (``relative_to: hole``, the hole's pose from
+  the config). A segment ends after ``duration_s``, or earlier once every
+  moving robot's ``end`` conditions have held for its ``end.hold_s`` (a
+  robot without any does not hold the segment back). Needs known joint
+  positions: when they are unknown, a
   self-calibration runs first (``calibrate_if_needed``), as the task's own
   ``calibration`` section says (the defaults where it has none).
 """
@@ -139,9 +142,23 @@ class Search:
 
 
 @dataclass(frozen=True)
+class RobotMove:
+    """One robot's part of a segment that moves several (``moves``): its
+    scheme, goal, end conditions and search, as a one-robot segment gives
+    them."""
+
+    scheme: Literal["joint", "position", "force"] = "joint"
+    goal: Goal = field(default_factory=Goal)
+    end: EndConditions = field(default_factory=EndConditions)
+    search: Search = field(default_factory=Search)
+
+
+@dataclass(frozen=True)
 class MoveSegment:
     """One segment. joint_move: per robot a joint goal (q_rad), reached in
-    duration_s. strategy: ``robot`` moves under ``scheme`` to ``goal``."""
+    duration_s. strategy: ``robot`` moves under ``scheme`` to ``goal``; or
+    several robots at once, each with its own (``moves``, by robot), on one
+    clock: their moves start together and take the same ``move_s``."""
 
     name: str
     duration_s: float = field(metadata={"gt": 0, "le": 3600})
@@ -151,6 +168,35 @@ class MoveSegment:
     goal: Goal = field(default_factory=Goal)
     end: EndConditions = field(default_factory=EndConditions)
     search: Search = field(default_factory=Search)
+    moves: dict[str, RobotMove] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Move:
+    """A robot's move in a strategy segment, from either form (not a task
+    file's: :func:`segment_moves` makes them)."""
+
+    robot: str
+    scheme: str
+    goal: Goal
+    end: EndConditions
+    search: Search
+    where: str  # the task file's field it came from, for messages
+
+
+def segment_moves(seg: MoveSegment, i: int) -> list[Move]:
+    """The robots a strategy segment moves, in the order the task gives them."""
+    if seg.moves:
+        return [
+            Move(r, m.scheme, m.goal, m.end, m.search, f"segments[{i}].moves.{r}")
+            for r, m in seg.moves.items()
+        ]
+    return [Move(seg.robot, seg.scheme, seg.goal, seg.end, seg.search, f"segments[{i}]")]
+
+
+def move_s(seg: MoveSegment, m: Move) -> float:
+    """How long a move takes to its goal (3/4 of its segment unless given)."""
+    return m.goal.move_s or 0.75 * seg.duration_s
 
 
 @dataclass(frozen=True)
@@ -218,39 +264,60 @@ def _check_strategy(task: Task, where: str) -> None:
         raise ConfigError(f"{where}: segments: a strategy task needs at least one segment")
     for i, seg in enumerate(task.segments):
         at = f"{where}: segments[{i}]"
-        if seg.robot not in task.robots:
+        if seg.q_rad:
+            raise ConfigError(f"{at}.q_rad: not used by a strategy task (goal.q_rad is)")
+        if seg.moves:
+            _check_moves_form(task, seg, at)
+        elif seg.robot not in task.robots:
             raise ConfigError(
                 f"{at}.robot: {seg.robot!r} is not in robots ({', '.join(task.robots)})"
             )
-        if seg.q_rad:
-            raise ConfigError(f"{at}.q_rad: not used by a strategy task (goal.q_rad is)")
-        g = seg.goal
-        if g.move_s > seg.duration_s:
-            raise ConfigError(f"{at}.goal.move_s: {g.move_s} is longer than duration_s")
-        if seg.scheme == "joint":
-            if not g.q_rad:
-                raise ConfigError(f"{at}.goal.q_rad: a joint segment needs a joint goal")
-            continue
-        if not g.pos_xyz_rot_xyz:
-            raise ConfigError(f"{at}.goal.pos_xyz_rot_xyz: a {seg.scheme} segment needs a pose")
-        if seg.scheme == "position" and any(g.selection_vector):
+        for m in segment_moves(seg, i):
+            _check_move(seg, m, f"{where}: {m.where}")
+
+
+def _check_moves_form(task: Task, seg: MoveSegment, at: str) -> None:
+    """A segment of several robots: its moves only, each robot once, in one time."""
+    one = MoveSegment(seg.name, seg.duration_s)
+    for key in ("robot", "scheme", "goal", "end", "search"):
+        if getattr(seg, key) != getattr(one, key):
+            per = "moves.<robot>" if key == "robot" else f"moves.<robot>.{key}"
+            raise ConfigError(f"{at}.{key}: a segment with moves gives it per robot ({per})")
+    for r in seg.moves:
+        if r not in task.robots:
+            raise ConfigError(f"{at}.moves.{r}: {r!r} is not in robots ({', '.join(task.robots)})")
+    times = {r: m.goal.move_s or 0.75 * seg.duration_s for r, m in seg.moves.items()}
+    if len(set(times.values())) > 1:
+        given = ", ".join(f"{r} {v:g} s" for r, v in times.items())
+        raise ConfigError(
+            f"{at}.moves: the robots of one segment move on one clock: give them the same "
+            f"goal.move_s (got {given})"
+        )
+
+
+def _check_move(seg: MoveSegment, m: Move, at: str) -> None:
+    g = m.goal
+    if g.move_s > seg.duration_s:
+        raise ConfigError(f"{at}.goal.move_s: {g.move_s} is longer than duration_s")
+    if m.scheme == "joint":
+        if not g.q_rad:
+            raise ConfigError(f"{at}.goal.q_rad: a joint segment needs a joint goal")
+        return
+    if not g.pos_xyz_rot_xyz:
+        raise ConfigError(f"{at}.goal.pos_xyz_rot_xyz: a {m.scheme} segment needs a pose")
+    if m.scheme == "position" and any(g.selection_vector):
+        raise ConfigError(
+            f"{at}.goal.selection_vector: a position segment has no force axes (use scheme: force)"
+        )
+    if m.search.pattern != "none":
+        if m.scheme != "force" or list(g.selection_vector[:3]) != [0, 0, 1] or g.frame != "world":
             raise ConfigError(
-                f"{at}.goal.selection_vector: a position segment has no force axes "
-                "(use scheme: force)"
+                f"{at}.search: a search needs a force segment pushing along the world's "
+                "z only (selection_vector [0, 0, 1, ...], frame: world)"
             )
-        if seg.search.pattern != "none":
-            if (
-                seg.scheme != "force"
-                or list(g.selection_vector[:3]) != [0, 0, 1]
-                or g.frame != "world"
-            ):
-                raise ConfigError(
-                    f"{at}.search: a search needs a force segment pushing along the world's "
-                    "z only (selection_vector [0, 0, 1, ...], frame: world)"
-                )
-            if g.force_xyz_torque_xyz[2] >= 0:
-                raise ConfigError(f"{at}.search: a search needs a goal force down (negative z)")
-        if seg.scheme == "force" and not any(g.selection_vector):
-            raise ConfigError(
-                f"{at}.goal.selection_vector: a force segment needs at least one force axis"
-            )
+        if g.force_xyz_torque_xyz[2] >= 0:
+            raise ConfigError(f"{at}.search: a search needs a goal force down (negative z)")
+    if m.scheme == "force" and not any(g.selection_vector):
+        raise ConfigError(
+            f"{at}.goal.selection_vector: a force segment needs at least one force axis"
+        )

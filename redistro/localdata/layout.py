@@ -283,7 +283,7 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
         ("t_s", "<f8"),  # task time on the boards' sample clock [s]
         ("segment", "u1"),  # 1-based index of the running segment (0: before, 255: after)
         ("segment_t_s", "<f8"),
-        ("moving", "u1"),  # 1: this robot is the segment's robot; 0: it holds its pose
+        ("moving", "u1"),  # 1: the segment moves this robot; 0: it holds its pose
         ("scheme", "u1"),  # 0 hold, 1 joint, 2 position, 3 force
         ("contact", "u1"),  # force segments: contact felt
         ("done", "u1"),  # 1: every segment finished

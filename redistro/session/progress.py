@@ -108,19 +108,20 @@ class Progress:
         self, spec: NodeSpec, view: NodeView, cycle: int, total: float
     ) -> tuple[str, float, float]:
         names = self.ssc_segments
+        moving: list[str] = []
+        k, t = 0, 0.0
         for i in range(len(spec.robots)):
             pl = view.read("plan", i)
-            if not int(pl["moving"]) and not int(pl["done"]):
-                continue
-            k = int(pl["segment"])
             if int(pl["done"]):
                 return "ssc done", total, total
-            if 1 <= k <= len(names):
-                name, dur = names[k - 1]
-                t = float(pl["segment_t_s"])
-                done = sum(d for _, d in names[: k - 1]) + min(t, dur)
-                text = f"ssc {k}/{len(names)} {name} ({spec.robots[i]}) {t:5.1f}/{dur:g} s"
-                return text, done, total
+            if int(pl["moving"]):
+                moving.append(spec.robots[i])
+                k, t = int(pl["segment"]), float(pl["segment_t_s"])
+        if moving and 1 <= k <= len(names):
+            name, dur = names[k - 1]
+            done = sum(d for _, d in names[: k - 1]) + min(t, dur)
+            who = "+".join(moving)
+            return f"ssc {k}/{len(names)} {name} ({who}) {t:5.1f}/{dur:g} s", done, total
         return f"ssc cycle {cycle}", 0.0, total
 
     def close(self) -> None:

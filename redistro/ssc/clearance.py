@@ -199,17 +199,22 @@ def clearance_problems(cfg: Config, task: Task, start_q: dict[str, list[float]])
     }
     models: dict[str, Any] = {}
     for i, (seg, plan) in enumerate(zip(task.segments, segment_plans(task, cfg), strict=True)):
-        r = plan.robot
-        if plan.scheme == "joint":
-            path = _joint_path(q[r], np.asarray(plan.q_goal, dtype=np.float64))
-        else:
-            model = arm_model(cfg, r, models)
-            path = _path(model, q[r], plan.pose, limits.inner_lower, limits.inner_upper)
-        move_s = plan.move_s
-        for k, qk in enumerate(path):
-            c = group.closest({**q, r: qk})
+        paths: dict[str, list[np.ndarray]] = {}
+        for mv in plan.moves:
+            r = mv.robot
+            if mv.scheme == "joint":
+                paths[r] = _joint_path(q[r], mv.q_goal)
+            else:
+                model = arm_model(cfg, r, models)
+                paths[r] = _path(model, q[r], mv.pose, limits.inner_lower, limits.inner_upper)
+        # the moves share one clock (one quintic over move_s): the same
+        # share of each path at the same time
+        n = max((len(p) for p in paths.values()), default=0)
+        for k in range(n):
+            at = {r: p[math.ceil((k + 1) * len(p) / n) - 1] for r, p in paths.items() if p}
+            c = group.closest({**q, **at})
             if c.distance_m < MIN_CLEARANCE_M:
-                t = _time_at((k + 1) / len(path), move_s)
+                t = _time_at((k + 1) / n, plan.move_s)
                 gap = (
                     f"come {c.distance_m * 100:.1f} cm apart"
                     if c.distance_m >= 0
@@ -219,8 +224,9 @@ def clearance_problems(cfg: Config, task: Task, start_q: dict[str, list[float]])
                     f"{task.source}: segments[{i}] ({seg.name}) at t={t:.2f} s: {c.links[0]} "
                     f"and {c.links[1]} {gap} (at least {MIN_CLEARANCE_M * 100:.0f} cm apart)"
                 ]
-        if path:
-            q[r] = path[-1]
+        for r, p in paths.items():
+            if p:
+                q[r] = p[-1]
     return []
 
 

@@ -78,16 +78,25 @@ class SscLogger(Worker):
         task = self.spec.task()
         self.plans = segment_plans(task, cfg)
         self.robots = list(self.spec.robots)
-        self.figures = [SegmentFigures(p.name, p.robot, p.scheme) for p in self.plans]
-        # per segment: the plan of its robot at the segment's last cycle
-        self.last_plan = [Record(PLAN) for _ in self.plans]
+        # one per robot's move, in the segments' order; per robot and
+        # segment (1-based) the index of its move's figures (-1: it holds)
+        moves = [mv for p in self.plans for mv in p.moves]
+        self.figures = [SegmentFigures(mv.name, mv.robot, mv.scheme) for mv in moves]
+        self.fig_of = [[-1] * (len(self.plans) + 1) for _ in self.robots]
+        j = 0
+        for k, p in enumerate(self.plans, 1):
+            for mv in p.moves:
+                self.fig_of[self.robots.index(mv.robot)][k] = j
+                j += 1
+        # per move: the plan of its robot at the segment's last cycle
+        self.last_plan = [Record(PLAN) for _ in moves]
         hole = cfg.workcell.hole
         self.hole = [float(v) for v in hole.xyz_m]
         self.hole_depth = hole.depth_m
         # the peg is in the hole below its mouth, within the hole's half side
         # and the widest search of the believed centre
         reach = max(
-            (p.search.max_radius_m for p in self.plans if p.search.pattern != "none"), default=0.0
+            (mv.search.max_radius_m for mv in moves if mv.search.pattern != "none"), default=0.0
         )
         self.hole_half = (cfg.workcell.peg.side_m + hole.clearance_m) / 2 + reach
         self.phase = 0  # the search's last phase and path
@@ -99,7 +108,9 @@ class SscLogger(Worker):
         self.peg_index = self.robots.index(pegs[0]) if pegs else -1
         # the depth counts from the first force segment on (1-based): a peg
         # left in the hole by an earlier session is pulled out by the approach
-        forces = [k for k, p in enumerate(self.plans, 1) if p.scheme == "force"]
+        forces = [
+            k for k, p in enumerate(self.plans, 1) if any(mv.scheme == "force" for mv in p.moves)
+        ]
         self.depth_from = forces[0] if forces else AFTER
         self.depth = 0.0
         self.depth_t: float | None = None
@@ -114,7 +125,12 @@ class SscLogger(Worker):
             meta["task"] = task.task
             meta["hole_xyz_m"] = self.hole  # believed: workcell.hole
             meta["segments"] = [
-                {"name": p.name, "robot": p.robot, "scheme": p.scheme, "duration_s": p.duration_s}
+                {
+                    "name": p.name,
+                    "robots": p.robots,
+                    "schemes": [mv.scheme for mv in p.moves],
+                    "duration_s": p.duration_s,
+                }
                 for p in self.plans
             ]
             topics = log_topics(self.spec)  # the manager captures the same
@@ -129,7 +145,7 @@ class SscLogger(Worker):
         self.tcp = [rec.array["tcp_xyz_m"] for rec in self.recs]
         self.wrench_task = [rec.array["wrench_task"] for rec in self.recs]
         self.wrench_goal = [rec.array["wrench_goal"] for rec in self.recs]
-        self.sel3 = [p.selection[:3].tolist() for p in self.plans]
+        self.sel3 = [mv.selection[:3].tolist() for mv in moves]
 
     def step(self, cycle: int) -> None:
         if self.recorder is not None:
@@ -178,17 +194,20 @@ class SscLogger(Worker):
                 if phase:  # (the goal's offset is read once, at the end)
                     self.phase = phase
                     self.search_m = rec["search_m"]
-            if not moving or k in (0, AFTER) or k > len(self.figures):
+            if not moving or k in (0, AFTER) or k > len(self.plans):
                 continue
-            fig = self.figures[k - 1]
+            j = self.fig_of[i][k]
+            if j < 0:
+                continue
+            fig = self.figures[j]
             fig.samples += 1
             fig.duration_s = rec["segment_t_s"]
-            self.last_plan[k - 1].bytes[:] = rec.bytes  # (a numpy record's copy: 4 us)
+            self.last_plan[j].bytes[:] = rec.bytes  # (a numpy record's copy: 4 us)
             if fig.scheme == "force" and rec["contact"]:
                 if fig.contact_t_s is None:
                     fig.contact_t_s = fig.duration_s
                 w = self.wrench_task[i].tolist()
-                g, s = self.wrench_goal[i].tolist(), self.sel3[k - 1]
+                g, s = self.wrench_goal[i].tolist(), self.sel3[j]
                 e0, e1, e2 = (g[0] - w[0]) * s[0], (g[1] - w[1]) * s[1], (g[2] - w[2]) * s[2]
                 fig.force_n += 1
                 fig.force_sum += (e0, e1, e2)

@@ -1,4 +1,5 @@
-"""What the SSC needs from a task: per segment, a robot, a scheme and its goal in numbers."""
+"""What the SSC needs from a task: per segment, the robots it moves, each with a
+scheme and its goal in numbers."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from redistro.config.loader import resolved
 from redistro.config.model import Config, controller_view
-from redistro.config.task import MoveSegment, Search, Task
+from redistro.config.task import Move, MoveSegment, Search, Task, move_s, segment_moves
 from redistro.process.plan import worker_specs
 from redistro.process.spec import NodeParams, NodeSpec
 
@@ -21,11 +22,11 @@ SSC_WORKERS = (("worker", 0), ("logger", -1), ("ddm", -1))
 
 
 @dataclass(frozen=True)
-class SegmentPlan:
-    name: str
+class MovePlan:
+    """One robot's move in a segment, its goal in numbers."""
+
     robot: str
     scheme: str
-    duration_s: float
     move_s: float
     q_goal: np.ndarray[Any, Any]  # joint goal [rad] (joint scheme)
     pose: np.ndarray[Any, Any]  # TCP goal: position [m] + rotation vector [rad], world
@@ -39,39 +40,69 @@ class SegmentPlan:
     search: Search
     mouth_z_m: float  # the believed height of the hole's mouth [m]
     hole_depth_m: float  # the hole's depth as drawn [m]
+    name: str = ""  # the segment's
+    duration_s: float = 0.0  # the segment's
+
+    @property
+    def ends_early(self) -> bool:
+        return self.hold_s > 0
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    """A segment: the moves of the robots it moves (the others hold), one clock."""
+
+    name: str
+    duration_s: float
+    move_s: float  # every move's (they start and end together)
+    moves: tuple[MovePlan, ...]
+
+    def move_of(self, robot: str) -> MovePlan | None:
+        for m in self.moves:
+            if m.robot == robot:
+                return m
+        return None
+
+    @property
+    def robots(self) -> list[str]:
+        return [m.robot for m in self.moves]
 
 
 def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     """The task's segments with goals resolved (relative poses made absolute)."""
     hole = np.asarray(cfg.workcell.hole.xyz_m, dtype=np.float64)
-    return [_plan(s, hole, cfg.workcell.hole.depth_m) for s in task.segments]
+    out = []
+    for i, s in enumerate(task.segments):
+        moves = tuple(_move(s, m, hole, cfg.workcell.hole.depth_m) for m in segment_moves(s, i))
+        out.append(SegmentPlan(s.name, s.duration_s, moves[0].move_s, moves))
+    return out
 
 
-def _plan(s: MoveSegment, hole: np.ndarray[Any, Any], depth_m: float) -> SegmentPlan:
-    g = s.goal
+def _move(s: MoveSegment, m: Move, hole: np.ndarray[Any, Any], depth_m: float) -> MovePlan:
+    g = m.goal
     pose = np.zeros(6)
     if g.pos_xyz_rot_xyz:
         pose = np.asarray(g.pos_xyz_rot_xyz, dtype=np.float64).copy()
         if g.relative_to == "hole":
             pose[:3] += hole
-    return SegmentPlan(
-        name=s.name,
-        robot=s.robot,
-        scheme=s.scheme,
-        duration_s=s.duration_s,
-        move_s=g.move_s or 0.75 * s.duration_s,
+    return MovePlan(
+        robot=m.robot,
+        scheme=m.scheme,
+        move_s=move_s(s, m),
         q_goal=np.asarray(g.q_rad or [0.0] * 7, dtype=np.float64),
         pose=pose,
         force=np.asarray(g.force_xyz_torque_xyz, dtype=np.float64),
         selection=np.asarray(g.selection_vector, dtype=np.float64),
         frame=g.frame,
-        pose_within_m=s.end.pose_within_m,
-        rot_within_rad=s.end.rot_within_rad,
-        force_within_n=s.end.force_within_n,
-        hold_s=s.end.hold_s,
-        search=s.search,
+        pose_within_m=m.end.pose_within_m,
+        rot_within_rad=m.end.rot_within_rad,
+        force_within_n=m.end.force_within_n,
+        hold_s=m.end.hold_s,
+        search=m.search,
         mouth_z_m=float(hole[2]),
         hole_depth_m=depth_m,
+        name=s.name,
+        duration_s=s.duration_s,
     )
 
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from redistro.config.model import Config
-from redistro.config.task import Task
+from redistro.config.task import Task, segment_moves
 
 POS_TOL_M = 0.002
 ROT_TOL_RAD = 0.02
@@ -105,33 +105,34 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
     limits = joint_limits(cfg)
     models: dict[str, Any] = {}
     out: list[str] = []
-    for i, plan in enumerate(segment_plans(task, cfg)):
-        if plan.scheme not in ("position", "force"):
-            continue
-        rc = cfg.robots[plan.robot]
-        model = arm_model(cfg, plan.robot, models)
-        starts = [
-            np.asarray(rc.initial_q_rad, dtype=np.float64),
-            np.array([0.0, 0.6, 0.0, -1.4, 0.0, 1.0, 0.0]),
-            np.array([0.0, 0.3, 0.0, -1.9, 0.0, 0.9, 0.0]),
-        ]
-        ok, err = reachable(model, plan.pose, starts, limits.inner_lower, limits.inner_upper)
-        if not ok:
-            xyz = ", ".join(f"{v:.3f}" for v in plan.pose[:3])
-            out.append(
-                f"{task.source}: segments[{i}].goal: {plan.robot} cannot reach the pose "
-                f"({xyz}) m inside its joint limits: {err * 1e3:.0f} mm short at best"
-            )
+    for i, (seg, plan) in enumerate(zip(task.segments, segment_plans(task, cfg), strict=True)):
+        for m, mv in zip(segment_moves(seg, i), plan.moves, strict=True):
+            if mv.scheme not in ("position", "force"):
+                continue
+            rc = cfg.robots[mv.robot]
+            model = arm_model(cfg, mv.robot, models)
+            starts = [
+                np.asarray(rc.initial_q_rad, dtype=np.float64),
+                np.array([0.0, 0.6, 0.0, -1.4, 0.0, 1.0, 0.0]),
+                np.array([0.0, 0.3, 0.0, -1.9, 0.0, 0.9, 0.0]),
+            ]
+            ok, err = reachable(model, mv.pose, starts, limits.inner_lower, limits.inner_upper)
+            if not ok:
+                xyz = ", ".join(f"{v:.3f}" for v in mv.pose[:3])
+                out.append(
+                    f"{task.source}: {m.where}.goal: {mv.robot} cannot reach the pose "
+                    f"({xyz}) m inside its joint limits: {err * 1e3:.0f} mm short at best"
+                )
     return out
 
 
 def goal_postures(
     cfg: Config, task: Task, start_q: dict[str, list[float]] | None = None
-) -> dict[int, np.ndarray]:
-    """Per Cartesian segment (by index), the posture its goal puts the arm
-    in: the inverse kinematics from the robot's posture before it (its
-    last joint goal or Cartesian posture, else its recorded position),
-    for the speed check of the joint move after it."""
+) -> dict[tuple[int, str], np.ndarray]:
+    """Per Cartesian move (by segment index and robot), the posture its goal
+    puts the arm in: the inverse kinematics from the robot's posture before
+    it (its last joint goal or Cartesian posture, else its recorded
+    position), for the speed check of the joint move after it."""
     if task.kind != "strategy":
         return {}
     from redistro.config.limits import joint_limits
@@ -142,15 +143,16 @@ def goal_postures(
     before: dict[str, np.ndarray] = {
         r: np.asarray(q, dtype=np.float64) for r, q in (start_q or {}).items()
     }
-    out: dict[int, np.ndarray] = {}
-    for i, (seg, plan) in enumerate(zip(task.segments, segment_plans(task, cfg), strict=True)):
-        rc = cfg.robots[seg.robot]
-        if seg.scheme == "joint":
-            before[seg.robot] = np.asarray(seg.goal.q_rad, dtype=np.float64)
-            continue
-        model = arm_model(cfg, seg.robot, models)
-        first = before.get(seg.robot, np.asarray(rc.initial_q_rad, dtype=np.float64))
-        ok, _, q = solve(model, plan.pose, [first], limits.inner_lower, limits.inner_upper)
-        if ok and q is not None:
-            out[i] = before[seg.robot] = q
+    out: dict[tuple[int, str], np.ndarray] = {}
+    for i, plan in enumerate(segment_plans(task, cfg)):
+        for mv in plan.moves:
+            r = mv.robot
+            if mv.scheme == "joint":
+                before[r] = mv.q_goal.copy()
+                continue
+            model = arm_model(cfg, r, models)
+            first = before.get(r, np.asarray(cfg.robots[r].initial_q_rad, dtype=np.float64))
+            ok, _, q = solve(model, mv.pose, [first], limits.inner_lower, limits.inner_upper)
+            if ok and q is not None:
+                out[i, r] = before[r] = q
     return out

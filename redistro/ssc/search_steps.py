@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 from redistro.control.search import DESCENT_ACCEL_M_S2, Phase
 
 if TYPE_CHECKING:
-    from redistro.ssc.plan import SegmentPlan
+    from redistro.ssc.plan import MovePlan
     from redistro.ssc.worker import RobotState, SscWorker
 
 X, Y, Z, RZ = 0, 1, 2, 5  # Cartesian axes, in the law's 6-vectors
@@ -20,9 +20,7 @@ DEEP_IN = 3.0  # this many search.drop_m below the contact: in the hole for sure
 TOUCH_ABOVE_M = 0.003  # a searching descent slows to search.touch_m_s this far above the mouth
 
 
-def steer(
-    w: SscWorker, st: RobotState, plan: SegmentPlan, seg_t: float, dt: float, t: float
-) -> None:
+def steer(w: SscWorker, st: RobotState, plan: MovePlan, seg_t: float, dt: float, t: float) -> None:
     """One cycle of the search: its next phase, and the law set for it."""
     srch = st.search
     assert srch is not None
@@ -62,7 +60,7 @@ def _goal_xy(law: Any, x: float, y: float) -> None:
     ref["start_p"][Y] = ref["goal_p"][Y] = y
 
 
-def _searching(w: SscWorker, st: RobotState, plan: SegmentPlan, before: Phase, t: float) -> None:
+def _searching(w: SscWorker, st: RobotState, plan: MovePlan, before: Phase, t: float) -> None:
     """The search's spiral: the plane's stiffness, the goal leading the tip."""
     srch, law = st.search, st.law
     assert srch is not None
@@ -91,7 +89,7 @@ def _searching(w: SscWorker, st: RobotState, plan: SegmentPlan, before: Phase, t
 
 
 def _in_hole(
-    w: SscWorker, st: RobotState, plan: SegmentPlan, before: Phase, seg_t: float, t: float
+    w: SscWorker, st: RobotState, plan: MovePlan, before: Phase, seg_t: float, t: float
 ) -> None:
     """In the hole: stop where the tip is; the push dying away after the
     drop; down fast once deep enough, at the law's own speed near the
@@ -120,7 +118,7 @@ def _in_hole(
         gains["a_max"] = st.gains0["a_max"]
 
 
-def _dropped_in(w: SscWorker, st: RobotState, plan: SegmentPlan, before: Phase, t: float) -> None:
+def _dropped_in(w: SscWorker, st: RobotState, plan: MovePlan, before: Phase, t: float) -> None:
     """The peg found the hole: stop where the tip is, the task's own
     stiffness and push."""
     srch, law = st.search, st.law

@@ -50,7 +50,7 @@ from redistro.process import hooks
 from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
 from redistro.ssc.clearance import TRIP_M, ClearanceWatch
-from redistro.ssc.plan import SCHEMES, SegmentPlan, segment_plans
+from redistro.ssc.plan import SCHEMES, MovePlan, SegmentPlan, segment_plans
 from redistro.ssc.search_steps import steer
 
 DOF = 7
@@ -240,7 +240,10 @@ class SscWorker(Worker):
         self.k = -1  # running segment (0-based); len(plans): settling; then done
         self.seg_start_t = 0.0
         self.law_start_t = 0.0  # the moving law's clock (a failed search's lift restarts it)
-        self.cond_since: float | None = None
+        # per robot: its move in the running segment (None: it holds), and
+        # since when its end conditions have held
+        self.moving: list[MovePlan | None] = [None] * n
+        self.cond_since: list[float | None] = [None] * n
         self.done = False
         self.failed = ""  # why the task could not be done (a search found no hole)
         self.retreat_end_t = 0.0  # when the failed task's lift is over
@@ -278,7 +281,6 @@ class SscWorker(Worker):
         self._advance(t)
         seg_t = t - self.seg_start_t
         law_t = t - self.law_start_t
-        plan = self.plans[self.k] if self.k < len(self.plans) else None
         status = SessionStatus.FINISHED if self.done else SessionStatus.IN_PROGRESS
         segment = AFTER if self.k >= len(self.plans) else self.k + 1
         done = 1 if self.done else 0
@@ -294,9 +296,10 @@ class SscWorker(Worker):
             pl["segment_t_s"] = seg_t
             pl["done"] = done
             pl["failed"] = failed
-            if plan is not None and plan.robot == st.name and not self.done:
+            mv = self.moving[i]
+            if mv is not None and not self.done:
                 pl["moving"] = 1
-                self._law(st, plan, law_t, dt, t)
+                self._law(st, mv, law_t, dt, t)
             else:
                 pl["moving"] = 0
                 self._hold(st, dt)
@@ -331,8 +334,10 @@ class SscWorker(Worker):
         """Start segment k at task time t (k == len(plans): settle, then done)."""
         self.k = k
         self.seg_start_t = self.law_start_t = t
-        self.cond_since = None
+        self.cond_since = [None] * len(self.states)
+        was = self.moving
         if k >= len(self.plans):
+            self.moving = [None] * len(self.states)
             for st in self.states:
                 st.hold_q[...] = st.views["q"]
                 st.pid.reset()
@@ -341,64 +346,69 @@ class SscWorker(Worker):
             self.post(f"every segment done at t={t:.2f} s; settling {self.settle_s} s")
             return
         plan = self.plans[k]
-        prev = self.plans[k - 1].robot if k > 0 else None
-        for st in self.states:
-            q = st.views["q"].astype(np.float64)
-            v = st.views
-            if st.name != plan.robot:
-                if prev == st.name or k == 0:
-                    st.hold_q[...] = q  # it was moving: it holds where it is now
+        self.moving = [plan.move_of(st.name) for st in self.states]
+        for st, mv, moved in zip(self.states, self.moving, was, strict=True):
+            if mv is None:
+                if moved is not None or k == 0:
+                    st.hold_q[...] = st.views["q"]  # it was moving: it holds where it is now
                     st.pid.reset()
                 st.cartesian = False
                 st.hold_plan()
-                continue
-            st.pid.reset()
-            st.start_q = q.copy()
-            kin = st.model.kinematics(q)
-            st.plan["scheme"] = SCHEMES[plan.scheme]
-            v["q_goal"][...] = plan.q_goal
-            if plan.scheme in ("position", "force"):
-                force = plan.scheme == "force"
-                cmd = TaskFrameCommand(
-                    plan.pose,
-                    plan.force,
-                    plan.selection if force else np.zeros(6),
-                    "tool" if plan.frame == "tool" else "world",
-                )
-                # the same robot staying under Cartesian control keeps what the
-                # integral learned (a fresh one would let the pose sag back to
-                # its uncompensated error at every segment start)
-                carried = st.law.integral.copy() if st.cartesian else None
-                st.law.gains[...] = st.gains0  # a search may have changed them
-                st.law.start(cmd, kin.p, kin.R, plan.move_s, st.start_q, carried)
-                st.cartesian = True
-                st.short_move = bool(
-                    np.linalg.norm(cmd.goal_p - kin.p) < 0.002
-                    and np.linalg.norm(matrix_to_rotvec(cmd.goal_R @ kin.R.T)) < 0.01
-                )
-                v["goal"][...] = plan.pose[:3]
-                v["goal_rot"][...] = plan.pose[3:]
-                v["wrench_goal"][...] = plan.force if force else 0.0
-                v["selection"][...] = plan.selection if force else 0
-                st.plan["phase"] = Phase.NONE
-                st.search = None
-                if force and plan.search.pattern == "spiral":
-                    st.search = SpiralSearch(plan.search, plan.mouth_z_m)
-                    st.goal_z_n = float(plan.force[2])
-                    st.plan["phase"] = Phase.DESCENT
-                    st.plan["search_m"] = 0.0
-                    v["search_xy"][...] = 0.0
             else:
-                st.cartesian = False
-                st.quintic.start(st.start_q, plan.q_goal, plan.move_s)
-                goal = st.model.kinematics(plan.q_goal)
-                v["goal"][...] = goal.p
-                v["goal_rot"][...] = matrix_to_rotvec(goal.R)
-                v["wrench_task"][...] = 0.0
-                v["wrench_goal"][...] = 0.0
-                v["selection"][...] = 0
-                st.plan["contact"] = 0
-        self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {plan.robot} {plan.scheme}")
+                self._start_move(st, mv)
+        moves = ", ".join(f"{m.robot} {m.scheme}" for m in plan.moves)
+        self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {moves}")
+
+    def _start_move(self, st: RobotState, mv: MovePlan) -> None:
+        """A robot's move begins: its law or its quintic, its plan's goal."""
+        q = st.views["q"].astype(np.float64)
+        v = st.views
+        st.pid.reset()
+        st.start_q = q.copy()
+        kin = st.model.kinematics(q)
+        st.plan["scheme"] = SCHEMES[mv.scheme]
+        v["q_goal"][...] = mv.q_goal
+        if mv.scheme in ("position", "force"):
+            force = mv.scheme == "force"
+            cmd = TaskFrameCommand(
+                mv.pose,
+                mv.force,
+                mv.selection if force else np.zeros(6),
+                "tool" if mv.frame == "tool" else "world",
+            )
+            # the same robot staying under Cartesian control keeps what the
+            # integral learned (a fresh one would let the pose sag back to
+            # its uncompensated error at every segment start)
+            carried = st.law.integral.copy() if st.cartesian else None
+            st.law.gains[...] = st.gains0  # a search may have changed them
+            st.law.start(cmd, kin.p, kin.R, mv.move_s, st.start_q, carried)
+            st.cartesian = True
+            st.short_move = bool(
+                np.linalg.norm(cmd.goal_p - kin.p) < 0.002
+                and np.linalg.norm(matrix_to_rotvec(cmd.goal_R @ kin.R.T)) < 0.01
+            )
+            v["goal"][...] = mv.pose[:3]
+            v["goal_rot"][...] = mv.pose[3:]
+            v["wrench_goal"][...] = mv.force if force else 0.0
+            v["selection"][...] = mv.selection if force else 0
+            st.plan["phase"] = Phase.NONE
+            st.search = None
+            if force and mv.search.pattern == "spiral":
+                st.search = SpiralSearch(mv.search, mv.mouth_z_m)
+                st.goal_z_n = float(mv.force[2])
+                st.plan["phase"] = Phase.DESCENT
+                st.plan["search_m"] = 0.0
+                v["search_xy"][...] = 0.0
+        else:
+            st.cartesian = False
+            st.quintic.start(st.start_q, mv.q_goal, mv.move_s)
+            goal = st.model.kinematics(mv.q_goal)
+            v["goal"][...] = goal.p
+            v["goal_rot"][...] = matrix_to_rotvec(goal.R)
+            v["wrench_task"][...] = 0.0
+            v["wrench_goal"][...] = 0.0
+            v["selection"][...] = 0
+            st.plan["contact"] = 0
 
     def _advance(self, t: float) -> None:
         if self.done:
@@ -414,45 +424,56 @@ class SscWorker(Worker):
             if t >= self.retreat_end_t:
                 self._begin(len(self.plans), t)  # lifted off: hold, then end
         elif seg_t >= plan.duration_s or self._ended_early(plan, t):
-            st = self.states[self.robots.index(plan.robot)]
-            srch = st.search
-            if srch is not None and srch.phase in (Phase.DESCENT, Phase.SETTLE, Phase.SEARCH):
-                st.law.gains[...] = st.gains0
-                srch.phase = Phase.NOT_FOUND
-                st.plan["phase"] = Phase.NOT_FOUND
-                self._fail(
-                    st, plan, t, f"hole not found within the segment's {plan.duration_s:g} s"
-                )
-                return
+            for st, mv in zip(self.states, self.moving, strict=True):
+                srch = st.search
+                if mv is None or srch is None:
+                    continue
+                if srch.phase in (Phase.DESCENT, Phase.SETTLE, Phase.SEARCH):
+                    st.law.gains[...] = st.gains0
+                    srch.phase = Phase.NOT_FOUND
+                    st.plan["phase"] = Phase.NOT_FOUND
+                    why = f"hole not found within the segment's {plan.duration_s:g} s"
+                    self._fail(st, mv, t, why)
+                    return
             self._begin(self.k + 1, t)
 
     def _ended_early(self, plan: SegmentPlan, t: float) -> bool:
-        if plan.hold_s <= 0 or t - self.seg_start_t < plan.move_s:
+        """Every moving robot's end conditions (those that have any) held
+        for their hold_s, once the moves are over."""
+        if t - self.seg_start_t < plan.move_s:
             return False
-        i = self.robots.index(plan.robot)
+        held = [
+            self._held(i, mv, t)
+            for i, mv in enumerate(self.moving)
+            if mv is not None and mv.ends_early
+        ]
+        return bool(held) and all(held)
+
+    def _held(self, i: int, mv: MovePlan, t: float) -> bool:
         pl = self.plan_recs[i].array
         ok = True
-        if plan.pose_within_m > 0 or plan.rot_within_rad > 0:
+        if mv.pose_within_m > 0 or mv.rot_within_rad > 0:
             e = pose_error(
                 pl["tcp_xyz_m"],
                 rotvec_to_matrix(pl["tcp_rot_xyz"]),
-                plan.pose[:3],
-                rotvec_to_matrix(plan.pose[3:]),
+                mv.pose[:3],
+                rotvec_to_matrix(mv.pose[3:]),
             )
-            if plan.pose_within_m > 0 and float(np.linalg.norm(e[:3])) > plan.pose_within_m:
+            if mv.pose_within_m > 0 and float(np.linalg.norm(e[:3])) > mv.pose_within_m:
                 ok = False
-            if plan.rot_within_rad > 0 and float(np.linalg.norm(e[3:])) > plan.rot_within_rad:
+            if mv.rot_within_rad > 0 and float(np.linalg.norm(e[3:])) > mv.rot_within_rad:
                 ok = False
-        if plan.force_within_n > 0:
-            err = (plan.force - pl["wrench_task"]) * plan.selection
-            if not pl["contact"] or float(np.linalg.norm(err[:3])) > plan.force_within_n:
+        if mv.force_within_n > 0:
+            err = (mv.force - pl["wrench_task"]) * mv.selection
+            if not pl["contact"] or float(np.linalg.norm(err[:3])) > mv.force_within_n:
                 ok = False
         if not ok:
-            self.cond_since = None
+            self.cond_since[i] = None
             return False
-        if self.cond_since is None:
-            self.cond_since = t
-        return t - self.cond_since >= plan.hold_s
+        since = self.cond_since[i]
+        if since is None:
+            since = self.cond_since[i] = t
+        return t - since >= mv.hold_s
 
     # -- control laws --
 
@@ -465,7 +486,7 @@ class SscWorker(Worker):
         v["q_cmd"][...] = st.hold_q
         self._pose(st, q, goal=True)
 
-    def _law(self, st: RobotState, plan: SegmentPlan, seg_t: float, dt: float, t: float) -> None:
+    def _law(self, st: RobotState, plan: MovePlan, seg_t: float, dt: float, t: float) -> None:
         v = st.views
         q = v["q"]
         if not st.cartesian:  # a joint segment: a quintic in joint space, a joint PID
@@ -495,11 +516,11 @@ class SscWorker(Worker):
         v["q_cmd"][...] = q
         st.plan["contact"] = 1 if law.contact else 0
 
-    def _search(self, st: RobotState, plan: SegmentPlan, seg_t: float, dt: float, t: float) -> None:
+    def _search(self, st: RobotState, plan: MovePlan, seg_t: float, dt: float, t: float) -> None:
         """The segment's search, before the law (:mod:`redistro.ssc.search_steps`)."""
         steer(self, st, plan, seg_t, dt, t)
 
-    def _fail(self, st: RobotState, plan: SegmentPlan, t: float, why: str) -> None:
+    def _fail(self, st: RobotState, plan: MovePlan, t: float, why: str) -> None:
         """The task cannot be done (the search found no hole): the robot lifts
         its tool straight up to the segment's start height under position
         control (off the surface it pressed, so that the next session starts

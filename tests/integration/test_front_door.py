@@ -103,6 +103,24 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         "huge_force": (ROOT / "tasks/peg_insertion_short.yaml")
         .read_bytes()
         .replace(b"force_xyz_torque_xyz: [0, 0, -20", b"force_xyz_torque_xyz: [0, 0, -1.0e+6"),
+        "moves_and_robot": (ROOT / "tasks/dual_reach.yaml")
+        .read_bytes()
+        .replace(
+            b"  - name: home\n    duration_s: 4\n",
+            b"  - name: home\n    duration_s: 4\n    robot: r2\n",
+        ),
+        "moves_two_clocks": (ROOT / "tasks/dual_reach.yaml")
+        .read_bytes()
+        .replace(
+            b"0, 1.0, 0]\n          move_s: 3\n      r2:\n        scheme: position",
+            b"0, 1.0, 0]\n          move_s: 2\n      r2:\n        scheme: position",
+        ),
+        "moves_stranger": (ROOT / "tasks/dual_reach.yaml")
+        .read_bytes()
+        .replace(
+            b"      r1:\n        scheme: joint\n        goal:\n          q_rad: [0.4",
+            b"      r9:\n        scheme: joint\n        goal:\n          q_rad: [0.4",
+        ),
         "big_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
         f"  - {{name: a, duration_s: {big}, q_rad: {{r1: {PARK}}}}}\n".encode(),
         "big_float_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
@@ -258,6 +276,18 @@ CASES = [
         "segments[1].goal.q_rad: joint 1 would move",
     ),
     ("a goal force of 1e6 N", ["check", "{huge_force}"], "a goal force of 1e+06 N, over"),
+    (
+        "a segment of moves that names a robot too",
+        ["session", "{moves_and_robot}"],
+        "segments[1].robot: a segment with moves gives it per robot (moves.<robot>)",
+    ),
+    (
+        "a segment's moves on two clocks",
+        ["session", "{moves_two_clocks}"],
+        "segments[0].moves: the robots of one segment move on one clock: give them the same "
+        "goal.move_s (got r1 2 s, r2 3 s)",
+    ),
+    ("a move for a robot not in the task", ["check", "{moves_stranger}"], "moves.r9: 'r9' is not"),
     # what check refuses that would fail only once running
     (
         "a zenoh listen endpoint without a port",

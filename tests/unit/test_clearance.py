@@ -83,6 +83,41 @@ def test_the_same_swing_kept_on_its_own_side_passes(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stdout + done.stderr
 
 
+# each arm turned toward the other, reaching over: either alone keeps 13 cm
+# from the other at rest; together they overlap
+TOWARD = {
+    "r1": [-1.5708, 0.7, 0.0, -0.3, 0.0, 0.5, 0.0],
+    "r2": [1.5708, 0.7, 0.0, -0.3, 0.0, 0.5, 0.0],
+}
+
+
+def _moves_task(robots: list[str]) -> str:
+    lines = [
+        "task: meet", "kind: strategy", "robots: [r1, r2]", "segments:",
+        "  - name: meet", "    duration_s: 6", "    moves:",
+    ]  # fmt: skip
+    for r in robots:
+        lines += [f"      {r}:", "        scheme: joint", f"        goal: {{q_rad: {TOWARD[r]}}}"]
+    return "\n".join(lines) + "\n"
+
+
+def test_two_arms_moving_in_one_segment_are_checked_together(tmp_path: Path) -> None:
+    """A segment's moves share one clock, and the load check samples them
+    so: each arm's move alone keeps clear, both at once are refused."""
+    from redistro.config.task import load_task
+    from redistro.ssc.clearance import clearance_problems
+
+    cfg = load_config(None)
+    start = {r: list(cfg.robots[r].initial_q_rad) for r in ("r1", "r2")}
+    for robots, refused in ((["r1"], False), (["r2"], False), (["r1", "r2"], True)):
+        path = tmp_path / f"meet-{len(robots)}-{robots[0]}.yaml"
+        path.write_text(_moves_task(robots))
+        problems = clearance_problems(cfg, load_task(path, cfg), start)
+        assert bool(problems) == refused, (robots, problems)
+    line = problems[0]
+    assert "segments[0] (meet) at t=" in line and "r1 " in line and "r2 " in line, line
+
+
 def test_a_samples_time_is_where_the_quintic_profile_reaches_it() -> None:
     assert _time_at(0.5, 4.0) == pytest.approx(2.0, abs=1e-6)  # the profile's middle
     assert _time_at(1.0, 4.0) == pytest.approx(4.0, abs=1e-3)  # (flat at its end)
