@@ -206,8 +206,8 @@ def task_motion_problems(
     guard would refuse (above ``force_max_n`` or ``moment_max_nm``, which
     the wrist sensor's range bounds). A move's start is the previous joint
     goal of its robot; after a Cartesian segment, the posture its goal puts
-    the arm in (``cartesian_q``, by segment index and robot: the inverse kinematics of
-    the load check); for the first, the robot's position in ``start_q``
+    the arm in (``cartesian_q``, by segment index and robot: the inverse
+    kinematics of the load check); for the first, the robot's position in ``start_q``
     (unknown: the speed of that move is left to the guard)."""
     limits = joint_limits(cfg)
     qd_max = np.asarray(cfg.esc.safety.qd_max_rad_s, dtype=np.float64)
@@ -246,28 +246,37 @@ def task_motion_problems(
             for r, q in seg.q_rad.items():
                 goal(r, q, seg.duration_s, f"segments[{i}].q_rad.{r}")
     elif task.kind == "strategy":
+        from redistro.config.skills import skill_of
         from redistro.config.task import move_s, segment_moves
 
-        s = cfg.esc.safety
         for i, seg in enumerate(task.segments):
             for m in segment_moves(seg, i):
+                if skill_of(m).name == "hold":
+                    continue
                 if m.scheme == "joint":
                     goal(m.robot, m.goal.q_rad, move_s(seg, m), f"{m.where}.goal.q_rad")
                     continue
                 # a Cartesian move ends where its inverse kinematics says
                 prev[m.robot] = (cartesian_q or {}).get((i, m.robot))
-                w = np.asarray(m.goal.force_xyz_torque_xyz, dtype=np.float64)
-                sel = np.asarray(m.goal.selection_vector, dtype=np.float64)
-                f = float(np.linalg.norm(w[:3] * sel[:3]))
-                mo = float(np.linalg.norm(w[3:] * sel[3:]))
-                for what, value, limit, key, unit in (
-                    ("force", f, s.force_max_n, "force_max_n", "N"),
-                    ("moment", mo, s.moment_max_nm, "moment_max_nm", "N m"),
-                ):
-                    if value > limit:
-                        out.append(
-                            f"{where}: {m.where}.goal.force_xyz_torque_xyz: a goal {what} of "
-                            f"{value:.4g} {unit}, over esc.safety.{key} {limit:g} {unit} (the "
-                            "guard would stop it; the wrist sensor's range bounds that limit)"
-                        )
+                out.extend(_wrench_problems(m, cfg.esc.safety, where))
+    return out
+
+
+def _wrench_problems(m: Any, s: Any, where: str) -> list[str]:
+    """A move's goal wrench the guard would refuse (``esc.safety`` s)."""
+    out = []
+    w = np.asarray(m.goal.force_xyz_torque_xyz, dtype=np.float64)
+    sel = np.asarray(m.goal.selection_vector, dtype=np.float64)
+    f = float(np.linalg.norm(w[:3] * sel[:3]))
+    mo = float(np.linalg.norm(w[3:] * sel[3:]))
+    for what, value, limit, key, unit in (
+        ("force", f, s.force_max_n, "force_max_n", "N"),
+        ("moment", mo, s.moment_max_nm, "moment_max_nm", "N m"),
+    ):
+        if value > limit:
+            out.append(
+                f"{where}: {m.where}.goal.force_xyz_torque_xyz: a goal {what} of "
+                f"{value:.4g} {unit}, over esc.safety.{key} {limit:g} {unit} (the "
+                "guard would stop it; the wrist sensor's range bounds that limit)"
+            )
     return out

@@ -11,7 +11,8 @@ A task names its robots and its kind; each kind has its own section.
   joint PID) to joint goals; needs known joint positions.
 - ``strategy``: the SSC drives the group (paper Table 6.III): each segment
   moves one robot (``robot``), or several at once (``moves``: a goal per
-  robot, all on the segment's clock), each under a control scheme
+  robot, all on the segment's clock), each a skill (``config/skills.py``)
+  under a control scheme
   (``joint``: joint PID to ``goal.q_rad``; ``position``: Cartesian impedance
   to a TCP pose; ``force``: hybrid position/force control with a task-frame
   command) while the other robots hold their pose. Poses may be given
@@ -88,12 +89,15 @@ class Goal:
 class EndConditions:
     """End a segment early when every given tolerance holds for hold_s:
     pose_within_m (TCP position error), rot_within_rad, force_within_n (force
-    error on the force axes); 0 means not checked. hold_s 0: no early end."""
+    error on the force axes); 0 means not checked. hold_s 0: no early end.
+    contact_n (a guarded_move's): the wrist's force over this is contact,
+    and the move ends there."""
 
     pose_within_m: float = field(default=0.0, metadata={"ge": 0})
     rot_within_rad: float = field(default=0.0, metadata={"ge": 0})
     force_within_n: float = field(default=0.0, metadata={"ge": 0})
     hold_s: float = field(default=0.0, metadata={"ge": 0, "le": 3600})
+    contact_n: float = field(default=0.0, metadata={"ge": 0, "le": 100})
 
 
 @dataclass(frozen=True)
@@ -151,6 +155,7 @@ class RobotMove:
     goal: Goal = field(default_factory=Goal)
     end: EndConditions = field(default_factory=EndConditions)
     search: Search = field(default_factory=Search)
+    skill: Literal["", "move", "guarded_move", "push", "search_insert", "hold"] = ""
 
 
 @dataclass(frozen=True)
@@ -169,6 +174,7 @@ class MoveSegment:
     end: EndConditions = field(default_factory=EndConditions)
     search: Search = field(default_factory=Search)
     moves: dict[str, RobotMove] = field(default_factory=dict)
+    skill: Literal["", "move", "guarded_move", "push", "search_insert", "hold"] = ""
 
 
 @dataclass(frozen=True)
@@ -182,16 +188,18 @@ class Move:
     end: EndConditions
     search: Search
     where: str  # the task file's field it came from, for messages
+    skill: str = ""  # (config/skills.py; "": its scheme's)
 
 
 def segment_moves(seg: MoveSegment, i: int) -> list[Move]:
     """The robots a strategy segment moves, in the order the task gives them."""
     if seg.moves:
         return [
-            Move(r, m.scheme, m.goal, m.end, m.search, f"segments[{i}].moves.{r}")
+            Move(r, m.scheme, m.goal, m.end, m.search, f"segments[{i}].moves.{r}", m.skill)
             for r, m in seg.moves.items()
         ]
-    return [Move(seg.robot, seg.scheme, seg.goal, seg.end, seg.search, f"segments[{i}]")]
+    where = f"segments[{i}]"
+    return [Move(seg.robot, seg.scheme, seg.goal, seg.end, seg.search, where, seg.skill)]
 
 
 def move_s(seg: MoveSegment, m: Move) -> float:
@@ -279,7 +287,7 @@ def _check_strategy(task: Task, where: str) -> None:
 def _check_moves_form(task: Task, seg: MoveSegment, at: str) -> None:
     """A segment of several robots: its moves only, each robot once, in one time."""
     one = MoveSegment(seg.name, seg.duration_s)
-    for key in ("robot", "scheme", "goal", "end", "search"):
+    for key in ("robot", "scheme", "goal", "end", "search", "skill"):
         if getattr(seg, key) != getattr(one, key):
             per = "moves.<robot>" if key == "robot" else f"moves.<robot>.{key}"
             raise ConfigError(f"{at}.{key}: a segment with moves gives it per robot ({per})")
@@ -296,6 +304,10 @@ def _check_moves_form(task: Task, seg: MoveSegment, at: str) -> None:
 
 
 def _check_move(seg: MoveSegment, m: Move, at: str) -> None:
+    from redistro.config.skills import check_skill
+
+    if check_skill(m, at).name == "hold":
+        return
     g = m.goal
     if g.move_s > seg.duration_s:
         raise ConfigError(f"{at}.goal.move_s: {g.move_s} is longer than duration_s")

@@ -10,6 +10,7 @@ import numpy as np
 
 from redistro.config.loader import resolved
 from redistro.config.model import Config, controller_view
+from redistro.config.skills import skill_of
 from redistro.config.task import Move, MoveSegment, Search, Task, move_s, segment_moves
 from redistro.process.plan import worker_specs
 from redistro.process.spec import NodeParams, NodeSpec
@@ -42,10 +43,13 @@ class MovePlan:
     hole_depth_m: float  # the hole's depth as drawn [m]
     name: str = ""  # the segment's
     duration_s: float = 0.0  # the segment's
+    skill: str = "move"  # (config/skills.py)
+    contact_n: float = 0.0  # a guarded move's contact [N]: it ends there
+    where: str = ""  # the task file's field, for messages
 
     @property
     def ends_early(self) -> bool:
-        return self.hold_s > 0
+        return self.hold_s > 0 or self.contact_n > 0
 
 
 @dataclass(frozen=True)
@@ -55,7 +59,7 @@ class SegmentPlan:
     name: str
     duration_s: float
     move_s: float  # every move's (they start and end together)
-    moves: tuple[MovePlan, ...]
+    moves: tuple[MovePlan, ...]  # (a robot whose skill is hold has none)
 
     def move_of(self, robot: str) -> MovePlan | None:
         for m in self.moves:
@@ -73,8 +77,13 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     hole = np.asarray(cfg.workcell.hole.xyz_m, dtype=np.float64)
     out = []
     for i, s in enumerate(task.segments):
-        moves = tuple(_move(s, m, hole, cfg.workcell.hole.depth_m) for m in segment_moves(s, i))
-        out.append(SegmentPlan(s.name, s.duration_s, moves[0].move_s, moves))
+        moves = tuple(
+            _move(s, m, hole, cfg.workcell.hole.depth_m)
+            for m in segment_moves(s, i)
+            if skill_of(m).name != "hold"
+        )
+        move_s = moves[0].move_s if moves else 0.0  # (the same for every move)
+        out.append(SegmentPlan(s.name, s.duration_s, move_s, moves))
     return out
 
 
@@ -103,6 +112,9 @@ def _move(s: MoveSegment, m: Move, hole: np.ndarray[Any, Any], depth_m: float) -
         hole_depth_m=depth_m,
         name=s.name,
         duration_s=s.duration_s,
+        skill=skill_of(m).name,
+        contact_n=m.end.contact_n,
+        where=m.where,
     )
 
 

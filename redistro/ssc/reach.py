@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from redistro.config.model import Config
-from redistro.config.task import Task, segment_moves
+from redistro.config.task import Task
 
 POS_TOL_M = 0.002
 ROT_TOL_RAD = 0.02
@@ -105,8 +105,8 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
     limits = joint_limits(cfg)
     models: dict[str, Any] = {}
     out: list[str] = []
-    for i, (seg, plan) in enumerate(zip(task.segments, segment_plans(task, cfg), strict=True)):
-        for m, mv in zip(segment_moves(seg, i), plan.moves, strict=True):
+    for plan in segment_plans(task, cfg):
+        for mv in plan.moves:
             if mv.scheme not in ("position", "force"):
                 continue
             rc = cfg.robots[mv.robot]
@@ -120,7 +120,7 @@ def unreachable_goals(cfg: Config, task: Task) -> list[str]:
             if not ok:
                 xyz = ", ".join(f"{v:.3f}" for v in mv.pose[:3])
                 out.append(
-                    f"{task.source}: {m.where}.goal: {mv.robot} cannot reach the pose "
+                    f"{task.source}: {mv.where}.goal: {mv.robot} cannot reach the pose "
                     f"({xyz}) m inside its joint limits: {err * 1e3:.0f} mm short at best"
                 )
     return out

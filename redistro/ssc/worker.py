@@ -240,9 +240,12 @@ class SscWorker(Worker):
         self.k = -1  # running segment (0-based); len(plans): settling; then done
         self.seg_start_t = 0.0
         self.law_start_t = 0.0  # the moving law's clock (a failed search's lift restarts it)
-        # per robot: its move in the running segment (None: it holds), and
-        # since when its end conditions have held
+        # per robot: its move in the running segment (None: it holds), the
+        # move it is driven by now (None once a guarded move met its
+        # contact), whether it met it, since when its end conditions held
+        self.seg_moves: list[MovePlan | None] = [None] * n
         self.moving: list[MovePlan | None] = [None] * n
+        self.contacted = [False] * n
         self.cond_since: list[float | None] = [None] * n
         self.done = False
         self.failed = ""  # why the task could not be done (a search found no hole)
@@ -300,6 +303,8 @@ class SscWorker(Worker):
             if mv is not None and not self.done:
                 pl["moving"] = 1
                 self._law(st, mv, law_t, dt, t)
+                if mv.contact_n > 0:
+                    self._guarded(i, st, mv, t)
             else:
                 pl["moving"] = 0
                 self._hold(st, dt)
@@ -335,9 +340,10 @@ class SscWorker(Worker):
         self.k = k
         self.seg_start_t = self.law_start_t = t
         self.cond_since = [None] * len(self.states)
+        self.contacted = [False] * len(self.states)
         was = self.moving
         if k >= len(self.plans):
-            self.moving = [None] * len(self.states)
+            self.moving = self.seg_moves = [None] * len(self.states)
             for st in self.states:
                 st.hold_q[...] = st.views["q"]
                 st.pid.reset()
@@ -346,7 +352,8 @@ class SscWorker(Worker):
             self.post(f"every segment done at t={t:.2f} s; settling {self.settle_s} s")
             return
         plan = self.plans[k]
-        self.moving = [plan.move_of(st.name) for st in self.states]
+        self.seg_moves = [plan.move_of(st.name) for st in self.states]
+        self.moving = list(self.seg_moves)
         for st, mv, moved in zip(self.states, self.moving, was, strict=True):
             if mv is None:
                 if moved is not None or k == 0:
@@ -356,7 +363,7 @@ class SscWorker(Worker):
                 st.hold_plan()
             else:
                 self._start_move(st, mv)
-        moves = ", ".join(f"{m.robot} {m.scheme}" for m in plan.moves)
+        moves = ", ".join(f"{m.robot} {m.scheme}" for m in plan.moves) or "every robot holds"
         self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {moves}")
 
     def _start_move(self, st: RobotState, mv: MovePlan) -> None:
@@ -438,42 +445,40 @@ class SscWorker(Worker):
             self._begin(self.k + 1, t)
 
     def _ended_early(self, plan: SegmentPlan, t: float) -> bool:
-        """Every moving robot's end conditions (those that have any) held
-        for their hold_s, once the moves are over."""
-        if t - self.seg_start_t < plan.move_s:
-            return False
-        held = [
-            self._held(i, mv, t)
-            for i, mv in enumerate(self.moving)
-            if mv is not None and mv.ends_early
-        ]
+        """Every moving robot's end conditions (those that have any) met: a
+        guarded move's contact, any time; the tolerances held for their
+        hold_s, once the moves are over."""
+        over = t - self.seg_start_t >= plan.move_s
+        held = []
+        for i, mv in enumerate(self.seg_moves):
+            if mv is None or not mv.ends_early:
+                continue
+            held.append(self.contacted[i] if mv.contact_n > 0 else over and self._held(i, mv, t))
         return bool(held) and all(held)
 
     def _held(self, i: int, mv: MovePlan, t: float) -> bool:
-        pl = self.plan_recs[i].array
-        ok = True
-        if mv.pose_within_m > 0 or mv.rot_within_rad > 0:
-            e = pose_error(
-                pl["tcp_xyz_m"],
-                rotvec_to_matrix(pl["tcp_rot_xyz"]),
-                mv.pose[:3],
-                rotvec_to_matrix(mv.pose[3:]),
-            )
-            if mv.pose_within_m > 0 and float(np.linalg.norm(e[:3])) > mv.pose_within_m:
-                ok = False
-            if mv.rot_within_rad > 0 and float(np.linalg.norm(e[3:])) > mv.rot_within_rad:
-                ok = False
-        if mv.force_within_n > 0:
-            err = (mv.force - pl["wrench_task"]) * mv.selection
-            if not pl["contact"] or float(np.linalg.norm(err[:3])) > mv.force_within_n:
-                ok = False
-        if not ok:
+        if not _within(self.plan_recs[i].array, mv):
             self.cond_since[i] = None
             return False
         since = self.cond_since[i]
         if since is None:
             since = self.cond_since[i] = t
         return t - since >= mv.hold_s
+
+    def _guarded(self, i: int, st: RobotState, mv: MovePlan, t: float) -> None:
+        """A guarded move at its first contact (the wrist's force over the
+        move's contact_n): the robot holds where it is from now on."""
+        f = st.views["wrench"]
+        if math.sqrt(float(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])) <= mv.contact_n:
+            return
+        self.contacted[i] = True
+        self.moving[i] = None
+        st.hold_q[...] = st.views["q"]
+        st.pid.reset()
+        st.cartesian = False
+        st.hold_plan()
+        st.plan["contact"] = 1
+        self.post(f"{st.name} {mv.skill}: contact at t={t:.2f} s, holding there")
 
     # -- control laws --
 
@@ -560,6 +565,26 @@ class SscWorker(Worker):
         if goal:
             v["goal"][...] = tcp
             v["goal_rot"][...] = v["rot"]
+
+
+def _within(pl: Any, mv: MovePlan) -> bool:
+    """A robot's plan record inside its move's end tolerances (those given)."""
+    if mv.pose_within_m > 0 or mv.rot_within_rad > 0:
+        e = pose_error(
+            pl["tcp_xyz_m"],
+            rotvec_to_matrix(pl["tcp_rot_xyz"]),
+            mv.pose[:3],
+            rotvec_to_matrix(mv.pose[3:]),
+        )
+        if mv.pose_within_m > 0 and float(np.linalg.norm(e[:3])) > mv.pose_within_m:
+            return False
+        if mv.rot_within_rad > 0 and float(np.linalg.norm(e[3:])) > mv.rot_within_rad:
+            return False
+    if mv.force_within_n > 0:
+        err = (mv.force - pl["wrench_task"]) * mv.selection
+        if not pl["contact"] or float(np.linalg.norm(err[:3])) > mv.force_within_n:
+            return False
+    return True
 
 
 def _rotvec(R: np.ndarray[Any, Any]) -> tuple[float, float, float]:

@@ -69,6 +69,16 @@ def _run_with_summary(
     return run
 
 
+TRY = "tests/data/moves_and_skills.yaml"
+
+
+def _swap(task: str, old: bytes, new: bytes) -> bytes:
+    """A task file of the repository with one part replaced (it must be there)."""
+    data = (ROOT / task).read_bytes()
+    assert old in data, (task, old)
+    return data.replace(old, new)
+
+
 def _inputs(tmp: Path) -> dict[str, Path]:
     """The bad files, by name."""
     big = "9" * 5000
@@ -103,23 +113,21 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         "huge_force": (ROOT / "tasks/peg_insertion_short.yaml")
         .read_bytes()
         .replace(b"force_xyz_torque_xyz: [0, 0, -20", b"force_xyz_torque_xyz: [0, 0, -1.0e+6"),
-        "moves_and_robot": (ROOT / "tasks/dual_reach.yaml")
-        .read_bytes()
-        .replace(
-            b"  - name: home\n    duration_s: 4\n",
-            b"  - name: home\n    duration_s: 4\n    robot: r2\n",
+        "moves_and_robot": _swap(
+            "tasks/dual_reach.yaml",
+            b"  - name: home\n    duration_s: 3.5\n",
+            b"  - name: home\n    duration_s: 3.5\n    robot: r2\n",
         ),
-        "moves_two_clocks": (ROOT / "tasks/dual_reach.yaml")
-        .read_bytes()
-        .replace(
-            b"0, 1.0, 0]\n          move_s: 3\n      r2:\n        scheme: position",
+        "moves_two_clocks": _swap(
+            "tasks/dual_reach.yaml",
+            b"0, 1.0, 0]\n          move_s: 2.5\n      r2:\n        scheme: position",
             b"0, 1.0, 0]\n          move_s: 2\n      r2:\n        scheme: position",
         ),
-        "moves_stranger": (ROOT / "tasks/dual_reach.yaml")
-        .read_bytes()
-        .replace(
-            b"      r1:\n        scheme: joint\n        goal:\n          q_rad: [0.4",
-            b"      r9:\n        scheme: joint\n        goal:\n          q_rad: [0.4",
+        "moves_stranger": _swap("tasks/dual_reach.yaml", b"      r1:\n", b"      r9:\n"),
+        "push_position": _swap(TRY, b"skill: guarded_move", b"skill: push"),
+        "guarded_no_contact": _swap(TRY, b"contact_n: 5", b"pose_within_m: 0.001"),
+        "hold_with_goal": _swap(
+            TRY, b"skill: hold\n", b"skill: hold\n    goal: {q_rad: [0, 0, 0, 0, 0, 0, 0]}\n"
         ),
         "big_int": f"task: t\nkind: joint_move\nrobots: [r1]\nsegments:\n"
         f"  - {{name: a, duration_s: {big}, q_rad: {{r1: {PARK}}}}}\n".encode(),
@@ -285,9 +293,20 @@ CASES = [
         "a segment's moves on two clocks",
         ["session", "{moves_two_clocks}"],
         "segments[0].moves: the robots of one segment move on one clock: give them the same "
-        "goal.move_s (got r1 2 s, r2 3 s)",
+        "goal.move_s (got r1 2 s, r2 2.5 s)",
     ),
     ("a move for a robot not in the task", ["check", "{moves_stranger}"], "moves.r9: 'r9' is not"),
+    (
+        "a skill under a scheme it does not run under",
+        ["check", "{push_position}"],
+        "segments[1].scheme: the skill push runs under force, not position",
+    ),
+    (
+        "a guarded move without its contact force",
+        ["check", "{guarded_no_contact}"],
+        "segments[1].end.contact_n: a guarded_move ends at contact: give the force [N]",
+    ),
+    ("a hold with a goal", ["check", "{hold_with_goal}"], "segments[2].goal: a hold has no goal"),
     # what check refuses that would fail only once running
     (
         "a zenoh listen endpoint without a port",

@@ -1,0 +1,78 @@
+"""Segments of several robots and named skills over a real session
+(tests/data/moves_and_skills.yaml): both arms move at once on one clock, each
+under its own scheme; a guarded move stops at the first contact."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from tests.helpers import ROOT, copy_runs, load_json, run_cli
+
+TASK = str(ROOT / "tests/data/moves_and_skills.yaml")
+CONTACT_N = 5.0  # the task's guarded move ends at this wrist force
+
+
+def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Path) -> None:
+    from redistro.config.loader import load_config
+    from redistro.log.mcapfile import read_log
+
+    runs = copy_runs(calibrated, tmp_path)
+    out = tmp_path / "run"
+    done = run_cli(
+        "--set", f"session.runs_dir={runs}", "session", TASK, "--out", str(out), timeout=180
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    messages = (out / "messages.log").read_text()
+    assert "segment 1/4 reach: r1 joint, r2 position" in messages
+    assert "r2 guarded_move: contact at t=" in messages
+    assert "segment 3/4 wait: every robot holds" in messages
+    summary = load_json(out / "summary.json")
+    assert summary["result"] == "ok", summary["reason"]
+    # a figure per robot's move (a hold has none)
+    segs = summary["segments"]
+    assert [(s["name"], s["robot"], s["scheme"]) for s in segs] == [
+        ("reach", "r1", "joint"),
+        ("reach", "r2", "position"),
+        ("touch", "r2", "position"),
+        ("home", "r1", "joint"),
+        ("home", "r2", "joint"),
+    ], segs
+    for s in segs[:2] + segs[3:]:  # (a joint move settles for 1 s after its quintic)
+        bound = 0.001 if s["scheme"] == "position" else 0.003
+        assert s["final_pose_error"]["position_m"] < bound, s
+    # the guarded move ended early, 2 cm short of its goal inside the block
+    touch = segs[2]
+    assert touch["duration_s"] < 5.0, touch
+    assert 0.015 < touch["final_pose_error"]["position_m"] < 0.025, touch
+    sl = read_log(out / "session.mcap")
+    p1, p2 = sl.arrays["/r1/plan"], sl.arrays["/r2/plan"]
+    n = min(len(p1), len(p2))
+    assert n > 0 and abs(len(p1) - len(p2)) <= 1
+    # one clock: every logged cycle both robots in the same segment, and in
+    # the two-robot segments moving together
+    assert np.array_equal(p1["segment"][:n], p2["segment"][:n])
+    for k in (1, 4):
+        at = p1["segment"][:n] == k
+        assert at.any() and np.array_equal(p1["moving"][:n][at], p2["moving"][:n][at]), k
+        assert p1["moving"][:n][at].all(), k
+    # the contact: on the fixture's top as drawn, the wrist's force past the
+    # threshold and bounded (the wrist sensor, r2's feedback)
+    top = load_config(None).workcell.hole.xyz_m[2]
+    at = p2["segment"][:n] == 2
+    assert abs(float(p2["tcp_xyz_m"][:n][at][-1, 2]) - top) < 0.003
+    fb = sl.arrays["/r2/feedback"]
+    m = min(len(fb), n)
+    force = np.linalg.norm(fb["wrench"][:m, :3], axis=1)
+    assert CONTACT_N < float(force[at[:m]].max()) < 40.0
+    # r1 really went somewhere: its goal 0.4 rad of joint 1 away, and back
+    assert float(np.max(sl.arrays["/r1/feedback"]["q_rad"][:, 0])) > 0.35
+    # the plant: the arms never touched
+    assert summary["plant"]["arms"]["touched"] is False, summary["plant"]["arms"]
+
+
+def test_the_two_arm_task_passes_the_load_check(calibrated: Path, tmp_path: Path) -> None:
+    runs = copy_runs(calibrated, tmp_path)
+    done = run_cli("--set", f"session.runs_dir={runs}", "check", "tasks/dual_reach.yaml")
+    assert done.returncode == 0, done.stdout + done.stderr
