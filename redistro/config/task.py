@@ -19,7 +19,8 @@ A task names its robots and its kind; each kind has its own section.
   relative to the hole fixture (``relative_to: hole``, the hole's pose from
   the config). A segment ends after ``duration_s``, or earlier once every
   moving robot's ``end`` conditions have held for its ``end.hold_s`` (a
-  robot without any does not hold the segment back). Needs known joint
+  robot without any does not hold the segment back; ``until: any``: once
+  one robot's have). Needs known joint
   positions: when they are unknown, a
   self-calibration runs first (``calibrate_if_needed``), as the task's own
   ``calibration`` section says (the defaults where it has none).
@@ -175,6 +176,7 @@ class MoveSegment:
     search: Search = field(default_factory=Search)
     moves: dict[str, RobotMove] = field(default_factory=dict)
     skill: Literal["", "move", "guarded_move", "push", "search_insert", "hold"] = ""
+    until: Literal["all", "any"] = "all"  # (moves) it ends early when all, or any, end
 
 
 @dataclass(frozen=True)
@@ -276,6 +278,8 @@ def _check_strategy(task: Task, where: str) -> None:
             raise ConfigError(f"{at}.q_rad: not used by a strategy task (goal.q_rad is)")
         if seg.moves:
             _check_moves_form(task, seg, at)
+        elif seg.until != "all":
+            raise ConfigError(f"{at}.until: for a segment of several robots (moves)")
         elif seg.robot not in task.robots:
             raise ConfigError(
                 f"{at}.robot: {seg.robot!r} is not in robots ({', '.join(task.robots)})"

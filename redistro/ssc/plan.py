@@ -60,6 +60,7 @@ class SegmentPlan:
     duration_s: float
     move_s: float  # every move's (they start and end together)
     moves: tuple[MovePlan, ...]  # (a robot whose skill is hold has none)
+    until: str = "all"  # its early end: every move's end conditions met, or any one's
 
     def move_of(self, robot: str) -> MovePlan | None:
         for m in self.moves:
@@ -83,7 +84,7 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
             if skill_of(m).name != "hold"
         )
         move_s = moves[0].move_s if moves else 0.0  # (the same for every move)
-        out.append(SegmentPlan(s.name, s.duration_s, move_s, moves))
+        out.append(SegmentPlan(s.name, s.duration_s, move_s, moves, s.until))
     return out
 
 

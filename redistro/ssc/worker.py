@@ -445,16 +445,16 @@ class SscWorker(Worker):
             self._begin(self.k + 1, t)
 
     def _ended_early(self, plan: SegmentPlan, t: float) -> bool:
-        """Every moving robot's end conditions (those that have any) met: a
-        guarded move's contact, any time; the tolerances held for their
-        hold_s, once the moves are over."""
+        """Every moving robot's end conditions (those that have any; with
+        ``until: any``, one robot's) met: a guarded move's contact, any
+        time; the tolerances held for their hold_s, once the moves are over."""
         over = t - self.seg_start_t >= plan.move_s
         held = []
         for i, mv in enumerate(self.seg_moves):
             if mv is None or not mv.ends_early:
                 continue
             held.append(self.contacted[i] if mv.contact_n > 0 else over and self._held(i, mv, t))
-        return bool(held) and all(held)
+        return bool(held) and (any(held) if plan.until == "any" else all(held))
 
     def _held(self, i: int, mv: MovePlan, t: float) -> bool:
         if not _within(self.plan_recs[i].array, mv):
@@ -568,13 +568,15 @@ class SscWorker(Worker):
 
 
 def _within(pl: Any, mv: MovePlan) -> bool:
-    """A robot's plan record inside its move's end tolerances (those given)."""
+    """A robot's plan record inside its move's end tolerances (those given;
+    the pose's against the plan's goal: a Cartesian move's pose, a joint
+    move's TCP at its joint goal)."""
     if mv.pose_within_m > 0 or mv.rot_within_rad > 0:
         e = pose_error(
             pl["tcp_xyz_m"],
             rotvec_to_matrix(pl["tcp_rot_xyz"]),
-            mv.pose[:3],
-            rotvec_to_matrix(mv.pose[3:]),
+            pl["goal_xyz_m"],
+            rotvec_to_matrix(pl["goal_rot_xyz"]),
         )
         if mv.pose_within_m > 0 and float(np.linalg.norm(e[:3])) > mv.pose_within_m:
             return False

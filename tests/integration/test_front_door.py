@@ -125,7 +125,8 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         ),
         "moves_stranger": _swap("tasks/dual_reach.yaml", b"      r1:\n", b"      r9:\n"),
         "push_position": _swap(TRY, b"skill: guarded_move", b"skill: push"),
-        "guarded_no_contact": _swap(TRY, b"contact_n: 5", b"pose_within_m: 0.001"),
+        "guarded_no_contact": _swap(TRY, b"contact_n: 2", b"pose_within_m: 0.001"),
+        "until_alone": _swap(TRY, b"skill: hold\n", b"skill: hold\n    until: any\n"),
         "hold_with_goal": _swap(
             TRY, b"skill: hold\n", b"skill: hold\n    goal: {q_rad: [0, 0, 0, 0, 0, 0, 0]}\n"
         ),
@@ -299,14 +300,19 @@ CASES = [
     (
         "a skill under a scheme it does not run under",
         ["check", "{push_position}"],
-        "segments[1].scheme: the skill push runs under force, not position",
+        "segments[1].moves.r2.scheme: the skill push runs under force, not position",
     ),
     (
         "a guarded move without its contact force",
         ["check", "{guarded_no_contact}"],
-        "segments[1].end.contact_n: a guarded_move ends at contact: give the force [N]",
+        "segments[1].moves.r2.end.contact_n: a guarded_move ends at contact: give the force",
     ),
     ("a hold with a goal", ["check", "{hold_with_goal}"], "segments[2].goal: a hold has no goal"),
+    (
+        "until on a segment of one robot",
+        ["check", "{until_alone}"],
+        "segments[2].until: for a segment of several robots (moves)",
+    ),
     # what check refuses that would fail only once running
     (
         "a zenoh listen endpoint without a port",

@@ -11,7 +11,8 @@ import numpy as np
 from tests.helpers import ROOT, copy_runs, load_json, run_cli
 
 TASK = str(ROOT / "tests/data/moves_and_skills.yaml")
-CONTACT_N = 5.0  # the task's guarded move ends at this wrist force
+CONTACT_N = 2.0  # the task's guarded move ends at this wrist force
+PEAK_N = 60.0  # the impact's peak, sampled (the peg campaign's bound on contact)
 
 
 def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Path) -> None:
@@ -26,6 +27,7 @@ def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Pa
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     messages = (out / "messages.log").read_text()
     assert "segment 1/4 reach: r1 joint, r2 position" in messages
+    assert "segment 2/4 touch: r1 joint, r2 position" in messages
     assert "r2 guarded_move: contact at t=" in messages
     assert "segment 3/4 wait: every robot holds" in messages
     summary = load_json(out / "summary.json")
@@ -35,17 +37,21 @@ def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Pa
     assert [(s["name"], s["robot"], s["scheme"]) for s in segs] == [
         ("reach", "r1", "joint"),
         ("reach", "r2", "position"),
+        ("touch", "r1", "joint"),
         ("touch", "r2", "position"),
         ("home", "r1", "joint"),
         ("home", "r2", "joint"),
     ], segs
-    for s in segs[:2] + segs[3:]:  # (a joint move settles for 1 s after its quintic)
+    for s in segs[:2] + segs[4:]:  # (a joint move settles for 1 s after its quintic)
         bound = 0.001 if s["scheme"] == "position" else 0.003
         assert s["final_pose_error"]["position_m"] < bound, s
-    # the guarded move ended early, 2 cm short of its goal inside the block
-    touch = segs[2]
-    assert touch["duration_s"] < 5.0, touch
+    # the guarded move ended early, 2 cm short of its goal inside the block,
+    # and with it the segment (until: any): r1's move cut short on the way
+    r1_touch, touch = segs[2], segs[3]
+    assert touch["duration_s"] < 3.5, touch
     assert 0.015 < touch["final_pose_error"]["position_m"] < 0.025, touch
+    assert abs(r1_touch["duration_s"] - touch["duration_s"]) < 0.02, (r1_touch, touch)
+    assert r1_touch["final_pose_error"]["position_m"] > 0.005, r1_touch
     sl = read_log(out / "session.mcap")
     p1, p2 = sl.arrays["/r1/plan"], sl.arrays["/r2/plan"]
     n = min(len(p1), len(p2))
@@ -65,7 +71,7 @@ def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Pa
     fb = sl.arrays["/r2/feedback"]
     m = min(len(fb), n)
     force = np.linalg.norm(fb["wrench"][:m, :3], axis=1)
-    assert CONTACT_N < float(force[at[:m]].max()) < 40.0
+    assert CONTACT_N < float(force[at[:m]].max()) < PEAK_N
     # r1 really went somewhere: its goal 0.4 rad of joint 1 away, and back
     assert float(np.max(sl.arrays["/r1/feedback"]["q_rad"][:, 0])) > 0.35
     # the plant: the arms never touched
