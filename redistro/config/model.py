@@ -475,6 +475,10 @@ class PegConfig:
 # from workcell.hole, and the plant's build, where plant.hole moves it)
 FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
 TABLE_HALF_XY_M = (0.3, 0.6)  # the table's half extents; centred at (hole x, 0)
+# the arms' clearance (ssc/clearance.py): at load, every planned sample at
+# least this far; in each cycle, closer than the trip is the group's e-stop
+MIN_CLEARANCE_M = 0.03
+TRIP_M = 0.01
 
 
 @dataclass(frozen=True)

@@ -300,6 +300,8 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
         ("phase", "u1"),  # a force segment's search (control.search.Phase): 0 none, 1 descent, ...
         ("search_xy_m", "<f8", (2,)),  # the search's goal offset from the believed centre [m]
         ("search_m", "<f8"),  # the search's path so far [m]
+        ("arms_clearance_m", "<f8"),  # the SSC's watch: the two arms' nearest links [m]
+        ("cell_clearance_m", "<f8"),  # ... and the nearest link to the work-cell (not the tool)
     ]
 )
 

@@ -327,6 +327,11 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
         fig = _hole_plane(plt, sl.arrays.get(f"/{r}/plan"), believed, r)
         if fig is not None:
             p.save(fig, f"{r}-hole-plane.png")
+    plans = [
+        sl.arrays[f"/{r}/plan"] for r in robot_names(sl) if len(sl.arrays.get(f"/{r}/plan", ()))
+    ]
+    if plans and "arms_clearance_m" in (plans[0].dtype.names or ()):
+        p.clearance(plans[0])
     nodes = sl.nodes()
     for topic, tm in sorted(sl.arrays.items()):
         if topic.endswith("/timing") and len(tm):
@@ -348,6 +353,29 @@ class _Plots:
             fig.savefig(f, dpi=90, format="png")
         self.plt.close(fig)
         self.written.append(path)
+
+    def clearance(self, plan: Any) -> None:
+        """The SSC watch's nearest two arms' links and nearest link to the
+        work-cell over task time, against the trip and the load check's."""
+        from redistro.config.model import MIN_CLEARANCE_M, TRIP_M
+
+        k = _stride(len(plan))
+        t = plan["t_s"][::k]
+        fig, ax = self.plt.subplots(figsize=(8, 4))
+        for name, label in (
+            ("arms_clearance_m", "arm to arm"),
+            ("cell_clearance_m", "to the work-cell"),
+        ):
+            v = plan[name][::k] * 1e3
+            ax.plot(t, np.where(np.isfinite(v), v, np.nan), lw=0.9, label=label)
+        ax.axhline(TRIP_M * 1e3, color="r", lw=0.8, ls="--", label="e-stop under")
+        ax.axhline(MIN_CLEARANCE_M * 1e3, color="0.5", lw=0.8, ls=":", label="load check")
+        ax.set_xlabel("task time [s]")
+        ax.set_ylabel("nearest [mm]")
+        ax.set_title("the arms' clearance, as the SSC's watch last measured it")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        self.save(fig, "arms-clearance.png")
 
     def joint_plot(self, t: Any, series: list[tuple[str, Any]], ylabel: str, title: str) -> Any:
         fig, axes = self.plt.subplots(7, 1, figsize=(8, 11), sharex=True)

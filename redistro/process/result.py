@@ -65,6 +65,7 @@ class SscResult:
     insertion_depth_t_s: float | None = None
     hole_depth_m: float = 0.0
     search: dict[str, Any] = field(default_factory=dict)
+    clearance: dict[str, Any] = field(default_factory=dict)  # the watch's nearest
 
 
 @dataclass

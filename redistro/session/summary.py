@@ -231,6 +231,8 @@ def build_summary(
         summary["hole_depth_m"] = hole_depth
         if ssc is not None and ssc.search:
             summary["search"] = ssc.search
+        if ssc is not None and ssc.clearance:
+            summary["clearance"] = ssc.clearance  # the controller's; the plant's: plant.arms
         _inserted(summary, ssc is not None, depth, hole_depth, plant.get("pegs") or {})
         summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}
     summary["plant"] = {

@@ -39,11 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from redistro.config.model import Config
+from redistro.config.model import MIN_CLEARANCE_M, TRIP_M, Config
 from redistro.config.task import Task
 
-MIN_CLEARANCE_M = 0.03
-TRIP_M = 0.01  # in a cycle: closer than this, the group is e-stopped
 GJK_GAP_M = 1e-5  # a measured distance is within this of the true one
 ALL_AT = 16  # more pairs due than this: every pair measured in one call
 EARLY = 0.5  # a pair comes due early by up to this share of its time
@@ -105,10 +103,15 @@ class GroupGeometry:
             geom.addGeometryObject(pin.GeometryObject(f"workcell {name}", 0, 0, where, box))
         objs = [go.name for go in geom.geometryObjects]
         owner = [n.split(" ", 1)[0] for n in objs]
+        arms: list[tuple[int, int]] = []  # (the pairs of two arms first, then the work-cell)
+        cell: list[tuple[int, int]] = []
         for i in range(len(owner)):
             for j in range(i + 1, len(owner)):
                 if owner[i] != owner[j] and not _meant_to_touch(objs[i], objs[j]):
-                    geom.addCollisionPair(pin.CollisionPair(i, j))
+                    (cell if "workcell" in (owner[i], owner[j]) else arms).append((i, j))
+        for i, j in arms + cell:
+            geom.addCollisionPair(pin.CollisionPair(i, j))
+        self.n_arms = len(arms)  # pairs [0, n_arms): two arms' links
         self.model, self.geom = model, geom
         self.data = model.createData()
         self.gdata = pin.GeometryData(geom)
@@ -334,12 +337,16 @@ class ClearanceWatch:
         self.measured = 0  # pair measurements made
         self.cycles = 0  # cycles that measured any
         self.closest = math.inf  # the least distance measured [m]
+        # as last measured, the nearest two arms' links and the nearest link
+        # to the work-cell [m]
+        self.arms_m = self.cell_m = math.inf
         # once at the configured postures, in Initialization: the first
         # measurement's one-time costs (about 0.6 ms) stay out of the cycles
         self.check([np.asarray(cfg.robots[r].initial_q_rad, dtype=np.float64) for r in robots], 0.0)
         self.d[:], self.at[:], self.due[:] = [math.inf] * n, [-math.inf] * n, -np.inf
         self.rate[:] = [0.0] * n
         self.measured, self.cycles, self.closest = 0, 0, math.inf
+        self.arms_m = self.cell_m = math.inf
 
     def check(self, qs: list[np.ndarray], t: float) -> Closest | None:
         """The arms at ``qs`` (each robot's measured joints), sampled at task
@@ -376,6 +383,9 @@ class ClearanceWatch:
         self.measured += due.size
         self.cycles += 1
         self.closest = min(self.closest, nearest)
+        na = g.n_arms
+        self.arms_m = min(d[:na], default=math.inf)
+        self.cell_m = min(d[na:], default=math.inf)
         if worst >= TRIP_M:
             return None
         pair = g.geom.collisionPairs[hit]

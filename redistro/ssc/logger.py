@@ -117,6 +117,8 @@ class SscLogger(Worker):
         run_dir = self.spec.node_params.run_dir
         self.out_path = os.path.join(run_dir, "ssc-segments.json") if run_dir else ""
         self.cycles = 0
+        self.arms_min = (math.inf, 0.0)  # the two arms' nearest as the watch measured, and when
+        self.cell_min = math.inf
         self.recorder: CycleRecorder | None = None
         self.segment = [0] * len(self.robots)
         self.recs: list[Record] = []
@@ -158,6 +160,12 @@ class SscLogger(Worker):
     def _cycle(self, cycle: int) -> None:
         """One cycle's plans: segment events, the segments' figures, the depth."""
         self.cycles += 1
+        rec = self.recs[0] if self.recs else None
+        if rec is not None and rec["stamp_ns"]:  # (the watch's, in every robot's plan)
+            arms, cell = float(rec["arms_clearance_m"]), float(rec["cell_clearance_m"])
+            if arms < self.arms_min[0]:
+                self.arms_min = (arms, float(rec["t_s"]))
+            self.cell_min = min(self.cell_min, cell)
         for i, rec in enumerate(self.recs):
             k = rec["segment"]
             moving = rec["moving"]
@@ -277,7 +285,18 @@ class SscLogger(Worker):
             "insertion_depth_t_s": self.depth_t,
             "hole_depth_m": self.hole_depth,
             "search": self._search_figures(),
+            "clearance": {
+                "arms_min_m": _finite(self.arms_min[0]),
+                "arms_min_t_s": round(self.arms_min[1], 4)
+                if math.isfinite(self.arms_min[0])
+                else None,
+                "cell_min_m": _finite(self.cell_min),
+            },
         }
         from redistro import files
 
         files.replace(self.out_path, json.dumps(doc, indent=1))
+
+
+def _finite(v: float) -> float | None:
+    return round(v, 5) if math.isfinite(v) else None

@@ -107,5 +107,6 @@ class SscManager(Manager):
                 ssc.insertion_depth_t_s = doc.get("insertion_depth_t_s")
                 ssc.hole_depth_m = float(doc["hole_depth_m"])
                 ssc.search = dict(doc.get("search") or {})
+                ssc.clearance = dict(doc.get("clearance") or {})
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 self._message("manager", logging.WARNING, f"segment figures unreadable: {exc}")

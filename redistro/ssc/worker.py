@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from redistro import kernels
+from redistro.config.model import TRIP_M
 from redistro.control.cartesian import (
     ForceParams,
     ImpedanceGains,
@@ -49,7 +50,7 @@ from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
 from redistro.process import hooks
 from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
-from redistro.ssc.clearance import TRIP_M, ClearanceWatch
+from redistro.ssc.clearance import ClearanceWatch
 from redistro.ssc.plan import SCHEMES, MovePlan, SegmentPlan, segment_plans
 from redistro.ssc.search_steps import steer
 
@@ -279,6 +280,7 @@ class SscWorker(Worker):
         self.last_t = t
         if not self.estop_request:
             self._clearance(t)
+        arms_m, cell_m = self.watch.arms_m, self.watch.cell_m
         if self.hooks is not None:
             self.hooks.steer(self.states, dt)
         self._advance(t)
@@ -299,6 +301,8 @@ class SscWorker(Worker):
             pl["segment_t_s"] = seg_t
             pl["done"] = done
             pl["failed"] = failed
+            pl["arms_clearance_m"] = arms_m
+            pl["cell_clearance_m"] = cell_m
             mv = self.moving[i]
             if mv is not None and not self.done:
                 pl["moving"] = 1

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tests.helpers import ROOT, copy_runs, load_json, run_cli
 
@@ -76,6 +77,29 @@ def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Pa
     assert float(np.max(sl.arrays["/r1/feedback"]["q_rad"][:, 0])) > 0.35
     # the plant: the arms never touched
     assert summary["plant"]["arms"]["touched"] is False, summary["plant"]["arms"]
+    # the SSC's watch, in every cycle's plan and in the summary: the arms'
+    # nearest links and the nearest to the work-cell (the guarded move's
+    # flange comes down to 10 cm over the fixture's top)
+    seen = summary["clearance"]
+    assert 0.03 < seen["arms_min_m"] < 1.0 and 0.03 < seen["cell_min_m"] < 0.2, seen
+    arms = p1["arms_clearance_m"][:n][p1["stamp_ns"][:n] != 0]  # (since the task's start)
+    assert np.isfinite(arms).all() and float(arms.min()) == pytest.approx(
+        seen["arms_min_m"], abs=1e-4
+    )
+    truth = summary["plant"]["arms"]["min_distance_m"]  # (PyBullet's, within 0.3 m)
+    if truth is not None:
+        assert abs(truth - seen["arms_min_m"]) < 0.02, (truth, seen)
+    # and its plot
+    import matplotlib
+
+    from redistro.log.inspect import _Plots
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plots = _Plots(plt, tmp_path)
+    plots.clearance(p1)
+    assert (tmp_path / "arms-clearance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_the_two_arm_task_passes_the_load_check(calibrated: Path, tmp_path: Path) -> None:

@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 
 from redistro.config.loader import load_config
+from redistro.config.model import MIN_CLEARANCE_M, TRIP_M
 from redistro.faults import hooks
 from redistro.ssc.clearance import (
     GJK_GAP_M,
-    MIN_CLEARANCE_M,
-    TRIP_M,
     ClearanceWatch,
     GroupGeometry,
     _time_at,
