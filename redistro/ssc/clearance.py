@@ -338,8 +338,9 @@ class ClearanceWatch:
         self.cycles = 0  # cycles that measured any
         self.closest = math.inf  # the least distance measured [m]
         # as last measured, the nearest two arms' links and the nearest link
-        # to the work-cell [m]
+        # to the work-cell [m], and which pair each is
         self.arms_m = self.cell_m = math.inf
+        self.arms_k = self.cell_k = -1
         # once at the configured postures, in Initialization: the first
         # measurement's one-time costs (about 0.6 ms) stay out of the cycles
         self.check([np.asarray(cfg.robots[r].initial_q_rad, dtype=np.float64) for r in robots], 0.0)
@@ -347,6 +348,7 @@ class ClearanceWatch:
         self.rate[:] = [0.0] * n
         self.measured, self.cycles, self.closest = 0, 0, math.inf
         self.arms_m = self.cell_m = math.inf
+        self.arms_k = self.cell_k = -1
 
     def check(self, qs: list[np.ndarray], t: float) -> Closest | None:
         """The arms at ``qs`` (each robot's measured joints), sampled at task
@@ -365,6 +367,7 @@ class ClearanceWatch:
             pin.computeDistances(g.geom, g.gdata)
             results = g.gdata.distanceResults
         worst, hit, nearest = math.inf, -1, math.inf
+        na, regrown = g.n_arms, False
         for k in due.tolist():
             res = results[k] if results is not None else pin.computeDistance(g.geom, g.gdata, k)
             now, since = res.min_distance, t - at[k]
@@ -375,6 +378,17 @@ class ClearanceWatch:
                 d[k], at[k] = now, t
             when[k] = t + share[k] * (now - TRIP_M) / v[k] - self.period
             nearest = min(nearest, now)
+            # the nearest of each kind: kept as pairs come in; looked for
+            # again only when the pair that was nearest moved away
+            if k < na:
+                if now <= self.arms_m:
+                    self.arms_m, self.arms_k = now, k
+                elif k == self.arms_k:
+                    regrown = True
+            elif now <= self.cell_m:
+                self.cell_m, self.cell_k = now, k
+            elif k == self.cell_k:
+                regrown = True
             # where it will be once the group has stopped, closing as it
             # did since it was last measured (if lately: a near pair)
             ahead = now - rate[k] * STOP_S
@@ -383,14 +397,26 @@ class ClearanceWatch:
         self.measured += due.size
         self.cycles += 1
         self.closest = min(self.closest, nearest)
-        na = g.n_arms
-        self.arms_m = min(d[:na], default=math.inf)
-        self.cell_m = min(d[na:], default=math.inf)
+        if regrown:
+            self._regrow(na)
         if worst >= TRIP_M:
             return None
         pair = g.geom.collisionPairs[hit]
         objs = g.geom.geometryObjects
         return Closest(float(d[hit]), (objs[pair.first].name, objs[pair.second].name), worst)
+
+    def _regrow(self, na: int) -> None:
+        """The nearest pairs looked for again over every pair's last measure."""
+        self.arms_m, self.arms_k = _nearest(self.d, 0, na)
+        self.cell_m, self.cell_k = _nearest(self.d, na, len(self.d))
+
+
+def _nearest(d: list[float], lo: int, hi: int) -> tuple[float, int]:
+    """The least of d[lo:hi] and its index (inf, -1: none)."""
+    if hi <= lo:
+        return math.inf, -1
+    m = min(d[lo:hi])
+    return m, d.index(m, lo, hi)
 
 
 def _link_speed(model: Any, go: Any, qd_max: np.ndarray) -> float:

@@ -179,9 +179,12 @@ def test_an_arm_swinging_into_the_other_trips_the_watch_while_they_are_apart(
     q2 = np.asarray(watch_cfg.robots["r2"].initial_q_rad, dtype=np.float64)
     into, step = np.asarray(INTO_R2), hooks.COLLIDE_RAD_S * 0.005
     hit = None
+    na = w.group.n_arms
     for k in range(2000):
         q1 += np.clip(into - q1, -step, step)
         hit = w.check([q1, q2], k * 0.005)
+        # the nearest of each kind, kept as pairs come in: the least last measure
+        assert (w.arms_m, w.cell_m) == (min(w.d[:na]), min(w.d[na:])), k
         if hit is not None:
             break
         assert group.closest({"r1": q1, "r2": q2}).distance_m >= TRIP_M, k
@@ -189,6 +192,12 @@ def test_an_arm_swinging_into_the_other_trips_the_watch_while_they_are_apart(
     truth = group.closest({"r1": q1, "r2": q2}).distance_m
     assert truth >= TRIP_M and hit.distance_m == pytest.approx(truth, abs=1e-4)
     assert hit.links[0].startswith("r1 ") and hit.links[1].startswith("r2 "), hit
+    # and back out: the nearest pairs move apart, and are looked for again
+    home = np.asarray(watch_cfg.robots["r1"].initial_q_rad, dtype=np.float64)
+    for j in range(k + 1, k + 400):
+        q1 += np.clip(home - q1, -step, step)
+        w.check([q1, q2], j * 0.005)
+        assert (w.arms_m, w.cell_m) == (min(w.d[:na]), min(w.d[na:])), j
 
 
 def test_a_stalled_plant_clock_is_no_error_and_the_watch_still_trips(watch_cfg: Any) -> None:
