@@ -476,13 +476,17 @@ class SscWorker(Worker):
         if math.sqrt(float(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])) <= mv.contact_n:
             return
         self.contacted[i] = True
+        self._stop(i, st)
+        st.plan["contact"] = 1
+        self.post(f"{st.name} {mv.skill}: contact at t={t:.2f} s, holding there")
+
+    def _stop(self, i: int, st: RobotState) -> None:
+        """A moving robot holds where it is from now on, for the rest of the segment."""
         self.moving[i] = None
         st.hold_q[...] = st.views["q"]
         st.pid.reset()
         st.cartesian = False
         st.hold_plan()
-        st.plan["contact"] = 1
-        self.post(f"{st.name} {mv.skill}: contact at t={t:.2f} s, holding there")
 
     # -- control laws --
 
@@ -550,6 +554,9 @@ class SscWorker(Worker):
         st.plan["scheme"] = SCHEMES["position"]
         self.law_start_t = t  # the lift's own clock (the segment's goes on, for its figures)
         self.retreat_end_t = t + RETREAT_S + RETREAT_HOLD_S
+        for k, other in enumerate(self.states):  # (their moves' clock restarts: they stop)
+            if other is not st and self.moving[k] is not None:
+                self._stop(k, other)
 
     @staticmethod
     def _pose(st: RobotState, q: np.ndarray[Any, Any], goal: bool) -> None:

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from redistro.config import load_config
+from redistro.control.search import Phase
 from tests.helpers import ROOT, copy_runs, load_json, run_cli
 
 pytestmark = pytest.mark.peg
@@ -104,8 +106,21 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
     assert summary["plant_insertion_depth_m"] < 0.005  # (the plant's truth: never in)
     assert summary["plant"]["hole"]["lateral_offset_m"] == pytest.approx(0.004)
     # the insertion's figures cover the whole segment: the search, then the 2 s lift
-    insertion = next(s for s in summary["segments"] if s.get("name") == "insertion")
+    insertion = next(
+        s for s in summary["segments"] if (s["name"], s["robot"]) == ("insertion", "r2")
+    )
     assert insertion["duration_s"] > insertion["first_contact_s"] + 2.0, insertion
     # the tool lifted off the fixture before the task ended
-    plan = read_log(out / "session.mcap").arrays["/r2/plan"]
+    sl = read_log(out / "session.mcap")
+    plan = sl.arrays["/r2/plan"]
     assert plan["tcp_xyz_m"][-1, 2] > MOUTH_Z + 0.005, plan["tcp_xyz_m"][-1]
+    # r1, moving in the same segment, stopped at the failure and held where
+    # it was (the lift's clock restarts: its move's reference would go back)
+    r1 = sl.arrays["/r1/plan"]
+    n = min(len(r1), len(plan))
+    lifting = (plan["segment"][:n] == 2) & (plan["phase"][:n] == Phase.NOT_FOUND)
+    # (from the cycle after: the search gives up within r2's law, after r1's plan went out)
+    assert lifting.sum() > 1 and not r1["moving"][:n][lifting][1:].any()
+    q1 = sl.arrays["/r1/feedback"]["q_rad"][:, 0]
+    there = int(np.argmax(q1 > 0.14))  # (its goal 0.15 rad; 0 where it started)
+    assert there > 0 and float(q1[there:].min()) > 0.08, (there, q1[there:].min())
