@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -18,6 +20,7 @@ from redistro.localdata import LocalData, ProcState
 ROOT = Path(__file__).resolve().parent.parent
 # Run folders of test sessions go to a temporary place, not the repo's runs/.
 RUNS = tempfile.mkdtemp(prefix="redistro-test-runs-")
+atexit.register(shutil.rmtree, RUNS, True)  # (ignore_errors)
 REDISTRO = [sys.executable, "-m", "redistro.cli", "--set", f"session.runs_dir={RUNS}"]
 
 

@@ -30,7 +30,7 @@ from redistro.drivers.io.backplane import BoardPort
 from redistro.drivers.io.bank import TRUTH, PlantState, RegisterBank
 from redistro.drivers.io.registers import ENC_MODULO
 from redistro.drivers.io.shm import ShmPort
-from redistro.ipc import signals
+from redistro.ipc import names, signals
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
 from redistro.plant.truth import ArmsTruth, PegTruth
@@ -75,7 +75,11 @@ def run_plant(
     try:
         start_q = read_pose(cfg.plant.pose_file, list(cfg.robots))
         result["started_from"] = "pose file" if start_q else "initial_q_rad"
-        world = World(cfg, gui=gui or cfg.plant.gui, start_q=start_q)
+        # the arms' URDF files in the session's runtime folder, which goes
+        # with the session (and with a killed one, when the reaper takes it)
+        folder = names.runtime_dir() / session_id
+        urdf_dir = folder / "plant-urdf" if folder.is_dir() else None
+        world = World(cfg, gui=gui or cfg.plant.gui, start_q=start_q, urdf_dir=urdf_dir)
         result["hole"] = world.hole.as_dict()  # where the hole really is
         # what disturbs the plant from outside (the fault harness; none normally)
         make = hooks.factory("plant_disturbance")
