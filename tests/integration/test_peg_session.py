@@ -167,9 +167,11 @@ def test_a_stopped_ssc_ddm_starves_the_escs(calibrated: Path, tmp_path: Path) ->
             proc.kill()
             proc.wait()
         assert proc.stdout is not None and proc.stderr is not None
+        said = proc.stdout.read()[-2000:] + proc.stderr.read()[-4000:]
         proc.stdout.close()
         proc.stderr.close()
     print(f"session ended {time.monotonic() - stopped_at:.2f} s after the SIGSTOP")
+    assert (out / "summary.json").exists(), said
     summary = load_json(out / "summary.json")
     # each ESC stops: by its own starving index, or first by the e-stop the
     # session owner relays from the SSC (which finds its hung ddm: 25 missed
