@@ -36,7 +36,7 @@ def run_faults(
 
     stop = StopWatch()
     runs = Path(cfg.session.runs_dir).resolve()
-    ensure_calibrated(runs, config_args, print)
+    ensure_calibrated(runs, cfg, config_args, print)
     baseline = Baseline(runs)
     rng = random.Random(seed)
     rows: list[dict[str, Any]] = []

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import random
 import shutil
@@ -54,22 +55,32 @@ def _cli(runs: Path, config_args: list[str]) -> list[str]:
     return [sys.executable, "-m", "redistro.cli", "--set", f"session.runs_dir={runs}", *config_args]
 
 
-def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
-    """Known joint positions in ``runs`` (a self-calibration when they are not)."""
+def ensure_calibrated(runs: Path, cfg: Config, config_args: list[str], say: Any) -> None:
+    """Known joint positions in ``runs`` and the arms at their park pose:
+    the baseline every scenario starts from (a self-calibration when the
+    positions are unknown, a park when the arms stand elsewhere: a
+    self-calibration's sweep finds the home switches only within a few
+    degrees of it, and a switch out of reach would look stuck)."""
     unknown = []
     for r in ("r1", "r2"):
         try:
             positions.read(runs / "positions" / f"{r}.json", [r])
         except positions.PositionsUnknown as exc:
             unknown.append(str(exc))
-    if not unknown:
-        return
-    # the arms may stand anywhere after a crash, out of reach of the home
-    # switches' sweep: they start from their initial pose (as if put back)
-    (runs / "plant-pose.json").unlink(missing_ok=True)
-    say(f"joint positions unknown ({'; '.join(unknown)}): self-calibration first")
+    if unknown:
+        # the arms may stand anywhere after a crash, out of reach of the home
+        # switches' sweep: they start from their initial pose (as if put back)
+        (runs / "plant-pose.json").unlink(missing_ok=True)
+        say(f"joint positions unknown ({'; '.join(unknown)}): self-calibration first")
+        task = "tasks/self_calibration.yaml"
+    else:
+        away = _away_from_park(runs, cfg)
+        if not away:
+            return
+        say(f"{away}: parking the arms first")
+        task = "tasks/park.yaml"
     done = subprocess.run(
-        [*_cli(runs, config_args), "session", "tasks/self_calibration.yaml"],
+        [*_cli(runs, config_args), "session", task],
         capture_output=True,
         text=True,
         timeout=600,
@@ -77,7 +88,24 @@ def ensure_calibrated(runs: Path, config_args: list[str], say: Any) -> None:
         preexec_fn=die_with_parent,
     )
     if done.returncode != 0:
-        raise RedistroError(f"self-calibration before the scenarios failed: {done.stdout[-500:]}")
+        raise RedistroError(f"{task} before the scenarios failed: {done.stdout[-500:]}")
+
+
+PARKED_WITHIN_RAD = 0.035  # 2 degrees: well inside the calibration's sweep
+
+
+def _away_from_park(runs: Path, cfg: Config) -> str:
+    """Which arm the plant's pose file puts off its park pose (its
+    ``initial_q_rad``), and by how much; "" when both are parked."""
+    from redistro.plant.process import read_pose
+
+    path = cfg.plant.pose_file or str(runs / cfg.session.plant_pose_file)
+    pose = read_pose(path, list(cfg.robots))
+    for robot, q in pose.items():
+        off = max(abs(a - b) for a, b in zip(q, cfg.robots[robot].initial_q_rad, strict=True))
+        if off > PARKED_WITHIN_RAD:
+            return f"{robot} stands {math.degrees(off):.0f} deg off its park pose"
+    return ""
 
 
 def _wait_moving(sid: str, seconds: float, proc: subprocess.Popen[str], deadline: float) -> None:

@@ -203,3 +203,23 @@ def test_detection_counts_from_the_cycle_the_fault_took_effect_in() -> None:
     assert cycle_at(100, due, due + 12_000_000, 5.0) == 102
     assert cycle_at(100, 0, due + 12_000_000, 5.0) == 100
     assert cycle_at(100, due, due - 1, 5.0) == 100
+
+
+def test_the_campaign_parks_arms_left_off_their_park_pose(tmp_path: Path) -> None:
+    """A scenario starts with the arms parked: a calibration's sweep reaches
+    the home switches only near the park pose, and a switch out of reach
+    would pass home-stuck-off for the wrong reason."""
+    import json
+
+    from redistro.config.loader import load_config
+    from redistro.faults.runner import _away_from_park
+
+    cfg = load_config(Path(__file__).parents[2] / "config" / "redistro.yaml")
+    assert _away_from_park(tmp_path, cfg) == ""  # no pose kept: the arms power up parked
+    park = {r: list(cfg.robots[r].initial_q_rad) for r in cfg.robots}
+    pose = tmp_path / cfg.session.plant_pose_file
+    pose.write_text(json.dumps({"q_rad": park}))
+    assert _away_from_park(tmp_path, cfg) == ""
+    park["r2"][3] += 0.17  # about 10 degrees on joint 4
+    pose.write_text(json.dumps({"q_rad": park}))
+    assert _away_from_park(tmp_path, cfg) == "r2 stands 10 deg off its park pose"
