@@ -60,6 +60,9 @@ class IOConfig:
     boards: dict[str, BoardConfig]
     joints: list[JointChannels] = field(metadata={"len": DOF})
     wrist: str = ""
+    # the DIO output that closes the flange's gripper (on: closed; off, the
+    # board's power-on state: open). Empty: no gripper fitted.
+    gripper: str = ""
 
 
 @dataclass(frozen=True)
@@ -124,6 +127,7 @@ class RobotHardware:
     wrist: Channel | None
     io_path: str
     sensors_path: str
+    gripper: Channel | None = None
 
     def boards(self) -> dict[int, str]:
         """address -> board type name."""
@@ -172,7 +176,7 @@ def _channel(
     if not 0 <= index < limit:
         raise ConfigError(f"{origin}: {where}: channel {index} out of range 0..{limit - 1}")
     # DIO inputs and outputs are separate registers: a bit may be used once each way.
-    direction = "out" if where.endswith(".brake") else "in"
+    direction = "out" if where.endswith((".brake", "gripper")) else "in"
     key = (b.address, direction, index)
     if key in used:
         raise ConfigError(f"{origin}: {where}: channel {text} already used by {used[key]}")
@@ -180,7 +184,8 @@ def _channel(
     return Channel(board, b.address, index)
 
 
-def check_io(io: IOConfig, origin: str) -> tuple[list[JointWiring], Channel | None]:
+def check_io(io: IOConfig, origin: str) -> tuple[list[JointWiring], Channel | None, Channel | None]:
+    """The joints' wires, the wrist sensor's receiver and the gripper's output."""
     addresses: dict[int, str] = {}
     for name, b in io.boards.items():
         if b.address in addresses:
@@ -213,7 +218,8 @@ def check_io(io: IOConfig, origin: str) -> tuple[list[JointWiring], Channel | No
         if b.type != "force":
             raise ConfigError(f"{origin}: wrist: board {io.wrist} is a {b.type} board, not force")
         wrist = Channel(io.wrist, b.address, 0)
-    return joints, wrist
+    gripper = _channel(io, io.gripper, "dio", "gripper", origin, used) if io.gripper else None
+    return joints, wrist, gripper
 
 
 def load_robot(name: str, robot: RobotConfig, base: Path, origin: str) -> RobotHardware:
@@ -231,8 +237,8 @@ def load_robot(name: str, robot: RobotConfig, base: Path, origin: str) -> RobotH
                 f"{sensors_path}: ft_calibration[{i}]: expected a list of exactly 6 items, "
                 f"got {row!r}"
             )
-    joints, wrist = check_io(io, str(io_path))
-    return RobotHardware(name, io, sensors, joints, wrist, str(io_path), str(sensors_path))
+    joints, wrist, gripper = check_io(io, str(io_path))
+    return RobotHardware(name, io, sensors, joints, wrist, str(io_path), str(sensors_path), gripper)
 
 
 def load_hardware(cfg: Config, base: Path | str | None = None) -> dict[str, RobotHardware]:
@@ -259,6 +265,12 @@ def load_hardware(cfg: Config, base: Path | str | None = None) -> dict[str, Robo
         for rname in table:
             if rname not in cfg.robots:
                 raise ConfigError(f"{cfg.source}: {key}.{rname}: no robot named {rname!r}")
+    for oname in cfg.plant.objects:
+        if oname not in cfg.workcell.objects:
+            raise ConfigError(
+                f"{cfg.source}: plant.objects.{oname}: no object named {oname!r} in "
+                f"workcell.objects"
+            )
     from redistro.config.limits import check_ratings
 
     check_ratings(cfg, out)

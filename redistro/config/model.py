@@ -471,6 +471,33 @@ class PegConfig:
     mass_kg: float = field(default=0.1, metadata={"gt": 0, "le": 5})
 
 
+@dataclass(frozen=True)
+class ObjectConfig:
+    """An object on the table, as drawn: a box resting on the table top
+    (the table's, as ``workcell.hole`` draws it), what a gripper picks up.
+
+    size_xyz_m: its edges along its own x, y and z [m];
+    xy_m: its centre on the table, world [m]; yaw_deg: about the world's z;
+    mass_kg: its mass.
+    """
+
+    size_xyz_m: list[float] = field(metadata={"len": 3, "gt": 0.005, "le": 0.6})
+    xy_m: list[float] = field(metadata={"len": 2, "ge": -2, "le": 2})
+    yaw_deg: float = field(default=0.0, metadata={"ge": -180, "le": 180})
+    mass_kg: float = field(default=0.2, metadata={"gt": 0, "le": 5})
+
+
+@dataclass(frozen=True)
+class ObjectTruth:
+    """Where the plant really puts an object of ``workcell.objects``: its
+    drawn place moved by ``offset_xy_m`` [m] and turned by ``yaw_deg``."""
+
+    offset_xy_m: list[float] = field(
+        default_factory=lambda: [0.0, 0.0], metadata={"len": 2, "ge": -0.02, "le": 0.02}
+    )
+    yaw_deg: float = field(default=0.0, metadata={"ge": -10, "le": 10})
+
+
 # The work-cell's drawing around the hole (both the controller's belief,
 # from workcell.hole, and the plant's build, where plant.hole moves it)
 FIXTURE_FLOOR_M = 0.01  # thickness of the fixture below the hole
@@ -481,15 +508,23 @@ MIN_CLEARANCE_M = 0.03
 TRIP_M = 0.01
 
 
+def table_top_m(hole: HoleConfig, dz_m: float = 0.0) -> float:
+    """The table's top [m, world z]: under the fixture of ``hole`` (moved up
+    by ``dz_m``: the plant's truth)."""
+    return float(hole.xyz_m[2]) + dz_m - hole.depth_m - FIXTURE_FLOOR_M
+
+
 @dataclass(frozen=True)
 class WorkcellConfig:
     """The work-cell as the controller knows it (the paper's Work-cell
-    Configuration): the hole fixture as drawn and the tool on the flange.
+    Configuration): the hole fixture as drawn, the tool on the flange and
+    the objects on the table (``objects``, by name).
     The robots' base poses are ``robots.<name>.base_xyz_m``. The plant builds
     the same work-cell, with the hole where ``plant.hole`` moves it."""
 
     hole: HoleConfig = field(default_factory=HoleConfig)
     peg: PegConfig = field(default_factory=PegConfig)
+    objects: dict[str, ObjectConfig] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -529,6 +564,8 @@ class PlantConfig:
     ft_bias: per robot, the wrist sensor's bias [N, N, N, N m, N m, N m].
     seed: seed of the plant's noise.
     hole: where the hole really is (:class:`HoleTruth`).
+    objects: where each object of ``workcell.objects`` really is
+        (:class:`ObjectTruth`; one not named here: as drawn).
 
     The plant's section is the simulated world's truth, apart from what the
     I/O boards' datasheet tells a driver (``CONTROLLER_KEYS``): controller
@@ -546,6 +583,7 @@ class PlantConfig:
     # 100 ms: 20 cycles at 200 Hz; a sender is seen held off up to ~35 ms
     output_watchdog_ms: float = field(default=100.0, metadata={"ge": 0, "le": 10000})
     hole: HoleTruth = field(default_factory=HoleTruth)
+    objects: dict[str, ObjectTruth] = field(default_factory=dict)
     # within the self-calibration's reach (its sweep finds a home switch up
     # to 12 degrees away): an arm moved further while powered off is a
     # rebuild, not a disturbance

@@ -26,6 +26,7 @@ class Skill:
     ends: str  # its terminal condition (besides the segment's duration_s)
     search: bool = False  # a spiral search for the hole
     contact: bool = False  # it ends at the first contact (end.contact_n)
+    gripper: str = ""  # "close" or "open": the flange's gripper, as the move ends
 
 
 SKILLS: dict[str, Skill] = {
@@ -48,6 +49,15 @@ SKILLS: dict[str, Skill] = {
             "search_insert", ("force",), "the hole's pose and a wrench pushing down world z",
             "in the hole, once end's force tolerance has held (a hole not found: failed)",
             search=True,
+        ),
+        Skill(
+            "grasp", ("joint", "position"), "the grasp pose: the tool point on the object's top "
+            "face (goal.relative_to: the object)",
+            "as move; the gripper closes as the segment ends, and stays closed", gripper="close",
+        ),
+        Skill(
+            "release", ("joint", "position"), "a joint goal or a TCP pose (where it lets go)",
+            "as move; the gripper opens as the segment ends", gripper="open",
         ),
         Skill("hold", (), "nothing: the robot holds its pose", "with the segment"),
     )

@@ -65,8 +65,10 @@ class Goal:
     q_rad: joint goal (scheme ``joint``) [rad];
     pos_xyz_rot_xyz: TCP goal pose: position [m] and rotation vector [rad]
         (world from tool; the rotation is always absolute);
-    relative_to: ``world``, or ``hole`` (the position is an offset from the
-        hole's mouth centre as drawn, ``workcell.hole.xyz_m``);
+    relative_to: ``world``, ``hole`` (the position is an offset from the
+        hole's mouth centre as drawn, ``workcell.hole.xyz_m``), or an
+        object of ``workcell.objects`` (from the centre of its top face as
+        drawn);
     force_xyz_torque_xyz: the wrench the tool applies [N, N m], task axes;
     selection_vector: per task axis, 1 force controlled, 0 position controlled;
     frame: the task frame's axes: ``world``, or ``tool`` (at segment start);
@@ -75,7 +77,7 @@ class Goal:
 
     q_rad: list[float] = field(default_factory=list, metadata={"len": 7})
     pos_xyz_rot_xyz: list[float] = field(default_factory=list, metadata={"len": 6})
-    relative_to: Literal["world", "hole"] = "world"
+    relative_to: str = "world"
     force_xyz_torque_xyz: list[float] = field(
         default_factory=lambda: [0.0] * 6, metadata={"len": 6}
     )
@@ -156,7 +158,9 @@ class RobotMove:
     goal: Goal = field(default_factory=Goal)
     end: EndConditions = field(default_factory=EndConditions)
     search: Search = field(default_factory=Search)
-    skill: Literal["", "move", "guarded_move", "push", "search_insert", "hold"] = ""
+    skill: Literal[
+        "", "move", "guarded_move", "push", "search_insert", "grasp", "release", "hold"
+    ] = ""
 
 
 @dataclass(frozen=True)
@@ -175,7 +179,9 @@ class MoveSegment:
     end: EndConditions = field(default_factory=EndConditions)
     search: Search = field(default_factory=Search)
     moves: dict[str, RobotMove] = field(default_factory=dict)
-    skill: Literal["", "move", "guarded_move", "push", "search_insert", "hold"] = ""
+    skill: Literal[
+        "", "move", "guarded_move", "push", "search_insert", "grasp", "release", "hold"
+    ] = ""
     until: Literal["all", "any"] = "all"  # (moves) it ends early when all, or any, end
 
 
@@ -254,7 +260,7 @@ def load_task(path: Path | str, cfg: Config) -> Task:
                 if r not in seg.q_rad:
                     raise ConfigError(f"{where}: segments[{i}].q_rad: no goal for robot {r!r}")
     elif task.kind == "strategy":
-        _check_strategy(task, where)
+        _check_strategy(task, where, ("world", "hole", *cfg.workcell.objects))
     elif task.segments:
         raise ConfigError(f"{where}: segments: not used by a {task.kind} task")
     return Task(
@@ -269,7 +275,7 @@ def load_task(path: Path | str, cfg: Config) -> Task:
     )
 
 
-def _check_strategy(task: Task, where: str) -> None:
+def _check_strategy(task: Task, where: str, frames: tuple[str, ...]) -> None:
     if not task.segments:
         raise ConfigError(f"{where}: segments: a strategy task needs at least one segment")
     for i, seg in enumerate(task.segments):
@@ -286,6 +292,11 @@ def _check_strategy(task: Task, where: str) -> None:
             )
         for m in segment_moves(seg, i):
             _check_move(seg, m, f"{where}: {m.where}")
+            if m.goal.relative_to not in frames:
+                raise ConfigError(
+                    f"{where}: {m.where}.goal.relative_to: no frame named "
+                    f"{m.goal.relative_to!r} (known: {', '.join(frames)})"
+                )
 
 
 def _check_moves_form(task: Task, seg: MoveSegment, at: str) -> None:

@@ -327,6 +327,17 @@ class RobotDriver:
             dac.zero()
             dac.flush()
 
+    def set_gripper(self, closed: bool) -> None:
+        """Close (or open) the flange's gripper: its DIO output (none fitted:
+        nothing). A freeze leaves it as it is: an object held stays held."""
+        ch = self.hw.gripper
+        if ch is None:
+            return
+        dio = self.modules[ch.address]
+        assert isinstance(dio, DioDriver)
+        dio.set_bits(np.array([ch.index]), closed)
+        dio.flush()
+
     def release_brakes(self, joints: list[int] | None = None) -> None:
         """Release the brakes of ``joints`` (default: all); the others keep theirs."""
         self._set_brakes(False, joints)

@@ -228,6 +228,10 @@ class Sender(Worker):
         else:
             self.control_block = ld.block("control", 0)
             self.ctl = Record(CONTROL)
+        # the gripper follows the SSC's command (one comparison a cycle; the
+        # DIO write only when it changes); open at power-on
+        self.gripper = self.from_ssc and ctx.hw.gripper is not None
+        self.gripper_closed = 0
         self.manager_block = ld.block("manager")
         self.fb = Record(FEEDBACK)
         self.home = Record(HOME)
@@ -349,6 +353,9 @@ class Sender(Worker):
         self.guard["sent_cycle"] = cycle
         self.guard_tau[...] = tau_cmd
         self.guard_block.publish(self.guard.bytes)
+        if self.gripper and int(self.cmd["gripper"]) != self.gripper_closed:
+            self.gripper_closed = int(self.cmd["gripper"])
+            self.driver.set_gripper(bool(self.gripper_closed))
         if self.from_ssc:
             now = time.monotonic_ns()
             self.sent["count"] += 1

@@ -262,6 +262,7 @@ COMMAND = np.dtype(
         ("q_cmd_rad", "<f8", (DOF,)),  # joint position commands [rad]
         ("joint_on", "u1", (DOF,)),
         ("session_status", "u1"),  # SessionStatus
+        ("gripper", "u1"),  # 1: the flange's gripper closed, 0: open
     ]
 )
 FEEDBACK = np.dtype(

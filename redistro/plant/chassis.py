@@ -41,6 +41,7 @@ from redistro.plant.chassis_plans import plan_kernels, truth_table
 from redistro.plant.chassis_reference import apply_numpy, sample_numpy
 from redistro.plant.devices import Encoders, HomeSwitches, Motors, WristSensors
 from redistro.plant.disturbance import Disturbance
+from redistro.plant.grippers import Grippers
 from redistro.plant.watchdog import AmplifierWatchdog
 from redistro.plant.world import Arm, World
 
@@ -193,6 +194,7 @@ class Chassis:
         fit_wrist_sensors(self, cfg, wrists)
         self._wiring(wires, [hardware[r].sensors for r in names])
         self.reg = Registers(self.banks)
+        self.grippers = Grippers(self.rigs, hardware, self.banks.row, world)
         self._step_buffers(cfg)
         plans: tuple[Any, Any, Any] = plan_kernels(self) if self.kernels else (None, None, None)
         self._apply_plan, self._sample_plan, self._truth_plan = plans
@@ -418,6 +420,8 @@ class Chassis:
             apply_numpy(self, now_ns)
         for rig in self.rigs:
             self.world.apply_motor_torques(rig.arm)
+        if self.grippers.fitted:
+            self.grippers.apply(self.reg.dio_outputs, self.step_count + 1)
 
     def _brakes_changed(self, brake: np.ndarray[Any, Any], now_ns: int) -> None:
         self._loose_any = True  # newly braked joints are held once they stop

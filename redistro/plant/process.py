@@ -364,6 +364,8 @@ def _result(
         "physics_us": physics.summary_us(),
         "chassis_us": _difference(whole, physics),
         "freezes": chassis.freezes,
+        "grippers": chassis.grippers.events,
+        "objects": chassis.grippers.object_poses(),
         "watchdog_trips": chassis.watchdog_trips,
         "left_real_time": demoted,
     }

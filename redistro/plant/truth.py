@@ -89,6 +89,18 @@ def hole_pose(cfg: Config) -> HolePose:
     )
 
 
+def object_pose(cfg: Config, name: str) -> tuple[tuple[float, float, float], float]:
+    """Where the plant puts object ``name``: (its centre [m], its yaw [deg]),
+    resting on the table (which the hole's truth moves with its fixture)."""
+    from redistro.config.model import ObjectTruth, table_top_m
+
+    o = cfg.workcell.objects[name]
+    t = cfg.plant.objects.get(name, ObjectTruth())
+    top = table_top_m(cfg.workcell.hole, hole_pose(cfg).offset_xyz_m[2])
+    x, y = (float(a) + float(b) for a, b in zip(o.xy_m, t.offset_xy_m, strict=True))
+    return (x, y, top + o.size_xyz_m[2] / 2), o.yaw_deg + t.yaw_deg
+
+
 BASE_RADIUS_M = 0.12  # an arm's base link, as a cylinder about its axis
 
 

@@ -139,8 +139,10 @@ class World:
         if urdf_dir is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="redistro-urdf-")
             urdf_dir = Path(self._tmp.name)
+        self.objects: dict[str, int] = {}  # the objects on the table: their bodies
         try:
             self.fixture = build_table_and_fixture(self)
+            self.objects = build_objects(self)
         except BaseException:
             pb.disconnect(physicsClientId=cid)
             raise
@@ -468,6 +470,33 @@ def _box(
             physicsClientId=cid,
         )
     )
+
+
+def build_objects(w: World) -> dict[str, int]:
+    """The objects of ``workcell.objects``, where the plant's truth puts
+    them (:func:`redistro.plant.truth.object_pose`): boxes resting on the table."""
+    from redistro.plant.truth import object_pose
+
+    pb, cid = w.pb, w.client
+    out: dict[str, int] = {}
+    for name, o in w.cfg.workcell.objects.items():
+        (x, y, z), yaw = object_pose(w.cfg, name)
+        half = [v / 2 for v in o.size_xyz_m]
+        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+        vis = pb.createVisualShape(
+            pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.2, 0.5, 0.8, 1], physicsClientId=cid
+        )
+        out[name] = int(
+            pb.createMultiBody(
+                baseMass=o.mass_kg,
+                baseCollisionShapeIndex=col,
+                baseVisualShapeIndex=vis,
+                basePosition=[x, y, z],
+                baseOrientation=pb.getQuaternionFromEuler([0.0, 0.0, math.radians(yaw)]),
+                physicsClientId=cid,
+            )
+        )
+    return out
 
 
 def build_table_and_fixture(w: World) -> list[int]:

@@ -254,6 +254,8 @@ def build_summary(
             "torn_outputs",
             "bad_frames",
             "freezes",
+            "grippers",
+            "objects",
             "watchdog_trips",
             "hole",
             "arms",

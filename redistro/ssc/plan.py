@@ -45,6 +45,7 @@ class MovePlan:
     duration_s: float = 0.0  # the segment's
     skill: str = "move"  # (config/skills.py)
     contact_n: float = 0.0  # a guarded move's contact [N]: it ends there
+    gripper: str = ""  # at the move's end the gripper closes ("close") or opens ("open")
     where: str = ""  # the task file's field, for messages
 
     @property
@@ -75,11 +76,12 @@ class SegmentPlan:
 
 def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     """The task's segments with goals resolved (relative poses made absolute)."""
-    hole = np.asarray(cfg.workcell.hole.xyz_m, dtype=np.float64)
+    frames = frames_of(cfg)
+    hole = frames["hole"]
     out = []
     for i, s in enumerate(task.segments):
         moves = tuple(
-            _move(s, m, hole, cfg.workcell.hole.depth_m)
+            _move(s, m, frames, hole, cfg.workcell.hole.depth_m)
             for m in segment_moves(s, i)
             if skill_of(m).name != "hold"
         )
@@ -88,13 +90,33 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     return out
 
 
-def _move(s: MoveSegment, m: Move, hole: np.ndarray[Any, Any], depth_m: float) -> MovePlan:
+def frames_of(cfg: Config) -> dict[str, np.ndarray[Any, Any]]:
+    """The origins a goal may be relative to, as drawn: the world's, the
+    hole's mouth centre, and each object's top-face centre."""
+    from redistro.config.model import table_top_m
+
+    top = table_top_m(cfg.workcell.hole)
+    out = {
+        "world": np.zeros(3),
+        "hole": np.asarray(cfg.workcell.hole.xyz_m, dtype=np.float64),
+    }
+    for name, o in cfg.workcell.objects.items():
+        out[name] = np.array([o.xy_m[0], o.xy_m[1], top + o.size_xyz_m[2]], dtype=np.float64)
+    return out
+
+
+def _move(
+    s: MoveSegment,
+    m: Move,
+    frames: dict[str, np.ndarray[Any, Any]],
+    hole: np.ndarray[Any, Any],
+    depth_m: float,
+) -> MovePlan:
     g = m.goal
     pose = np.zeros(6)
     if g.pos_xyz_rot_xyz:
         pose = np.asarray(g.pos_xyz_rot_xyz, dtype=np.float64).copy()
-        if g.relative_to == "hole":
-            pose[:3] += hole
+        pose[:3] += frames[g.relative_to]
     return MovePlan(
         robot=m.robot,
         scheme=m.scheme,
@@ -115,6 +137,7 @@ def _move(s: MoveSegment, m: Move, hole: np.ndarray[Any, Any], depth_m: float) -
         duration_s=s.duration_s,
         skill=skill_of(m).name,
         contact_n=m.end.contact_n,
+        gripper=skill_of(m).gripper,
         where=m.where,
     )
 

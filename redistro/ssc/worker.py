@@ -446,6 +446,7 @@ class SscWorker(Worker):
                     why = f"hole not found within the segment's {plan.duration_s:g} s"
                     self._fail(st, mv, t, why)
                     return
+            _grip(self.states, self.seg_moves, t, self.post)
             self._begin(self.k + 1, t)
 
     def _ended_early(self, plan: SegmentPlan, t: float) -> bool:
@@ -576,6 +577,16 @@ class SscWorker(Worker):
         if goal:
             v["goal"][...] = tcp
             v["goal_rot"][...] = v["rot"]
+
+
+def _grip(states: list[RobotState], moves: list[MovePlan | None], t: float, post: Any) -> None:
+    """As a segment ends, the grippers its grasps close and its releases
+    open (in the robots' commands from now on: nothing per cycle)."""
+    for st, mv in zip(states, moves, strict=True):
+        if mv is not None and mv.gripper:
+            st.cmd["gripper"] = 1 if mv.gripper == "close" else 0
+            done = "closed" if mv.gripper == "close" else "opened"
+            post(f"{st.name} {mv.skill}: gripper {done} at t={t:.2f} s")
 
 
 def _within(pl: Any, mv: MovePlan) -> bool:

@@ -126,6 +126,7 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         "moves_stranger": _swap("tasks/dual_reach.yaml", b"      r1:\n", b"      r9:\n"),
         "push_position": _swap(TRY, b"skill: guarded_move", b"skill: push"),
         "guarded_no_contact": _swap(TRY, b"contact_n: 2", b"pose_within_m: 0.001"),
+        "unknown_frame": _swap(TRY, b"relative_to: hole", b"relative_to: crate"),
         "until_alone": _swap(TRY, b"skill: hold\n", b"skill: hold\n    until: any\n"),
         "hold_with_goal": _swap(
             TRY, b"skill: hold\n", b"skill: hold\n    goal: {q_rad: [0, 0, 0, 0, 0, 0, 0]}\n"
@@ -312,6 +313,16 @@ CASES = [
         "until on a segment of one robot",
         ["check", "{until_alone}"],
         "segments[2].until: for a segment of several robots (moves)",
+    ),
+    (
+        "a goal relative to an object the work-cell does not have",
+        ["check", "{unknown_frame}"],
+        "segments[0].moves.r2.goal.relative_to: no frame named 'crate' (known: world, hole)",
+    ),
+    (
+        "the plant's truth of an object the work-cell does not have",
+        ["--set", "plant.objects={crate: {yaw_deg: 1}}", "session", "tasks/park.yaml"],
+        "plant.objects.crate: no object named 'crate' in workcell.objects",
     ),
     # what check refuses that would fail only once running
     (

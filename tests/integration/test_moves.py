@@ -106,3 +106,58 @@ def test_the_two_arm_task_passes_the_load_check(calibrated: Path, tmp_path: Path
     runs = copy_runs(calibrated, tmp_path)
     done = run_cli("--set", f"session.runs_dir={runs}", "check", "tasks/dual_reach.yaml")
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+GRASP_TASK = str(ROOT / "tests/data/grasp_lift.yaml")
+BLOCK = "{block: {size_xyz_m: [0.04, 0.04, 0.06], xy_m: [0.5, 0.3], mass_kg: 0.2}}"
+# where the plant really puts it: 4 mm and 3 mm off, turned 3 degrees
+BLOCK_TRUTH = "{block: {offset_xy_m: [0.004, -0.003], yaw_deg: 3}}"
+
+
+def test_a_gripper_picks_the_block_up_and_sets_it_down(calibrated: Path, tmp_path: Path) -> None:
+    """r1's gripper, through its I/O board's DIO output: closed on the block
+    the plant welds it where it really is; lifted, the wrist feels its
+    weight; set down 5 cm further on and let go, it rests there upright."""
+    from redistro.config.loader import load_config
+    from redistro.config.model import table_top_m
+    from redistro.log.mcapfile import read_log
+
+    runs = copy_runs(calibrated, tmp_path)
+    out = tmp_path / "run"
+    sets = ["--set", f"workcell.objects={BLOCK}", "--set", f"plant.objects={BLOCK_TRUTH}"]
+    done = run_cli(
+        "--set", f"session.runs_dir={runs}", *sets, "session", GRASP_TASK, "--out", str(out),
+        timeout=180,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    messages = (out / "messages.log").read_text()
+    assert "r1 grasp: gripper closed at t=" in messages
+    assert "r1 release: gripper opened at t=" in messages
+    plant = load_json(out / "summary.json")["plant"]
+    # the plant's truth: the DIO output closed r1's gripper on the block, then opened it
+    assert [(e["robot"], e["closed"], e["took"]) for e in plant["grippers"]] == [
+        ("r1", True, "block"),
+        ("r1", False, ""),
+    ], plant["grippers"]
+    block = plant["objects"]["block"]
+    top = table_top_m(load_config(None).workcell.hole)
+    assert block["held_by"] is None, block
+    assert block["tilt_deg"] < 1.0 and abs(block["yaw_deg"] - 3.0) < 1.0, block
+    assert abs(block["xyz_m"][2] - (top + 0.03)) < 0.001, block  # on the table
+    # moved by what the task commanded (0, 5 cm) from where it really was
+    assert abs(block["xyz_m"][0] - 0.504) < 0.003, block
+    assert abs(block["xyz_m"][1] - (0.297 + 0.05)) < 0.003, block
+    # the controller's own sensor: its wrist carried the block's weight
+    sl = read_log(out / "session.mcap")
+    plan, fb = sl.arrays["/r1/plan"], sl.arrays["/r1/feedback"]
+    n = min(len(plan), len(fb))
+    force = np.linalg.norm(fb["wrench"][:n, :3], axis=1)
+
+    def last(segment: int) -> float:  # the wrist's force over a segment's last 0.2 s
+        at = np.flatnonzero(plan["segment"][:n] == segment)
+        assert len(at) > 40, segment
+        return float(np.median(force[at[-40:]]))
+
+    weight = 0.2 * 9.81
+    assert abs(last(3) - last(1) - weight) < 0.4 * weight, (last(1), last(3))
+    assert abs(last(5) - last(1)) < 0.4 * weight, (last(1), last(5))

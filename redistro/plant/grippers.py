@@ -1,0 +1,93 @@
+"""The flanges' grippers, as the plant sees them: each closes while its DIO
+output is on (open at power-on), and the world welds whatever it closes on
+(a PyBullet fixed constraint, where the object really is). Per physics
+step: one bit test per fitted gripper; the rest only when one changes."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from redistro.config.hardware import RobotHardware
+
+GRASP_REACH_M = 0.015  # a gripper takes an object whose top face is this near its tool point
+
+
+class Grippers:
+    def __init__(
+        self, rigs: list[Any], hardware: dict[str, RobotHardware], row: dict[int, int], world: Any
+    ) -> None:
+        self.world = world
+        # (robot, arm, DIO board row, bit) of each fitted gripper
+        self.fitted: list[tuple[str, Any, int, int]] = []
+        for rig in rigs:
+            ch = hardware[rig.name].gripper
+            if ch is not None:
+                self.fitted.append((rig.name, rig.arm, row[ch.address], ch.index))
+        self.closed = [False] * len(self.fitted)
+        self.held: dict[str, tuple[int, str]] = {}  # robot -> (constraint, object)
+        # every change: robot, step, closed, the object taken ('' none)
+        self.events: list[dict[str, Any]] = []
+
+    def apply(self, dio_outputs: Any, step: int) -> None:
+        """Act on the DIO outputs as the controller left them this step."""
+        for k, (robot, arm, row, bit) in enumerate(self.fitted):
+            closed = (int(dio_outputs[row]) >> bit) & 1 == 1
+            if closed == self.closed[k]:
+                continue
+            self.closed[k] = closed
+            took = self.set(robot, arm, closed)
+            if len(self.events) < 1000:
+                self.events.append({"robot": robot, "step": step, "closed": closed, "took": took})
+
+    def set(self, robot: str, arm: Any, closed: bool) -> str:
+        """The gripper of ``arm`` closed or opened. Closing on an object
+        within reach (the tool point over its top face, within
+        ``GRASP_REACH_M`` of it) welds the object to the tool link where it
+        is (a fixed constraint); opening lets it go. Returns the name of the
+        object taken ('' when none)."""
+        pb, cid = self.world.pb, self.world.client
+        held = self.held.pop(robot, None)
+        if held is not None:
+            pb.removeConstraint(held[0], physicsClientId=cid)
+        if not closed:
+            return ""
+        ls = pb.getLinkState(arm.body, arm.tool_link, physicsClientId=cid)
+        com_p, com_o, tool_p, tool_o = ls[0], ls[1], ls[4], ls[5]
+        for name, body in self.world.objects.items():
+            if any(n == name for _, n in self.held.values()):
+                continue  # the other hand has it
+            pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
+            inv_p, inv_o = pb.invertTransform(pos, orn)
+            local, _ = pb.multiplyTransforms(inv_p, inv_o, tool_p, tool_o)
+            hx, hy, hz = (v / 2 for v in self.world.cfg.workcell.objects[name].size_xyz_m)
+            if abs(local[0]) > hx or abs(local[1]) > hy or abs(local[2] - hz) > GRASP_REACH_M:
+                continue
+            # the object where it is, in the tool link's centre-of-mass frame
+            inv_p, inv_o = pb.invertTransform(com_p, com_o)
+            rel_p, rel_o = pb.multiplyTransforms(inv_p, inv_o, pos, orn)
+            c = pb.createConstraint(
+                arm.body, arm.tool_link, body, -1, pb.JOINT_FIXED, [0, 0, 0],
+                parentFramePosition=rel_p, childFramePosition=[0, 0, 0],
+                parentFrameOrientation=rel_o, physicsClientId=cid,
+            )  # fmt: skip
+            self.held[robot] = (int(c), str(name))
+            return str(name)
+        return ""
+
+    def object_poses(self) -> dict[str, dict[str, Any]]:
+        """Each object's pose (its centre [m], its yaw about the world's z
+        [deg], its tilt from upright [deg]) and the robot holding it."""
+        pb, cid = self.world.pb, self.world.client
+        holder = {n: robot for robot, (_, n) in self.held.items()}
+        out: dict[str, dict[str, Any]] = {}
+        for name, body in self.world.objects.items():
+            pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
+            R = pb.getMatrixFromQuaternion(orn)
+            out[name] = {
+                "xyz_m": [round(float(v), 5) for v in pos],
+                "yaw_deg": round(math.degrees(math.atan2(R[3], R[0])), 3),
+                "tilt_deg": round(math.degrees(math.acos(max(-1.0, min(1.0, R[8])))), 3),
+                "held_by": holder.get(name),
+            }
+        return out
