@@ -283,6 +283,9 @@ def one_line(text: str, limit: int = 400) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+RUN_FILES = ("messages.log", "summary.json", "session.mcap", "plant.json")
+
+
 def _check_outputs(args: argparse.Namespace) -> None:
     """Every output named on the command line is writable, before anything runs."""
     import math
@@ -293,6 +296,17 @@ def _check_outputs(args: argparse.Namespace) -> None:
         value = getattr(args, attr, None)
         if value:
             check_out_dir(value, option)
+    run = getattr(args, "out", None) if args.command in ("session", "node") else None
+    if run:  # a run folder is new: another run's files would be mixed in (or refused midway)
+        from pathlib import Path
+
+        from redistro.errors import clipped
+
+        held = [n for n in RUN_FILES if os.path.lexists(Path(run) / n)]
+        if held:
+            raise ConfigError(
+                f"--out {clipped(run)}: holds a run already ({held[0]}): give a new or empty folder"
+            )
     for attr, option in (("json_path", "--json"), ("json_out", "--json"), ("plot", "--plot")):
         value = getattr(args, attr, None)
         if isinstance(value, str) and value:

@@ -55,8 +55,6 @@ class Grippers:
         ls = pb.getLinkState(arm.body, arm.tool_link, physicsClientId=cid)
         com_p, com_o, tool_p, tool_o = ls[0], ls[1], ls[4], ls[5]
         for name, body in self.world.objects.items():
-            if any(n == name for _, n in self.held.values()):
-                continue  # the other hand has it
             pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
             inv_p, inv_o = pb.invertTransform(pos, orn)
             local, _ = pb.multiplyTransforms(inv_p, inv_o, tool_p, tool_o)
@@ -77,9 +75,12 @@ class Grippers:
 
     def object_poses(self) -> dict[str, dict[str, Any]]:
         """Each object's pose (its centre [m], its yaw about the world's z
-        [deg], its tilt from upright [deg]) and the robot holding it."""
+        [deg], its tilt from upright [deg]) and the robots holding it (two
+        hands on one object: a closed chain)."""
         pb, cid = self.world.pb, self.world.client
-        holder = {n: robot for robot, (_, n) in self.held.items()}
+        holders: dict[str, list[str]] = {}
+        for robot, (_, n) in sorted(self.held.items()):
+            holders.setdefault(n, []).append(robot)
         out: dict[str, dict[str, Any]] = {}
         for name, body in self.world.objects.items():
             pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
@@ -88,6 +89,6 @@ class Grippers:
                 "xyz_m": [round(float(v), 5) for v in pos],
                 "yaw_deg": round(math.degrees(math.atan2(R[3], R[0])), 3),
                 "tilt_deg": round(math.degrees(math.acos(max(-1.0, min(1.0, R[8])))), 3),
-                "held_by": holder.get(name),
+                "held_by": holders.get(name, []),
             }
         return out

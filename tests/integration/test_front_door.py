@@ -143,6 +143,9 @@ def _inputs(tmp: Path) -> dict[str, Path]:
     fifo = tmp / "fifo.yaml"
     os.mkfifo(fifo)
     out["fifo"] = fifo
+    out["old_run"] = tmp / "old_run"
+    out["old_run"].mkdir()
+    (out["old_run"] / "messages.log").write_text("an earlier run's\n")
     (tmp / "list_event").mkdir()
     _mcap_with_event(tmp / "list_event" / "session.mcap", b"[1, 2, 3]")
     (tmp / "deep_event").mkdir()
@@ -323,6 +326,11 @@ CASES = [
         "the plant's truth of an object the work-cell does not have",
         ["--set", "plant.objects={crate: {yaw_deg: 1}}", "session", "tasks/park.yaml"],
         "plant.objects.crate: no object named 'crate' in workcell.objects",
+    ),
+    (
+        "a run folder that holds an earlier run",
+        ["session", "tasks/park.yaml", "--out", "{old_run}"],
+        "holds a run already (messages.log): give a new or empty folder",
     ),
     # what check refuses that would fail only once running
     (

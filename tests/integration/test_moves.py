@@ -141,7 +141,7 @@ def test_a_gripper_picks_the_block_up_and_sets_it_down(calibrated: Path, tmp_pat
     ], plant["grippers"]
     block = plant["objects"]["block"]
     top = table_top_m(load_config(None).workcell.hole)
-    assert block["held_by"] is None, block
+    assert block["held_by"] == [], block
     assert block["tilt_deg"] < 1.0 and abs(block["yaw_deg"] - 3.0) < 1.0, block
     assert abs(block["xyz_m"][2] - (top + 0.03)) < 0.001, block  # on the table
     # moved by what the task commanded (0, 5 cm) from where it really was
