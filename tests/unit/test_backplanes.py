@@ -333,3 +333,27 @@ def test_a_node_started_beside_the_plant_sees_it_come_up_or_end() -> None:
             watch.close()
             bank.close()
             bank.unlink()
+
+
+def test_a_bank_being_made_is_not_attached() -> None:
+    """An attacher that comes while the plant still writes the board table
+    (its layout hash, written last, still 0) gets a LayoutError (it tries
+    again), not a board of type NONE."""
+    from redistro.drivers.io.bank import RegisterBank
+    from redistro.errors import LayoutError
+    from redistro.ipc.session import Session
+
+    with Session.create() as session:
+        bank = RegisterBank.create(session.id, BOARDS, ["r1"], 1000.0, session.manifest)
+        try:
+            made = int(bank.view["header"]["layout_hash"])
+            bank.view["header"]["layout_hash"] = 0
+            bank.view["table"]["type"][0] = 0  # (half written)
+            with pytest.raises(LayoutError, match="not made yet"):
+                RegisterBank.attach(session.id)
+            bank.view["table"]["type"][0] = int(bank.types[0])
+            bank.view["header"]["layout_hash"] = made
+            RegisterBank.attach(session.id).close()
+        finally:
+            bank.close()
+            bank.unlink()

@@ -197,6 +197,8 @@ class RegisterBank:
             head = np.ndarray((), dtype=HEADER, buffer=shm.buffer)
             if bytes(head["magic"]) != MAGIC or int(head["version"]) != VERSION:
                 raise LayoutError(f"{name}: not a register bank of this version")
+            if int(head["layout_hash"]) == 0:  # written last: the plant is still making it
+                raise LayoutError(f"{name}: not made yet")
             n = int(head["n_boards"])
             table = np.ndarray(
                 (MAX_BOARDS,),
