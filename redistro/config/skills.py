@@ -27,6 +27,7 @@ class Skill:
     search: bool = False  # a spiral search for the hole
     contact: bool = False  # it ends at the first contact (end.contact_n)
     gripper: str = ""  # "close" or "open": the flange's gripper, as the move ends
+    carry: bool = False  # the goal comes from the segment's carry (the held object's motion)
 
 
 SKILLS: dict[str, Skill] = {
@@ -59,6 +60,11 @@ SKILLS: dict[str, Skill] = {
             "release", ("joint", "position"), "a joint goal or a TCP pose (where it lets go)",
             "as move; the gripper opens as the segment ends", gripper="open",
         ),
+        Skill(
+            "carry", ("position",), "none: the segment's carry moves the object both hands "
+            "hold, and the squeeze between them",
+            "with the segment", carry=True,
+        ),
         Skill("hold", (), "nothing: the robot holds its pose", "with the segment"),
     )
 }  # fmt: skip
@@ -80,6 +86,8 @@ def check_skill(m: Move, at: str) -> Skill:
         if m.goal.q_rad or m.goal.pos_xyz_rot_xyz:
             raise ConfigError(f"{at}.goal: a hold has no goal (it holds where it is)")
         return s
+    if s.carry and (m.goal.q_rad or m.goal.pos_xyz_rot_xyz):
+        raise ConfigError(f"{at}.goal: a carry's goal is the segment's carry (give move_s only)")
     if m.scheme not in s.schemes:
         raise ConfigError(
             f"{at}.scheme: the skill {s.name} runs under {' or '.join(s.schemes)}, not {m.scheme}"

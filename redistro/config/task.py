@@ -149,6 +149,24 @@ class Search:
 
 
 @dataclass(frozen=True)
+class Carry:
+    """What a segment of two ``carry`` moves does with the object both hands
+    hold (a closed chain): it moves the object by ``move_xyz_m`` [m, world]
+    and turns it by ``turn_deg`` about the world's z through the point between
+    the hands, in the moves' ``move_s``, squeezing it between them with
+    ``squeeze_n`` [N] along the line from hand to hand; with ``release``,
+    both grippers open as the segment ends (the object set down)."""
+
+    object: str = ""
+    move_xyz_m: list[float] = field(
+        default_factory=lambda: [0.0, 0.0, 0.0], metadata={"len": 3, "ge": -1, "le": 1}
+    )
+    turn_deg: float = field(default=0.0, metadata={"ge": -90, "le": 90})
+    squeeze_n: float = field(default=10.0, metadata={"ge": 0, "le": 40})
+    release: bool = False
+
+
+@dataclass(frozen=True)
 class RobotMove:
     """One robot's part of a segment that moves several (``moves``): its
     scheme, goal, end conditions and search, as a one-robot segment gives
@@ -159,7 +177,7 @@ class RobotMove:
     end: EndConditions = field(default_factory=EndConditions)
     search: Search = field(default_factory=Search)
     skill: Literal[
-        "", "move", "guarded_move", "push", "search_insert", "grasp", "release", "hold"
+        "", "move", "guarded_move", "push", "search_insert", "grasp", "release", "carry", "hold"
     ] = ""
 
 
@@ -180,9 +198,10 @@ class MoveSegment:
     search: Search = field(default_factory=Search)
     moves: dict[str, RobotMove] = field(default_factory=dict)
     skill: Literal[
-        "", "move", "guarded_move", "push", "search_insert", "grasp", "release", "hold"
+        "", "move", "guarded_move", "push", "search_insert", "grasp", "release", "carry", "hold"
     ] = ""
     until: Literal["all", "any"] = "all"  # (moves) it ends early when all, or any, end
+    carry: Carry = field(default_factory=Carry)  # (moves: skill carry)
 
 
 @dataclass(frozen=True)
@@ -286,12 +305,19 @@ def _check_strategy(task: Task, where: str, frames: tuple[str, ...]) -> None:
             _check_moves_form(task, seg, at)
         elif seg.until != "all":
             raise ConfigError(f"{at}.until: for a segment of several robots (moves)")
+        elif seg.carry != Carry():
+            raise ConfigError(f"{at}.carry: for a segment of two carry moves (moves)")
         elif seg.robot not in task.robots:
             raise ConfigError(
                 f"{at}.robot: {seg.robot!r} is not in robots ({', '.join(task.robots)})"
             )
         for m in segment_moves(seg, i):
             _check_move(seg, m, f"{where}: {m.where}")
+            if seg.carry.object and seg.carry.object not in frames[2:]:
+                raise ConfigError(
+                    f"{where}: segments[{i}].carry.object: no object named "
+                    f"{seg.carry.object!r} in workcell.objects"
+                )
             if m.goal.relative_to not in frames:
                 raise ConfigError(
                     f"{where}: {m.where}.goal.relative_to: no frame named "
@@ -302,6 +328,14 @@ def _check_strategy(task: Task, where: str, frames: tuple[str, ...]) -> None:
 def _check_moves_form(task: Task, seg: MoveSegment, at: str) -> None:
     """A segment of several robots: its moves only, each robot once, in one time."""
     one = MoveSegment(seg.name, seg.duration_s)
+    carrying = [r for r, m in seg.moves.items() if m.skill == "carry"]
+    if carrying and (len(carrying) != 2 or len(seg.moves) != 2):
+        raise ConfigError(f"{at}.moves: a carry is two hands' moves, both skill: carry")
+    if bool(carrying) != bool(seg.carry.object):
+        raise ConfigError(
+            f"{at}.carry.object: "
+            + ("name the object the hands carry" if carrying else "only for two carry moves")
+        )
     for key in ("robot", "scheme", "goal", "end", "search", "skill"):
         if getattr(seg, key) != getattr(one, key):
             per = "moves.<robot>" if key == "robot" else f"moves.<robot>.{key}"
@@ -321,11 +355,14 @@ def _check_moves_form(task: Task, seg: MoveSegment, at: str) -> None:
 def _check_move(seg: MoveSegment, m: Move, at: str) -> None:
     from redistro.config.skills import check_skill
 
-    if check_skill(m, at).name == "hold":
+    skill = check_skill(m, at)
+    if skill.name == "hold":
         return
     g = m.goal
     if g.move_s > seg.duration_s:
         raise ConfigError(f"{at}.goal.move_s: {g.move_s} is longer than duration_s")
+    if skill.carry:
+        return  # (its goal: the segment's carry)
     if m.scheme == "joint":
         if not g.q_rad:
             raise ConfigError(f"{at}.goal.q_rad: a joint segment needs a joint goal")

@@ -48,6 +48,10 @@ class SegmentFigures:
     force_sum: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(3))
     force_sq: float = 0.0
     force_max: float = 0.0
+    carry: bool = False  # a carry's hand: its squeeze, on the line between the hands
+    squeeze_n: int = 0
+    squeeze_sq: float = 0.0
+    squeeze_peak: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -69,6 +73,9 @@ class SegmentFigures:
                 out["first_contact_s"] = None
                 out["force_mean_error_n"] = None
                 out["force_rms_error_n"] = None
+        if self.carry and self.squeeze_n:
+            out["squeeze_rms_error_n"] = round(math.sqrt(self.squeeze_sq / self.squeeze_n), 4)
+            out["squeeze_peak_n"] = round(self.squeeze_peak, 4)
         return out
 
 
@@ -81,7 +88,9 @@ class SscLogger(Worker):
         # one per robot's move, in the segments' order; per robot and
         # segment (1-based) the index of its move's figures (-1: it holds)
         moves = [mv for p in self.plans for mv in p.moves]
-        self.figures = [SegmentFigures(mv.name, mv.robot, mv.scheme) for mv in moves]
+        self.figures = [
+            SegmentFigures(mv.name, mv.robot, mv.scheme, carry=mv.skill == "carry") for mv in moves
+        ]
         self.fig_of = [[-1] * (len(self.plans) + 1) for _ in self.robots]
         j = 0
         for k, p in enumerate(self.plans, 1):
@@ -211,6 +220,8 @@ class SscLogger(Worker):
             fig.samples += 1
             fig.duration_s = rec["segment_t_s"]
             self.last_plan[j].bytes[:] = rec.bytes  # (a numpy record's copy: 4 us)
+            if fig.carry:
+                _squeeze(fig, self.wrench_goal[i].tolist(), self.wrench_task[i].tolist())
             if fig.scheme == "force" and rec["contact"]:
                 if fig.contact_t_s is None:
                     fig.contact_t_s = fig.duration_s
@@ -296,6 +307,18 @@ class SscLogger(Worker):
         from redistro import files
 
         files.replace(self.out_path, json.dumps(doc, indent=1))
+
+
+def _squeeze(fig: SegmentFigures, g: list[float], w: list[float]) -> None:
+    """A carry's hand: the squeeze it applies along its goal's line (the
+    plan's wrench_goal: the squeeze times the line inward) against the goal."""
+    goal = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    if goal <= 0:
+        return
+    f = (w[0] * g[0] + w[1] * g[1] + w[2] * g[2]) / goal
+    fig.squeeze_n += 1
+    fig.squeeze_sq += (goal - f) ** 2
+    fig.squeeze_peak = max(fig.squeeze_peak, f)
 
 
 def _finite(v: float) -> float | None:

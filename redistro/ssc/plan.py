@@ -3,6 +3,7 @@ scheme and its goal in numbers."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -11,7 +12,8 @@ import numpy as np
 from redistro.config.loader import resolved
 from redistro.config.model import Config, controller_view
 from redistro.config.skills import skill_of
-from redistro.config.task import Move, MoveSegment, Search, Task, move_s, segment_moves
+from redistro.config.task import Carry, Move, MoveSegment, Search, Task, move_s, segment_moves
+from redistro.errors import ConfigError
 from redistro.process.plan import worker_specs
 from redistro.process.spec import NodeParams, NodeSpec
 
@@ -62,6 +64,8 @@ class SegmentPlan:
     move_s: float  # every move's (they start and end together)
     moves: tuple[MovePlan, ...]  # (a robot whose skill is hold has none)
     until: str = "all"  # its early end: every move's end conditions met, or any one's
+    carry: Carry | None = None  # two carry moves: the held object's motion
+    carry_mass_kg: float = 0.0  # (the object's, as drawn)
 
     def move_of(self, robot: str) -> MovePlan | None:
         for m in self.moves:
@@ -79,15 +83,67 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     frames = frames_of(cfg)
     hole = frames["hole"]
     out = []
+    last: dict[str, np.ndarray[Any, Any]] = {}  # each robot's last pose goal
     for i, s in enumerate(task.segments):
         moves = tuple(
             _move(s, m, frames, hole, cfg.workcell.hole.depth_m)
             for m in segment_moves(s, i)
             if skill_of(m).name != "hold"
         )
+        carry = s.carry if s.carry.object else None
+        if carry is not None:
+            moves = _carry_goals(carry, moves, last, f"{task.source}: segments[{i}]")
+        for mv in moves:
+            if mv.scheme == "joint":
+                last.pop(mv.robot, None)
+            else:
+                last[mv.robot] = mv.pose
         move_s = moves[0].move_s if moves else 0.0  # (the same for every move)
-        out.append(SegmentPlan(s.name, s.duration_s, move_s, moves, s.until))
+        mass = cfg.workcell.objects[carry.object].mass_kg if carry is not None else 0.0
+        out.append(SegmentPlan(s.name, s.duration_s, move_s, moves, s.until, carry, mass))
     return out
+
+
+def carried(
+    carry: Carry, p: list[np.ndarray[Any, Any]], R: list[np.ndarray[Any, Any]], s: float = 1.0
+) -> tuple[list[np.ndarray[Any, Any]], list[np.ndarray[Any, Any]]]:
+    """Where a carry takes the hands at ``p``, ``R`` (world), ``s`` of the way
+    (0..1): the object moved by ``s`` of ``move_xyz_m`` and turned by ``s`` of
+    ``turn_deg`` about the world's z through the point between the hands."""
+    import math
+
+    a = math.radians(carry.turn_deg) * s
+    c, sn = math.cos(a), math.sin(a)
+    Rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+    mid = (p[0] + p[1]) / 2
+    d = np.asarray(carry.move_xyz_m, dtype=np.float64) * s
+    return [mid + d + Rz @ (pi - mid) for pi in p], [Rz @ Ri for Ri in R]
+
+
+def _carry_goals(
+    carry: Carry,
+    moves: tuple[MovePlan, ...],
+    last: dict[str, np.ndarray[Any, Any]],
+    at: str,
+) -> tuple[MovePlan, ...]:
+    """The carry's goals as planned: from the hands' last pose goals (where
+    the grasps put them; the SSC takes them from the measured poses)."""
+    from redistro.control.cartesian import matrix_to_rotvec, rotvec_to_matrix
+
+    missing = [mv.robot for mv in moves if mv.robot not in last]
+    if missing:
+        raise ConfigError(
+            f"{at}.carry: {', '.join(missing)} has no pose goal before it (a carry follows "
+            "a grasp under scheme position)"
+        )
+    p = [last[mv.robot][:3] for mv in moves]
+    R = [rotvec_to_matrix(last[mv.robot][3:]) for mv in moves]
+    p2, R2 = carried(carry, p, R)
+    grip = "open" if carry.release else ""
+    return tuple(
+        dataclasses.replace(mv, pose=np.concatenate([pi, matrix_to_rotvec(Ri)]), gripper=grip)
+        for mv, pi, Ri in zip(moves, p2, R2, strict=True)
+    )
 
 
 def frames_of(cfg: Config) -> dict[str, np.ndarray[Any, Any]]:

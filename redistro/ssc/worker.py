@@ -50,6 +50,7 @@ from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
 from redistro.process import hooks
 from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
+from redistro.ssc.carry import CarryRun, carry_moves
 from redistro.ssc.clearance import ClearanceWatch
 from redistro.ssc.plan import SCHEMES, MovePlan, SegmentPlan, segment_plans
 from redistro.ssc.search_steps import steer
@@ -245,6 +246,8 @@ class SscWorker(Worker):
         # move it is driven by now (None once a guarded move met its
         # contact), whether it met it, since when its end conditions held
         self.seg_moves: list[MovePlan | None] = [None] * n
+        self.carry: CarryRun | None = None  # the running segment's carry (two hands, one object)
+        self.k_trans = [float(v) for v in cfg.ssc.impedance.k[:3]]
         self.moving: list[MovePlan | None] = [None] * n
         self.contacted = [False] * n
         self.cond_since: list[float | None] = [None] * n
@@ -357,6 +360,9 @@ class SscWorker(Worker):
             return
         plan = self.plans[k]
         self.seg_moves = [plan.move_of(st.name) for st in self.states]
+        self.carry = None if plan.carry is None else self._carry_run(plan)
+        if self.carry is not None:
+            self.seg_moves = carry_moves(plan, self.seg_moves, self.carry)
         self.moving = list(self.seg_moves)
         for st, mv, moved in zip(self.states, self.moving, was, strict=True):
             if mv is None:
@@ -369,6 +375,13 @@ class SscWorker(Worker):
                 self._start_move(st, mv)
         moves = ", ".join(f"{m.robot} {m.scheme}" for m in plan.moves) or "every robot holds"
         self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {moves}")
+
+    def _carry_run(self, plan: SegmentPlan) -> CarryRun:
+        """A carry starts from where the two hands are (measured)."""
+        sts = [self.states[self.robots.index(mv.robot)] for mv in plan.moves]
+        kins = [st.model.kinematics(st.views["q"].astype(np.float64)) for st in sts]
+        k = self.k_trans
+        return CarryRun(plan, kins, min(k[0], k[1]), k[2], self.carry)
 
     def _start_move(self, st: RobotState, mv: MovePlan) -> None:
         """A robot's move begins: its law or its quintic, its plan's goal."""
@@ -498,7 +511,7 @@ class SscWorker(Worker):
         st.model.gravity_into(q, st.g)
         st.hold_loop.update(dt)
         v["q_cmd"][...] = st.hold_q
-        self._pose(st, q, goal=True)
+        _pose(st, q, goal=True)
 
     def _law(self, st: RobotState, plan: MovePlan, seg_t: float, dt: float, t: float) -> None:
         v = st.views
@@ -507,7 +520,7 @@ class SscWorker(Worker):
             st.quintic.at(seg_t)
             st.model.gravity_into(q, st.g)
             st.joint_loop.update(dt)
-            self._pose(st, q, goal=False)
+            _pose(st, q, goal=False)
             return
         law = st.law
         st.model.terms_into(q, law.J, law.R, law.t, law.M, law.g)
@@ -516,6 +529,9 @@ class SscWorker(Worker):
         law.wrench[...] = v["wrench"]
         if st.search is not None:
             self._search(st, plan, seg_t, dt, t)
+        c = self.carry if plan.skill == "carry" else None
+        if c is not None:
+            c.before(c.index(st.name), law, seg_t, v["wrench_goal"])
         # the integral learns in free space, once the reference stands still:
         # in position segments, and in force segments until the first
         # contact (the descent to the hole: the arm's posture changes and,
@@ -523,9 +539,11 @@ class SscWorker(Worker):
         # sideways, onto the mouth's edge); then it is held: in contact a
         # wall takes whatever it pushes, and a wound-up integral jams the peg
         integrate = (st.short_move or seg_t >= plan.move_s) and (
-            plan.scheme == "position" or not law.contact
+            (plan.scheme == "position" and c is None) or not law.contact
         )
         law.update(seg_t, dt, seg_t, integrate)
+        if c is not None:
+            c.after(c.index(st.name), law, dt)
         st.to_records()
         v["q_cmd"][...] = q
         st.plan["contact"] = 1 if law.contact else 0
@@ -559,24 +577,24 @@ class SscWorker(Worker):
             if other is not st and self.moving[k] is not None:
                 self._stop(k, other)
 
-    @staticmethod
-    def _pose(st: RobotState, q: np.ndarray[Any, Any], goal: bool) -> None:
-        """The TCP's pose into the plan (and, holding, as the goal and reference)."""
-        st.model.pose_into(q, st.R, st.t)
-        R, v = st.R, st.views
-        off = st.tcp_offset_m
-        tcp = v["tcp"]
-        tcp[...] = st.t
-        tcp += st.base
-        x, y, z = R[0, 2] * off, R[1, 2] * off, R[2, 2] * off
-        tcp[0] += x
-        tcp[1] += y
-        tcp[2] += z
-        v["rot"][...] = _rotvec(R)
-        v["ref"][...] = tcp
-        if goal:
-            v["goal"][...] = tcp
-            v["goal_rot"][...] = v["rot"]
+
+def _pose(st: RobotState, q: np.ndarray[Any, Any], goal: bool) -> None:
+    """The TCP's pose into the plan (and, holding, as the goal and reference)."""
+    st.model.pose_into(q, st.R, st.t)
+    R, v = st.R, st.views
+    off = st.tcp_offset_m
+    tcp = v["tcp"]
+    tcp[...] = st.t
+    tcp += st.base
+    x, y, z = R[0, 2] * off, R[1, 2] * off, R[2, 2] * off
+    tcp[0] += x
+    tcp[1] += y
+    tcp[2] += z
+    v["rot"][...] = _rotvec(R)
+    v["ref"][...] = tcp
+    if goal:
+        v["goal"][...] = tcp
+        v["goal_rot"][...] = v["rot"]
 
 
 def _grip(states: list[RobotState], moves: list[MovePlan | None], t: float, post: Any) -> None:

@@ -70,13 +70,15 @@ def _run_with_summary(
 
 
 TRY = "tests/data/moves_and_skills.yaml"
+CARRY = "tests/data/dual_carry_short.yaml"
+BAR = "{bar: {size_xyz_m: [0.04, 0.4, 0.06], xy_m: [0.5, 0.0], mass_kg: 2.0}}"
 
 
-def _swap(task: str, old: bytes, new: bytes) -> bytes:
+def _swap(task: str, old: bytes, new: bytes, count: int = -1) -> bytes:
     """A task file of the repository with one part replaced (it must be there)."""
     data = (ROOT / task).read_bytes()
     assert old in data, (task, old)
-    return data.replace(old, new)
+    return data.replace(old, new, count)
 
 
 def _inputs(tmp: Path) -> dict[str, Path]:
@@ -127,6 +129,12 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         "push_position": _swap(TRY, b"skill: guarded_move", b"skill: push"),
         "guarded_no_contact": _swap(TRY, b"contact_n: 2", b"pose_within_m: 0.001"),
         "unknown_frame": _swap(TRY, b"relative_to: hole", b"relative_to: crate"),
+        "carry_no_object": _swap(
+            CARRY, b"carry: {object: bar, move_xyz_m: [0, 0, 0.1], ", b"carry: {"
+        ),
+        "carry_one_hand": _swap(
+            CARRY, b"      r2: {skill: carry, scheme: position, goal: {move_s: 1.5}}\n", b"", 1
+        ),
         "until_alone": _swap(TRY, b"skill: hold\n", b"skill: hold\n    until: any\n"),
         "hold_with_goal": _swap(
             TRY, b"skill: hold\n", b"skill: hold\n    goal: {q_rad: [0, 0, 0, 0, 0, 0, 0]}\n"
@@ -321,6 +329,16 @@ CASES = [
         "a goal relative to an object the work-cell does not have",
         ["check", "{unknown_frame}"],
         "segments[0].moves.r2.goal.relative_to: no frame named 'crate' (known: world, hole)",
+    ),
+    (
+        "a carry that names no object",
+        ["--set", f"workcell.objects={BAR}", "check", "{carry_no_object}"],
+        "segments[2].carry.object: name the object the hands carry",
+    ),
+    (
+        "a carry of one hand",
+        ["--set", f"workcell.objects={BAR}", "check", "{carry_one_hand}"],
+        "segments[2].moves: a carry is two hands' moves, both skill: carry",
     ),
     (
         "the plant's truth of an object the work-cell does not have",

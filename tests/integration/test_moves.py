@@ -161,3 +161,49 @@ def test_a_gripper_picks_the_block_up_and_sets_it_down(calibrated: Path, tmp_pat
     weight = 0.2 * 9.81
     assert abs(last(3) - last(1) - weight) < 0.4 * weight, (last(1), last(3))
     assert abs(last(5) - last(1)) < 0.4 * weight, (last(1), last(5))
+
+
+CARRY_TASK = str(ROOT / "tests/data/dual_carry_short.yaml")
+BAR = "{bar: {size_xyz_m: [0.04, 0.4, 0.06], xy_m: [0.5, 0.0], mass_kg: 2.0}}"
+# where the plant really puts it (the controller grasps it there, unknowingly)
+BAR_TRUTH = "{bar: {offset_xy_m: [0.003, -0.002], yaw_deg: 2}}"
+
+
+def test_two_hands_carry_one_bar(calibrated: Path, tmp_path: Path) -> None:
+    """A closed chain: both grippers on one 2 kg bar, lifted, carried 0.2 m
+    while turned 30 degrees, set down: the plant's bar moved by what the
+    task commanded from where it really was, squeezed at 10 N throughout."""
+    from redistro.log.mcapfile import read_log
+
+    runs = copy_runs(calibrated, tmp_path)
+    out = tmp_path / "run"
+    sets = ["--set", f"workcell.objects={BAR}", "--set", f"plant.objects={BAR_TRUTH}"]
+    done = run_cli(
+        "--set", f"session.runs_dir={runs}", "--set", "robots.r2.peg=false", *sets,
+        "session", CARRY_TASK, "--out", str(out), timeout=180,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    summary = load_json(out / "summary.json")
+    plant = summary["plant"]
+    events = sorted((e["robot"], e["closed"], e["took"]) for e in plant["grippers"])
+    assert events == [
+        ("r1", False, ""), ("r1", True, "bar"), ("r2", False, ""), ("r2", True, "bar"),
+    ], plant["grippers"]  # fmt: skip
+    bar = plant["objects"]["bar"]
+    assert bar["held_by"] == [] and bar["tilt_deg"] < 1.0, bar  # let go, resting upright
+    # from where it really was (0.503, -0.002, yaw 2) by (0, 0.2, yaw 30)
+    assert abs(bar["xyz_m"][0] - 0.503) < 0.003 and abs(bar["xyz_m"][1] - 0.198) < 0.003, bar
+    assert abs(bar["yaw_deg"] - 32.0) < 1.0, bar
+    # the squeeze, at both wrists, on the line between the hands
+    carried = [s for s in summary["segments"] if s["name"] in ("lift", "carry", "set_down")]
+    assert len(carried) == 6
+    for s in carried:
+        assert s["squeeze_rms_error_n"] < 3.0 and 5.0 < s["squeeze_peak_n"] < 40.0, s
+    sl = read_log(out / "session.mcap")
+    for robot in ("r1", "r2"):
+        plan = sl.arrays[f"/{robot}/plan"]
+        at = plan["segment"] == 4  # the carry
+        goal = np.linalg.norm(plan["wrench_goal"][at][:, :3], axis=1)
+        assert np.allclose(goal, 10.0), robot
+        f = np.einsum("ij,ij->i", plan["wrench_task"][at][:, :3], plan["wrench_goal"][at][:, :3])
+        assert abs(float(np.median(f / goal)) - 10.0) < 2.0, robot

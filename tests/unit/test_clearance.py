@@ -258,3 +258,26 @@ def test_a_binary_stl_read_here_gives_the_vertices_coal_reads() -> None:
         np.testing.assert_array_equal(np.unique(ours, axis=0), ref)
     scaled = mesh_vertices(str(meshes / "link_3.stl"), (2.0, 1.0, 0.5))
     np.testing.assert_allclose(scaled, mesh_vertices(str(meshes / "link_3.stl")) * [2, 1, 0.5])
+
+
+def test_a_carry_moves_the_hands_as_one_rigid_object() -> None:
+    """carried(): the point between the hands moved by the carry's move,
+    the hands turned about it by its turn, their distance kept, at every
+    fraction of the way."""
+    import math
+
+    from redistro.config.task import Carry
+    from redistro.ssc.plan import carried
+
+    carry = Carry(object="bar", move_xyz_m=[0.0, 0.2, 0.1], turn_deg=30.0)
+    p = [np.array([0.5, 0.15, 0.2]), np.array([0.52, -0.15, 0.2])]
+    R = [np.eye(3), np.eye(3)]
+    for s in (0.0, 0.3, 1.0):
+        q, Rq = carried(carry, p, R, s)
+        assert np.isclose(np.linalg.norm(q[1] - q[0]), np.linalg.norm(p[1] - p[0]))
+        assert np.allclose((q[0] + q[1]) / 2, (p[0] + p[1]) / 2 + s * np.array([0, 0.2, 0.1]))
+        a = math.atan2(Rq[0][1, 0], Rq[0][0, 0])
+        assert math.isclose(a, math.radians(30.0 * s), abs_tol=1e-12)
+        d0, d1 = p[1] - p[0], q[1] - q[0]
+        turn = math.atan2(d1[1], d1[0]) - math.atan2(d0[1], d0[0])
+        assert math.isclose(turn, math.radians(30.0 * s), abs_tol=1e-12)

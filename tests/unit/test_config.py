@@ -175,7 +175,11 @@ def test_a_resolved_config_and_task_come_back_equal(tmp_path: Path) -> None:
     from redistro.process.spec import NodeSpec
 
     root = Path(__file__).parents[2]
-    block = "{block: {size_xyz_m: [0.04, 0.04, 0.06], xy_m: [0.5, 0.3]}}"  # (grasp_lift's)
+    # (the objects of grasp_lift and dual_carry_short)
+    block = (
+        "{block: {size_xyz_m: [0.04, 0.04, 0.06], xy_m: [0.5, 0.3]}, "
+        "bar: {size_xyz_m: [0.04, 0.4, 0.06], xy_m: [0.5, 0.0], mass_kg: 2.0}}"
+    )
     cfg = load_config(
         root / "config" / "redistro.yaml",
         ["esc.rate_hz=1000", "ddm.transport=reflective", f"workcell.objects={block}"],
