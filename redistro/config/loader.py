@@ -78,15 +78,18 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
     """
     origin = "<defaults>"
     data: dict[str, Any] = {}
+    origins: dict[str, str] = {}  # (--set)
+    in_file: dict[str, str] = {}  # (a file that extends another: its own values)
     if path is None and DEFAULT_CONFIG_PATH.exists():
         path = DEFAULT_CONFIG_PATH
     if path is not None:
         path = Path(path)
         data = read_yaml(path)
         origin = str(path)
+        if "extends" in data:
+            data, origin = _extended(path, data, in_file)
     data = copy.deepcopy(data)
     defaults = dataclasses.asdict(Config())
-    origins: dict[str, str] = {}
     for text in overrides or []:
         parts, value = parse_override(text)
         dotted = ".".join(parts)
@@ -106,13 +109,37 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
             node = child
         node[parts[-1]] = value
         origins[dotted] = "--set"
-    cfg = build(Config, data, origin=origin, origins=origins)
+    cfg = build(Config, data, origin=origin, origins={**in_file, **origins})
     source = str(path) if path is not None else str(DEFAULT_CONFIG_PATH)
     cfg = dataclasses.replace(cfg, source=source, overridden=tuple(origins))
     from redistro.config.checks import check_config
 
     check_config(cfg)
     return cfg
+
+
+def _extended(path: Path, data: dict[str, Any], origins: dict[str, str]) -> tuple[Any, str]:
+    """A config file that extends another (``extends: FILE``, relative to its
+    own folder): the other's values with this file's on top, mappings merged
+    key by key; an error names the file its value came from."""
+    name = data.pop("extends")
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{path}: extends: expected a config file's name, got {_cut(name)}")
+    base_path = path.parent / name
+    base = read_yaml(base_path)
+    if "extends" in base:
+        raise ConfigError(f"{base_path}: extends: a config that {path} extends extends no other")
+
+    def merge(under: Any, over: Any, at: str) -> Any:
+        if isinstance(under, dict) and isinstance(over, dict):
+            out = dict(under)
+            for k, v in over.items():
+                out[k] = merge(under.get(k), v, f"{at}.{k}" if at else str(k))
+            return out
+        origins[at] = str(path)
+        return over
+
+    return merge(base, data, ""), str(base_path)
 
 
 T = TypeVar("T")

@@ -26,8 +26,10 @@ class Grippers:
                 self.fitted.append((rig.name, rig.arm, row[ch.address], ch.index))
         self.closed = [False] * len(self.fitted)
         self.held: dict[str, tuple[int, str]] = {}  # robot -> (constraint, object)
-        # every change: robot, step, closed, the object taken ('' none)
+        # every change: robot, step, closed, the object taken ('' none) and
+        # the tool point it was taken at [m, world]
         self.events: list[dict[str, Any]] = []
+        self.start = self.object_poses()  # where the objects were at power-on
 
     def apply(self, dio_outputs: Any, step: int) -> None:
         """Act on the DIO outputs as the controller left them this step."""
@@ -36,24 +38,27 @@ class Grippers:
             if closed == self.closed[k]:
                 continue
             self.closed[k] = closed
-            took = self.set(robot, arm, closed)
+            took, at = self.set(robot, arm, closed)
             if len(self.events) < 1000:
-                self.events.append({"robot": robot, "step": step, "closed": closed, "took": took})
+                self.events.append(
+                    {"robot": robot, "step": step, "closed": closed, "took": took, "at_xyz_m": at}
+                )
 
-    def set(self, robot: str, arm: Any, closed: bool) -> str:
+    def set(self, robot: str, arm: Any, closed: bool) -> tuple[str, list[float]]:
         """The gripper of ``arm`` closed or opened. Closing on an object
         within reach (the tool point over its top face, within
         ``GRASP_REACH_M`` of it) welds the object to the tool link where it
         is (a fixed constraint); opening lets it go. Returns the name of the
-        object taken ('' when none)."""
+        object taken ('' when none) and the tool point [m, world]."""
         pb, cid = self.world.pb, self.world.client
         held = self.held.pop(robot, None)
         if held is not None:
             pb.removeConstraint(held[0], physicsClientId=cid)
-        if not closed:
-            return ""
         ls = pb.getLinkState(arm.body, arm.tool_link, physicsClientId=cid)
         com_p, com_o, tool_p, tool_o = ls[0], ls[1], ls[4], ls[5]
+        at = [round(float(v), 6) for v in tool_p]
+        if not closed:
+            return "", at
         for name, body in self.world.objects.items():
             pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
             inv_p, inv_o = pb.invertTransform(pos, orn)
@@ -70,8 +75,8 @@ class Grippers:
                 parentFrameOrientation=rel_o, physicsClientId=cid,
             )  # fmt: skip
             self.held[robot] = (int(c), str(name))
-            return str(name)
-        return ""
+            return str(name), at
+        return "", at
 
     def object_poses(self) -> dict[str, dict[str, Any]]:
         """Each object's pose (its centre [m], its yaw about the world's z

@@ -366,6 +366,7 @@ def _result(
         "freezes": chassis.freezes,
         "grippers": chassis.grippers.events,
         "objects": chassis.grippers.object_poses(),
+        "objects_start": chassis.grippers.start,
         "watchdog_trips": chassis.watchdog_trips,
         "left_real_time": demoted,
     }

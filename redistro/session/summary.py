@@ -234,6 +234,9 @@ def build_summary(
         if ssc is not None and ssc.clearance:
             summary["clearance"] = ssc.clearance  # the controller's; the plant's: plant.arms
         _inserted(summary, ssc is not None, depth, hole_depth, plant.get("pegs") or {})
+        from redistro.session.placed import placed
+
+        summary.update(placed(task, plant))  # (a task that carries an object)
         summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}
     summary["plant"] = {
         k: plant.get(k)
@@ -256,6 +259,7 @@ def build_summary(
             "freezes",
             "grippers",
             "objects",
+            "objects_start",
             "watchdog_trips",
             "hole",
             "arms",

@@ -70,8 +70,7 @@ def _run_with_summary(
 
 
 TRY = "tests/data/moves_and_skills.yaml"
-CARRY = "tests/data/dual_carry_short.yaml"
-BAR = "{bar: {size_xyz_m: [0.04, 0.4, 0.06], xy_m: [0.5, 0.0], mass_kg: 2.0}}"
+CARRY = "tasks/dual_carry_short.yaml"
 
 
 def _swap(task: str, old: bytes, new: bytes, count: int = -1) -> bytes:
@@ -332,12 +331,12 @@ CASES = [
     ),
     (
         "a carry that names no object",
-        ["--set", f"workcell.objects={BAR}", "check", "{carry_no_object}"],
+        ["--config", "config/dual_arm.yaml", "check", "{carry_no_object}"],
         "segments[2].carry.object: name the object the hands carry",
     ),
     (
         "a carry of one hand",
-        ["--set", f"workcell.objects={BAR}", "check", "{carry_one_hand}"],
+        ["--config", "config/dual_arm.yaml", "check", "{carry_one_hand}"],
         "segments[2].moves: a carry is two hands' moves, both skill: carry",
     ),
     (

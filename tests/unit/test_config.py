@@ -254,3 +254,36 @@ def test_an_error_message_quotes_a_huge_value_without_walking_it() -> None:
     assert len(text) <= 60 and text.startswith("[[0, 0, 0")
     assert len(shown(10**80)) <= 60 and shown(10**80).startswith("1000")
     assert "..." in shown("x" * 1000) and len(shown("x" * 1000)) <= 60
+
+
+def test_a_config_that_extends_another(tmp_path: Path) -> None:
+    """``extends: FILE``: the other file's values with this one's on top,
+    mappings merged key by key; an error names the file the value came from."""
+    root = Path(__file__).parents[2]
+    base = load_config(root / "config" / "redistro.yaml")
+    dual = load_config(root / "config" / "dual_arm.yaml")
+    assert dual.robots["r2"].peg is False and base.robots["r2"].peg is True
+    assert dual.robots["r2"].io == base.robots["r2"].io  # (the rest of r2 from the base)
+    assert dual.robots["r1"] == base.robots["r1"] and dual.esc == base.esc
+    assert (
+        set(dual.workcell.objects) == {"bar", "block"} and dual.workcell.hole == base.workcell.hole
+    )
+    assert dual.origin("robots.r2.peg") == str(root / "config" / "dual_arm.yaml")
+    over = tmp_path / "over.yaml"
+    over.write_text(f"extends: {root / 'config' / 'redistro.yaml'}\nesc: {{rate_hz: -5}}\n")
+    with pytest.raises(ConfigError, match=r"over\.yaml: esc\.rate_hz: expected a number"):
+        load_config(over)
+    over.write_text(f"extends: {root / 'config' / 'redistro.yaml'}\nssc: {{rate_hz: 500}}\n")
+    cfg = load_config(over, ["esc.rate_hz=1000"])
+    assert cfg.ssc.rate_hz == 500 and cfg.esc.rate_hz == 1000 and cfg.ssc.cpus == base.ssc.cpus
+    with pytest.raises(ConfigError, match=r"base\.yaml"):  # (the value from the base, named there)
+        (tmp_path / "base.yaml").write_text("esc: {rate_hz: -5}\n")
+        over.write_text("extends: base.yaml\n")
+        load_config(over)
+    over.write_text("extends: missing.yaml\n")
+    with pytest.raises(ConfigError, match=r"missing\.yaml"):
+        load_config(over)
+    (tmp_path / "base.yaml").write_text("extends: over.yaml\n")
+    over.write_text("extends: base.yaml\n")
+    with pytest.raises(ConfigError, match="extends no other"):
+        load_config(over)
