@@ -1,0 +1,64 @@
+"""The carry's per-cycle reference (ssc/carry.py, plain floats) against its
+definition (ssc/plan.py's carried(), numpy): each hand on the object's arc,
+in along the line by the squeeze's compression, up by the weight's share."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from redistro.config.loader import load_config
+from redistro.config.task import load_task
+from redistro.ssc.carry import GRAVITY, CarryRun
+from redistro.ssc.plan import carried, segment_plans
+
+ROOT = Path(__file__).parents[2]
+
+
+class _Kin:
+    def __init__(self, p: list[float], R: np.ndarray) -> None:
+        self.p, self.R = np.array(p), R
+
+
+class _Law:
+    def __init__(self) -> None:
+        self.ref = np.zeros((), [("start_p", "f8", 3), ("goal_p", "f8", 3)])
+        self.applied = np.zeros(6)
+
+
+def test_the_reference_is_the_objects_arc_plus_the_squeeze_and_the_weight() -> None:
+    cfg = load_config(ROOT / "config/dual_arm.yaml")
+    plan = next(p for p in segment_plans(load_task(ROOT / "tasks/dual_carry.yaml", cfg), cfg)
+                if p.name == "carry")  # fmt: skip
+    assert plan.carry is not None
+    rng = np.random.default_rng(3)
+    down = np.diag([1.0, -1.0, -1.0])
+    kins = [_Kin([0.5, 0.15, 0.165], down), _Kin([0.503, -0.148, 0.166], down)]
+    run = CarryRun(plan, kins, 300.0, 280.0)
+    law, wg = _Law(), np.zeros(6)
+    for _ in range(200):
+        i, t = int(rng.integers(2)), float(rng.uniform(-0.5, plan.move_s + 0.5))
+        run.inward[i] = float(rng.uniform(0, 0.05))
+        run.before(i, law, t, wg)
+        s = min(max(t / plan.move_s, 0.0), 1.0)
+        b = 10 * s**3 - 15 * s**4 + 6 * s**5
+        arcs, _ = carried(plan.carry, run.p0, [np.eye(3)] * 2, b)
+        chord = run.p0[i] + b * (run.goal_p[i] - run.p0[i])
+        a = math.radians(plan.carry.turn_deg) * b
+        u0 = run.u0[i]
+        u = np.array([math.cos(a) * u0[0] - math.sin(a) * u0[1],
+                      math.sin(a) * u0[0] + math.cos(a) * u0[1], 0.0])  # fmt: skip
+        shift = arcs[i] - chord + run.inward[i] * u + [0, 0, plan.carry_mass_kg * GRAVITY / 560]
+        assert np.allclose(law.ref["start_p"], run.p0[i] + shift, atol=1e-12)
+        assert np.allclose(law.ref["goal_p"], run.goal_p[i] + shift, atol=1e-12)
+        assert np.allclose(wg[:3], plan.carry.squeeze_n * u, atol=1e-12)
+        # the squeeze measured along the same line trims the compression
+        law.applied[:3] = rng.normal(0, 10, 3)
+        before = run.inward[i]
+        run.after(i, law, 0.005)
+        f = float(law.applied[:3] @ u)
+        assert math.isclose(run.measured[i], f, abs_tol=1e-12)
+        want = min(max(before + 0.015 * (plan.carry.squeeze_n - f) * 0.005, 0.0), 0.1)
+        assert math.isclose(run.inward[i], want, abs_tol=1e-15)
