@@ -127,6 +127,29 @@ def _parser() -> argparse.ArgumentParser:
     pg.add_argument("--json", dest="json_path", default=None, help="write the figures here")
     pg.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
 
+    du = bsub.add_parser(
+        "dual",
+        help="a campaign of two-hand carries with the object off where the controller believes it",
+        parents=[common],
+    )
+    du.add_argument("--task", choices=["carry"], default="carry", help="the two-arm job")
+    du.add_argument(
+        "--task-file", default="tasks/dual_carry_short.yaml", help="the carry's task file"
+    )
+    du.add_argument("--trials", type=_positive_int, default=10, help="sessions to run")
+    du.add_argument(
+        "--offset-radius-mm",
+        type=float,
+        default=5.0,
+        help="the object's offset, uniform over the disc of this radius [mm]",
+    )
+    du.add_argument(
+        "--yaw-deg", type=float, default=3.0, help="the object's yaw, uniform within +- this [deg]"
+    )
+    du.add_argument("--seed", type=int, default=0, help="trial k draws with seed + k")
+    du.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+    du.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
+
     dd = bsub.add_parser(
         "ddm",
         help="the DDM transports alone: N ESC ddms and their SSC ddm, no plant",

@@ -27,6 +27,8 @@ def run_bench(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
         return _bench_group(args, cfg, overrides)
     if args.bench == "peg":
         return _bench_peg(args, cfg, overrides)
+    if args.bench == "dual":
+        return _bench_dual(args, cfg)
     if args.bench == "kernels":
         return _bench_kernels(args, cfg)
     if args.bench == "ddm":
@@ -173,6 +175,57 @@ def _bench_peg(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
         peg.plot_campaign(out, args.plot)
         print(f"wrote {args.plot}")
     return 0 if out["summary"]["inserted"] == out["summary"]["trials"] else 1
+
+
+def _bench_dual(args: argparse.Namespace, cfg: Any) -> int:
+    from pathlib import Path
+
+    from rich.progress import Progress
+
+    from redistro.bench import dual
+    from redistro.config.task import load_task
+    from redistro.process.session_owner import write_json
+    from redistro.session.preflight import preflight
+
+    _writable("--json", args.json_path)
+    _writable("--plot", args.plot)
+    if not 0 <= args.offset_radius_mm <= 10:
+        raise ConfigError(f"--offset-radius-mm: expected 0 to 10, got {args.offset_radius_mm:g}")
+    if not 0 <= args.yaw_deg <= 10:
+        raise ConfigError(f"--yaw-deg: expected 0 to 10, got {args.yaw_deg:g}")
+    if not 0 <= args.seed <= 2**32 - 1 - args.trials:
+        raise ConfigError(f"--seed: expected 0 to {2**32 - 1 - args.trials}, got {args.seed}")
+    dual.carried_object(load_task(args.task_file, cfg))
+    task = preflight(cfg, args.task_file)
+    with Progress(transient=False) as bar:
+        job = bar.add_task(f"bench dual ({cfg.ddm.transport})", total=args.trials)
+
+        def done(row: dict[str, Any]) -> None:
+            bar.advance(job)
+            err = row["object_pose_error_m"]
+            bar.console.print(
+                f"trial {row['trial']}: offset {row['offset_xy_mm']} mm, yaw {row['yaw_deg']} "
+                f"deg, {row['result']}, {'placed' if row['placed'] else 'not placed'}"
+                + (f" ({err * 1e3:.2f} mm off)" if err is not None else "")
+            )
+
+        out = dual.run(
+            cfg,
+            task,
+            trials=args.trials,
+            radius_m=args.offset_radius_mm / 1e3,
+            yaw_deg=args.yaw_deg,
+            seed=args.seed,
+            on_trial=done,
+        )
+    dual.print_campaign(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    if args.plot:
+        dual.plot_campaign(out, args.plot)
+        print(f"wrote {args.plot}")
+    return 0 if out["summary"]["placed"] == out["summary"]["trials"] else 1
 
 
 def _bench_kernels(args: argparse.Namespace, cfg: Any) -> int:

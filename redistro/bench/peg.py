@@ -15,17 +15,11 @@ the medians. ``--plot`` draws the offsets coloured by outcome.
 from __future__ import annotations
 
 import dataclasses
-import json
 import statistics
-import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 from redistro.config.model import Config
-from redistro.errors import RedistroError
-
-CALIBRATION_TASK = "tasks/self_calibration.yaml"
 
 
 def trial_config(
@@ -102,46 +96,17 @@ def run(
     overrides: list[str],
     on_trial: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    from redistro.config.task import load_task
-    from redistro.session.baseline import Baseline
-    from redistro.session.preflight import unknown_positions
-    from redistro.session.run import plant_config, run_session
+    from redistro.bench.campaign import run_trials
 
-    runs = Path(cfg.session.runs_dir)
-    out_root = runs / f"bench-peg-{time.strftime('%Y%m%dT%H%M%S')}"
-    # every trial starts from the same state: known positions, the arms where
-    # the last session left them (a self-calibration first when unknown)
-    if unknown_positions(cfg, load_task(task_path, cfg)):
-        Path(plant_config(cfg).plant.pose_file).unlink(missing_ok=True)
-        rc = run_session(
-            cfg,
-            CALIBRATION_TASK,
-            out_dir=str(out_root / "self_calibration"),
-            say=lambda _t: None,
-        )
-        if rc != 0:
-            raise RedistroError(f"the self-calibration before the trials ended {rc}")
-    baseline = Baseline(runs)
-    rows: list[dict[str, Any]] = []
-    for k in range(trials):
-        s = seed + k
-        out_dir = out_root / f"trial-{k:02d}"
-        baseline.restore()
-        rc = run_session(
-            trial_config(cfg, radius_m, yaw_deg, s, min_radius_m),
-            task_path,
-            out_dir=str(out_dir),
-            say=lambda _t: None,
-        )
-        path = out_dir / "summary.json"
-        summary = json.loads(path.read_text()) if path.exists() else {"result": "abnormal"}
-        row = trial_row(k, s, rc, summary)
-        rows.append(row)
-        if on_trial is not None:
-            on_trial(row)
-        if str(row["reason"] or "").startswith("interrupted by"):
-            break  # Ctrl-C (or SIGTERM) ends the campaign, not only its trial
-    baseline.restore()
+    rows, out_root = run_trials(
+        cfg,
+        task_path,
+        "peg",
+        trials,
+        lambda k: trial_config(cfg, radius_m, yaw_deg, seed + k, min_radius_m),
+        lambda k, rc, summary: trial_row(k, seed + k, rc, summary),
+        on_trial,
+    )
     return {
         "task": task_path,
         "transport": cfg.ddm.transport,

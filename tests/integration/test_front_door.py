@@ -330,6 +330,23 @@ CASES = [
         "segments[0].moves.r2.goal.relative_to: no frame named 'crate' (known: world, hole)",
     ),
     (
+        "a bench dual offset beyond its range",
+        ["bench", "dual", "--offset-radius-mm", "11"],
+        "--offset-radius-mm: expected 0 to 10, got 11",
+    ),
+    (
+        "a bench dual of a task that carries nothing",
+        [
+            "--config",
+            "config/dual_arm.yaml",
+            "bench",
+            "dual",
+            "--task-file",
+            "tasks/grasp_lift.yaml",
+        ],
+        "bench dual --task carry needs a task that carries one object",
+    ),
+    (
         "a carry that names no object",
         ["--config", "config/dual_arm.yaml", "check", "{carry_no_object}"],
         "segments[2].carry.object: name the object the hands carry",

@@ -9,8 +9,11 @@ import math
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from redistro.config.loader import load_config
 from redistro.config.task import load_task
+from redistro.errors import ConfigError
 from redistro.session.placed import placed
 
 ROOT = Path(__file__).parents[2]
@@ -50,3 +53,40 @@ def test_a_carried_bar_is_placed_where_the_carries_put_it() -> None:
     bare = copy.deepcopy(_plant(x, y, 32.0))
     del bare["objects_start"]
     assert placed(task, bare) == {}
+
+
+def test_bench_dual_draws_each_trials_object_truth_and_reads_its_verdict() -> None:
+    from redistro.bench import dual
+
+    cfg = load_config(ROOT / "config/dual_arm.yaml")
+    task = load_task(ROOT / "tasks/dual_carry_short.yaml", cfg)
+    assert dual.carried_object(task) == "bar"
+    seen = set()
+    for seed in range(50):
+        t = dual.trial_config(cfg, "bar", 0.005, 3.0, seed).plant.objects["bar"]
+        assert math.hypot(*t.offset_xy_m) <= 0.005 + 1e-9 and abs(t.yaw_deg) <= 3.0
+        assert dual.trial_config(cfg, "bar", 0.005, 3.0, seed).plant.objects["bar"] == t
+        seen.add(t.offset_xy_m[0])
+    assert len(seen) == 50  # (a fresh draw per seed)
+    # the block's truth untouched
+    assert (
+        dual.trial_config(cfg, "bar", 0.005, 3.0, 1).plant.objects["block"]
+        == (cfg.plant.objects["block"])
+    )
+    summary = {
+        "result": "ok", "reason": "", "placed": True, "object_pose_error_m": 0.0012,
+        "object_pose_error_rad": 0.004, "clearance": {"arms_min_m": 0.21},
+        "segments": [
+            {"name": "grasp"},
+            {"name": "lift", "squeeze_rms_error_n": 1.1, "squeeze_peak_n": 12.0},
+            {"name": "carry", "squeeze_rms_error_n": 0.4, "squeeze_peak_n": 14.5},
+        ],
+    }  # fmt: skip
+    truth = cfg.plant.objects["bar"]
+    row = dual.trial_row(3, 7, truth, 0, summary)
+    assert row["placed"] is True and row["squeeze_rms_error_n"] == 1.1
+    assert row["squeeze_peak_n"] == 14.5 and row["min_arm_distance_m"] == 0.21
+    assert row["offset_xy_mm"] == [3.0, -2.0] and row["yaw_deg"] == 2.0
+    grasp = load_task(ROOT / "tasks/grasp_lift.yaml", cfg)
+    with pytest.raises(ConfigError, match="carries one object"):
+        dual.carried_object(grasp)
