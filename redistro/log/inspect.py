@@ -332,6 +332,8 @@ def plot_run(sl: SessionLog, out: Path) -> list[Path]:
     ]
     if plans and "arms_clearance_m" in (plans[0].dtype.names or ()):
         p.clearance(plans[0])
+    if len(plans) == 2:
+        p.carry(plans[0], plans[1])
     nodes = sl.nodes()
     for topic, tm in sorted(sl.arrays.items()):
         if topic.endswith("/timing") and len(tm):
@@ -376,6 +378,47 @@ class _Plots:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         self.save(fig, "arms-clearance.png")
+
+    def carry(self, a: Any, b: Any) -> None:
+        """A carry with both hands (the cycles a position move has a goal
+        wrench: the squeeze): the object as the controller sees it (the
+        point between the hands and the line's yaw) and each hand's
+        squeeze against its goal. Nothing when no segment carries."""
+        n = min(len(a), len(b))
+        a, b = a[:n], b[:n]
+        ran = (a["stamp_ns"] != 0) & (b["stamp_ns"] != 0)  # (since the task's start)
+        a, b = a[ran], b[ran]
+        goal = np.linalg.norm(a["wrench_goal"][:, :3], axis=1)
+        on = (a["scheme"] == 2) & (goal > 0)
+        if not on.any():
+            return
+        k = _stride(len(a))
+        t = a["t_s"][::k]
+        mid = (a["tcp_xyz_m"] + b["tcp_xyz_m"])[::k] / 2
+        line = (b["tcp_xyz_m"] - a["tcp_xyz_m"])[::k]
+        yaw = np.degrees(np.unwrap(np.arctan2(line[:, 1], line[:, 0])))
+        first = int(np.argmax(on[::k]))  # (the carry's start: the reference)
+        fig, axes = self.plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+        for j, axis in enumerate("xyz"):
+            m0 = mid[first, j]
+            axes[0].plot(t, mid[:, j] - m0, lw=0.9, label=f"{axis} - {m0:.3f} m")
+        axes[0].set_ylabel("hands' midpoint [m]")
+        axes[1].plot(t, yaw - yaw[first], lw=0.9)
+        axes[1].set_ylabel("the hands' line, yaw [deg]")
+        for rec, label in ((a, "r1"), (b, "r2")):
+            g = rec["wrench_goal"][::k, :3]
+            gn = np.linalg.norm(g, axis=1)
+            f = np.einsum("ij,ij->i", rec["wrench_task"][::k, :3], g) / np.where(gn > 0, gn, 1)
+            axes[2].plot(t, np.where(gn > 0, f, np.nan), lw=0.8, label=f"{label} squeeze")
+        axes[2].plot(t, np.where(on[::k], goal[::k], np.nan), "k--", lw=0.8, label="goal")
+        axes[2].set_ylabel("internal force [N]")
+        axes[2].set_xlabel("task time [s]")
+        for ax in axes:
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=8)
+        axes[2].legend(fontsize=8)
+        axes[0].set_title("a carry with both hands: the object and the squeeze")
+        self.save(fig, "carry.png")
 
     def joint_plot(self, t: Any, series: list[tuple[str, Any]], ylabel: str, title: str) -> Any:
         fig, axes = self.plt.subplots(7, 1, figsize=(8, 11), sharex=True)

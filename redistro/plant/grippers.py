@@ -11,6 +11,7 @@ from typing import Any
 from redistro.config.hardware import RobotHardware
 
 GRASP_REACH_M = 0.015  # a gripper takes an object whose top face is this near its tool point
+WELD_MAX_N = 5000.0  # the weld's strength (PyBullet's default, 500 N, let a 2 kg bar sag)
 
 
 class Grippers:
@@ -54,6 +55,7 @@ class Grippers:
         held = self.held.pop(robot, None)
         if held is not None:
             pb.removeConstraint(held[0], physicsClientId=cid)
+            self._touching(arm, self.world.objects[held[1]], True)
         ls = pb.getLinkState(arm.body, arm.tool_link, physicsClientId=cid)
         com_p, com_o, tool_p, tool_o = ls[0], ls[1], ls[4], ls[5]
         at = [round(float(v), 6) for v in tool_p]
@@ -74,9 +76,17 @@ class Grippers:
                 parentFramePosition=rel_p, childFramePosition=[0, 0, 0],
                 parentFrameOrientation=rel_o, physicsClientId=cid,
             )  # fmt: skip
+            pb.changeConstraint(c, maxForce=WELD_MAX_N, physicsClientId=cid)
+            self._touching(arm, body, False)  # (the fingers' own contact is the weld)
             self.held[robot] = (int(c), str(name))
             return str(name), at
         return "", at
+
+    def _touching(self, arm: Any, body: int, on: bool) -> None:
+        """Contacts between an arm's links and an object on or off."""
+        pb, cid = self.world.pb, self.world.client
+        for link in range(-1, pb.getNumJoints(arm.body, physicsClientId=cid)):
+            pb.setCollisionFilterPair(arm.body, body, link, -1, on, physicsClientId=cid)
 
     def object_poses(self) -> dict[str, dict[str, Any]]:
         """Each object's pose (its centre [m], its yaw about the world's z

@@ -12,8 +12,8 @@ Per cycle and hand, before its law: the reference moved onto the object's
 arc (the law's own reference goes straight, a chord), in along the line by
 the squeeze's spring compression, up by the weight's share; after it: the
 squeeze measured at the wrist (the law's applied wrench, on the line)
-corrects the compression (an integral, ``KI_SQUEEZE``). About 5 us per
-hand and cycle.
+corrects the compression (an integral, ``KI_SQUEEZE``), and the hand's
+height error the weight's share (``KI_UP``). About 5 us per hand and cycle.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from redistro.ssc.plan import MovePlan, SegmentPlan, carried
 
 GRAVITY = 9.81
 KI_SQUEEZE = 0.015  # [m/(N s)]: with the laws' 300 N/m, the squeeze settles in about 0.2 s
+KI_UP = 2.0  # [1/s]: the weight's share trimmed by the hand's height error (about 0.5 s)
 MAX_IN_M = 0.1  # the most a hand's reference goes in along the line
 
 
@@ -77,7 +78,12 @@ class CarryRun:
         self.inward = [carry.squeeze_n / k_line] * 2
         if before is not None and before.robots == self.robots:
             self.inward = list(before.inward)
-        self.up = plan.carry_mass_kg * GRAVITY / 2 / k_up  # half the weight, per hand
+        # half the weight, per hand (fed forward; its height error trims it:
+        # the law's stiffness under a load is not quite its k)
+        self.up = [plan.carry_mass_kg * GRAVITY / 2 / k_up] * 2
+        if before is not None and before.robots == self.robots:
+            self.up = list(before.up)
+        self.height = [0.0, 0.0]  # each hand's height on the object's path, this cycle
         self.measured = [0.0, 0.0]
         # the same in plain floats, for the cycle
         self.turn = math.radians(carry.turn_deg)
@@ -113,7 +119,9 @@ class CarryRun:
         # compression in along the line, the weight's share up
         sx = mx + dx * b + c * rx - sn * ry - (px + b * (gx - px)) + k * ux
         sy = my + dy * b + sn * rx + c * ry - (py + b * (gy - py)) + k * uy
-        sz = mz + dz * b + rz - (pz + b * (gz - pz)) + self.up
+        hz = mz + dz * b + rz
+        self.height[i] = hz
+        sz = hz - (pz + b * (gz - pz)) + self.up[i]
         ref = law.ref
         ref["start_p"] = (px + sx, py + sy, pz + sz)
         ref["goal_p"] = (gx + sx, gy + sy, gz + sz)
@@ -128,6 +136,8 @@ class CarryRun:
         self.measured[i] = f
         x = self.inward[i] + KI_SQUEEZE * (self.squeeze - f) * dt
         self.inward[i] = min(max(x, 0.0), MAX_IN_M)
+        z = self.up[i] + KI_UP * (self.height[i] - float(law.tcp_p[2])) * dt
+        self.up[i] = min(max(z, -MAX_IN_M), MAX_IN_M)
 
 
 def carry_moves(

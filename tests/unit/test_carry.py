@@ -26,6 +26,7 @@ class _Law:
     def __init__(self) -> None:
         self.ref = np.zeros((), [("start_p", "f8", 3), ("goal_p", "f8", 3)])
         self.applied = np.zeros(6)
+        self.tcp_p = np.zeros(3)
 
 
 def test_the_reference_is_the_objects_arc_plus_the_squeeze_and_the_weight() -> None:
@@ -37,6 +38,7 @@ def test_the_reference_is_the_objects_arc_plus_the_squeeze_and_the_weight() -> N
     down = np.diag([1.0, -1.0, -1.0])
     kins = [_Kin([0.5, 0.15, 0.165], down), _Kin([0.503, -0.148, 0.166], down)]
     run = CarryRun(plan, kins, 300.0, 280.0)
+    assert run.up == [plan.carry_mass_kg * GRAVITY / 560] * 2  # (half the weight on 280 N/m)
     law, wg = _Law(), np.zeros(6)
     for _ in range(200):
         i, t = int(rng.integers(2)), float(rng.uniform(-0.5, plan.move_s + 0.5))
@@ -50,14 +52,17 @@ def test_the_reference_is_the_objects_arc_plus_the_squeeze_and_the_weight() -> N
         u0 = run.u0[i]
         u = np.array([math.cos(a) * u0[0] - math.sin(a) * u0[1],
                       math.sin(a) * u0[0] + math.cos(a) * u0[1], 0.0])  # fmt: skip
-        shift = arcs[i] - chord + run.inward[i] * u + [0, 0, plan.carry_mass_kg * GRAVITY / 560]
+        shift = arcs[i] - chord + run.inward[i] * u + [0, 0, run.up[i]]
         assert np.allclose(law.ref["start_p"], run.p0[i] + shift, atol=1e-12)
         assert np.allclose(law.ref["goal_p"], run.goal_p[i] + shift, atol=1e-12)
         assert np.allclose(wg[:3], plan.carry.squeeze_n * u, atol=1e-12)
         # the squeeze measured along the same line trims the compression
         law.applied[:3] = rng.normal(0, 10, 3)
-        before = run.inward[i]
+        law.tcp_p[:] = arcs[i] + rng.normal(0, 0.01, 3)
+        before, up = run.inward[i], run.up[i]
         run.after(i, law, 0.005)
+        # the height error on the object's path trims the weight's share
+        assert math.isclose(run.up[i], up + 2.0 * (arcs[i][2] - law.tcp_p[2]) * 0.005)
         f = float(law.applied[:3] @ u)
         assert math.isclose(run.measured[i], f, abs_tol=1e-12)
         want = min(max(before + 0.015 * (plan.carry.squeeze_n - f) * 0.005, 0.0), 0.1)
