@@ -10,6 +10,7 @@ from redistro.config.task import Task
 from redistro.esc.plan import task_seconds
 from redistro.process.manager import iso_time
 from redistro.process.result import EscResult, NodeResult
+from redistro.session.placed import placed
 
 RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal", "failed")
 
@@ -234,8 +235,6 @@ def build_summary(
         if ssc is not None and ssc.clearance:
             summary["clearance"] = ssc.clearance  # the controller's; the plant's: plant.arms
         _inserted(summary, ssc is not None, depth, hole_depth, plant.get("pegs") or {})
-        from redistro.session.placed import placed
-
         summary.update(placed(task, plant))  # (a task that carries an object)
         summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}
     summary["plant"] = {

@@ -402,8 +402,10 @@ class SscWorker(Worker):
             )
             # the same robot staying under Cartesian control keeps what the
             # integral learned (a fresh one would let the pose sag back to
-            # its uncompensated error at every segment start)
-            carried = st.law.integral.copy() if st.cartesian else None
+            # its uncompensated error at every segment start); not into a
+            # carry, which holds it: learned in free space at the grasp, it
+            # turned a carried bar 8 mrad too far
+            carried = st.law.integral.copy() if st.cartesian and mv.skill != "carry" else None
             st.law.gains[...] = st.gains0  # a search may have changed them
             st.law.start(cmd, kin.p, kin.R, mv.move_s, st.start_q, carried)
             st.cartesian = True
