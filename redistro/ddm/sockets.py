@@ -72,9 +72,12 @@ class _Pending:
 
 
 def esc_port(cfg: Config, link: str, robot: str) -> int:
-    """Where the ESC of ``robot`` listens: from config, else derived from the link id."""
+    """Where the ESC of ``robot`` listens: from config, else derived from the
+    link id, below Linux's ephemeral ports (32768-60999: a connection made
+    anywhere on the host may take one of those as its own, and the ESC's
+    ddm then failed to listen with EADDRINUSE, once in a few dozen sessions)."""
     port = cfg.ddm.esc_ports.get(robot, 0)
-    return port or 41000 + zlib.crc32(f"{link}/{robot}".encode()) % 19000
+    return port or 21000 + zlib.crc32(f"{link}/{robot}".encode()) % 11000
 
 
 class SocketTransport(Transport):

@@ -541,8 +541,9 @@ class SscWorker(Worker):
         # sideways, onto the mouth's edge); then it is held: in contact a
         # wall takes whatever it pushes, and a wound-up integral jams the peg
         integrate = (st.short_move or seg_t >= plan.move_s) and (
-            (plan.scheme == "position" and c is None) or not law.contact
-        )
+            (plan.scheme == "position" and c is None)
+            or (plan.scheme == "force" and not law.contact)
+        )  # (a carry never: the hands hold the object, and its squeeze has a loop of its own)
         law.update(seg_t, dt, seg_t, integrate)
         if c is not None:
             c.after(c.index(st.name), law, dt)
