@@ -198,7 +198,8 @@ class World:
 
     def overlap(self, tolerance_m: float = 0.002) -> str:
         """Where a robot's base stands in another body (another arm, the
-        table, the fixture) by more than ``tolerance_m`` ('' when none)."""
+        table, the fixture), or any of its links in an object on the table,
+        by more than ``tolerance_m`` ('' when none)."""
         pb, cid = self.pb, self.client
         pb.performCollisionDetection(physicsClientId=cid)
         names = list(self.arms)
@@ -215,6 +216,11 @@ class World:
                 deepest = min((p[8] for p in points), default=0.0)
                 if deepest < -tolerance_m:
                     return f"robot {name}'s base is {-deepest * 1e3:.0f} mm inside {what}"
+            for what, body in self.objects.items():  # (any link: the arm starts where it was left)
+                points = pb.getClosestPoints(arm.body, body, 0.0, physicsClientId=cid)
+                deepest = min((p[8] for p in points), default=0.0)
+                if deepest < -tolerance_m:
+                    return f"robot {name} stands {-deepest * 1e3:.0f} mm inside the object {what}"
         return ""
 
     # -- scene --

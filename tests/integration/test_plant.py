@@ -291,3 +291,12 @@ def test_the_plant_refuses_a_world_whose_bodies_overlap() -> None:
         bad = dataclasses.replace(cfg, robots={**cfg.robots, "r1": r1})
         with pytest.raises(ConfigError, match=what):
             World(bad)
+    # an object where an arm stands (an arm starts where the last session left it)
+    from redistro.config.model import ObjectConfig
+
+    crate = ObjectConfig(size_xyz_m=[0.2, 0.2, 0.3], xy_m=[0.0, 0.45])
+    bad = dataclasses.replace(
+        cfg, workcell=dataclasses.replace(cfg.workcell, objects={"crate": crate})
+    )
+    with pytest.raises(ConfigError, match=r"robot r1 stands \d+ mm inside the object crate"):
+        World(bad)
