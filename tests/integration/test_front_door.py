@@ -490,11 +490,18 @@ def test_the_shipped_inputs_pass_the_front_door() -> None:
     from redistro.config import load_config
     from redistro.config.hardware import load_hardware
     from redistro.config.task import load_task
+    from redistro.errors import ConfigError
 
     cfg = load_config(ROOT / "config/redistro.yaml")
     load_hardware(cfg, ROOT / "config")
+    dual = load_config(ROOT / "config/dual_arm.yaml")  # (the two-arm tasks' objects)
+    load_hardware(dual, ROOT / "config")
+    two_arm = {"dual_carry.yaml", "dual_carry_short.yaml", "grasp_lift.yaml"}
     for task in sorted((ROOT / "tasks").glob("*.yaml")):
-        assert load_task(task, cfg).segments is not None
+        assert load_task(task, dual if task.name in two_arm else cfg).segments is not None
+        if task.name in two_arm:
+            with pytest.raises(ConfigError, match="no frame named"):  # (their objects)
+                load_task(task, cfg)
     assert stat.S_ISREG(os.stat(ROOT / "config/redistro.yaml").st_mode)
 
 
