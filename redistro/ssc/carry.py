@@ -2,8 +2,9 @@
 
 The symmetric formulation, on the arms' own impedance laws: the object's
 motion (the segment's :class:`~redistro.config.task.Carry`) gives each hand's
-reference, from where the hands measured themselves as the segment began
-(the grasps' real offsets included); both hands squeeze the object along the
+reference, from where the hands were, measured, as the first carry began
+(the grasps' real offsets included; later carries go on from its goals);
+both hands squeeze the object along the
 line from one to the other, equal and opposite (an internal force: the null
 space of the grasp matrix, it moves nothing), and each carries half its
 weight (the load shared equally: the hands hold it symmetrically).
@@ -62,7 +63,7 @@ class CarryRun:
         goals_p, goals_R = carried(carry, self.p0, R0)
         self.goal_p: list[np.ndarray[Any, Any]] = goals_p
         self.goal_R: list[np.ndarray[Any, Any]] = goals_R
-        # the moves toward the measured hands' goals (the planned ones assumed the grasps')
+        # the moves toward these goals (the planned ones assumed the grasps as drawn)
         self.moves = [
             dataclasses.replace(mv, pose=np.concatenate([p, matrix_to_rotvec(R)]))
             for mv, p, R in zip(plan.moves, goals_p, goals_R, strict=True)

@@ -351,6 +351,7 @@ class SscWorker(Worker):
         was = self.moving
         if k >= len(self.plans):
             self.moving = self.seg_moves = [None] * len(self.states)
+            self.carry = None
             for st in self.states:
                 st.hold_q[...] = st.views["q"]
                 st.pid.reset()
@@ -377,7 +378,8 @@ class SscWorker(Worker):
         self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {moves}")
 
     def _carry_run(self, plan: SegmentPlan) -> CarryRun:
-        """A carry starts from where the two hands are (measured)."""
+        """A carry: from where the carry before it left the hands (its goals),
+        else from where they are (measured)."""
         sts = [self.states[self.robots.index(mv.robot)] for mv in plan.moves]
         kins = [st.model.kinematics(st.views["q"].astype(np.float64)) for st in sts]
         k = self.k_trans
