@@ -45,6 +45,29 @@ def _common(dest_suffix: str) -> _Parser:
     return p
 
 
+def _campaign_args(
+    p: argparse.ArgumentParser, what: str, *, trials: int, radius_mm: float, yaw_deg: float
+) -> None:
+    """A campaign's options (bench peg, bench dual): trials, the offset of
+    ``what`` drawn per trial, the seed, the outputs."""
+    p.add_argument("--trials", type=_positive_int, default=trials, help="sessions to run")
+    p.add_argument(
+        "--offset-radius-mm",
+        type=float,
+        default=radius_mm,
+        help=f"the {what}'s offset, uniform over the disc of this radius [mm]",
+    )
+    p.add_argument(
+        "--yaw-deg",
+        type=float,
+        default=yaw_deg,
+        help=f"the {what}'s yaw, uniform within +- this [deg]",
+    )
+    p.add_argument("--seed", type=int, default=0, help="trial k draws with seed + k")
+    p.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+    p.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="redistro", description="A multi-process robot controller.", parents=[_common("")]
@@ -107,25 +130,13 @@ def _parser() -> argparse.ArgumentParser:
     pg.add_argument(
         "--task", default="tasks/peg_insertion_short.yaml", help="the peg insertion task"
     )
-    pg.add_argument("--trials", type=_positive_int, default=20, help="sessions to run")
-    pg.add_argument(
-        "--offset-radius-mm",
-        type=float,
-        default=3.0,
-        help="the hole's lateral offset, uniform over the disc of this radius [mm]",
-    )
+    _campaign_args(pg, "hole", trials=20, radius_mm=3.0, yaw_deg=2.0)
     pg.add_argument(
         "--offset-min-mm",
         type=float,
         default=0.0,
         help="... over the ring outside this radius [mm] (default 0: the whole disc)",
     )
-    pg.add_argument(
-        "--yaw-deg", type=float, default=2.0, help="the hole's yaw, uniform within +- this [deg]"
-    )
-    pg.add_argument("--seed", type=int, default=0, help="trial k draws with seed + k")
-    pg.add_argument("--json", dest="json_path", default=None, help="write the figures here")
-    pg.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
 
     du = bsub.add_parser(
         "dual",
@@ -136,19 +147,7 @@ def _parser() -> argparse.ArgumentParser:
     du.add_argument(
         "--task-file", default="tasks/dual_carry_short.yaml", help="the carry's task file"
     )
-    du.add_argument("--trials", type=_positive_int, default=10, help="sessions to run")
-    du.add_argument(
-        "--offset-radius-mm",
-        type=float,
-        default=5.0,
-        help="the object's offset, uniform over the disc of this radius [mm]",
-    )
-    du.add_argument(
-        "--yaw-deg", type=float, default=3.0, help="the object's yaw, uniform within +- this [deg]"
-    )
-    du.add_argument("--seed", type=int, default=0, help="trial k draws with seed + k")
-    du.add_argument("--json", dest="json_path", default=None, help="write the figures here")
-    du.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
+    _campaign_args(du, "object", trials=10, radius_mm=5.0, yaw_deg=3.0)
 
     dd = bsub.add_parser(
         "ddm",

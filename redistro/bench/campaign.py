@@ -6,6 +6,7 @@ them, the positions files and the pose put back before each trial."""
 from __future__ import annotations
 
 import json
+import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -15,6 +16,12 @@ from redistro.config.model import Config
 from redistro.errors import RedistroError
 
 CALIBRATION_TASK = "tasks/self_calibration.yaml"
+
+
+def median(rows: list[dict[str, Any]], key: str, digits: int = 3) -> float | None:
+    """The median of ``key`` over the rows that have it (None when none do)."""
+    vals = [float(r[key]) for r in rows if r.get(key) is not None]
+    return round(statistics.median(vals), digits) if vals else None
 
 
 def run_trials(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from redistro.errors import ConfigError
@@ -119,28 +120,52 @@ def _writable(flag: str, path: str | None) -> None:
         check_out_file(path, flag)
 
 
-def _bench_peg(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
-    from pathlib import Path
-
-    from rich.progress import Progress
-
-    from redistro.bench import peg
-    from redistro.process.session_owner import write_json
-    from redistro.session.preflight import preflight
-
+def _check_campaign(args: argparse.Namespace, max_radius_mm: float) -> None:
+    """A campaign's options (bench peg, bench dual), before anything runs."""
     _writable("--json", args.json_path)
     _writable("--plot", args.plot)
-    radius = args.offset_radius_mm / 1e3
-    if not 0 <= args.offset_radius_mm <= 20:
-        raise ConfigError(f"--offset-radius-mm: expected 0 to 20, got {args.offset_radius_mm:g}")
-    if not 0 <= args.offset_min_mm <= args.offset_radius_mm:
-        raise ConfigError(
-            f"--offset-min-mm: expected 0 to --offset-radius-mm, got {args.offset_min_mm:g}"
-        )
+    r = args.offset_radius_mm
+    if not 0 <= r <= max_radius_mm:
+        raise ConfigError(f"--offset-radius-mm: expected 0 to {max_radius_mm:g}, got {r:g}")
     if not 0 <= args.yaw_deg <= 10:
         raise ConfigError(f"--yaw-deg: expected 0 to 10, got {args.yaw_deg:g}")
     if not 0 <= args.seed <= 2**32 - 1 - args.trials:
         raise ConfigError(f"--seed: expected 0 to {2**32 - 1 - args.trials}, got {args.seed}")
+
+
+def _write_campaign(
+    args: argparse.Namespace,
+    out: dict[str, Any],
+    show: Callable[[dict[str, Any]], None],
+    plot: Callable[[dict[str, Any], str], None],
+) -> None:
+    """A campaign's table, its JSON (--json) and its plot (--plot)."""
+    from pathlib import Path
+
+    from redistro.process.session_owner import write_json
+
+    show(out)
+    if args.json_path:
+        write_json(Path(args.json_path), out)
+        print(f"wrote {args.json_path}")
+    if args.plot:
+        plot(out, args.plot)
+        print(f"wrote {args.plot}")
+
+
+def _bench_peg(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
+
+    from rich.progress import Progress
+
+    from redistro.bench import peg
+    from redistro.session.preflight import preflight
+
+    _check_campaign(args, max_radius_mm=20)
+    radius = args.offset_radius_mm / 1e3
+    if not 0 <= args.offset_min_mm <= args.offset_radius_mm:
+        raise ConfigError(
+            f"--offset-min-mm: expected 0 to --offset-radius-mm, got {args.offset_min_mm:g}"
+        )
     cfg = peg.trial_config(cfg, radius, args.yaw_deg, args.seed, args.offset_min_mm / 1e3)
     task = preflight(cfg, args.task)
     if task.kind != "strategy":
@@ -167,34 +192,19 @@ def _bench_peg(args: argparse.Namespace, cfg: Any, overrides: list[str]) -> int:
             overrides=overrides,
             on_trial=done,
         )
-    peg.print_campaign(out)
-    if args.json_path:
-        write_json(Path(args.json_path), out)
-        print(f"wrote {args.json_path}")
-    if args.plot:
-        peg.plot_campaign(out, args.plot)
-        print(f"wrote {args.plot}")
+    _write_campaign(args, out, peg.print_campaign, peg.plot_campaign)
     return 0 if out["summary"]["inserted"] == out["summary"]["trials"] else 1
 
 
 def _bench_dual(args: argparse.Namespace, cfg: Any) -> int:
-    from pathlib import Path
 
     from rich.progress import Progress
 
     from redistro.bench import dual
     from redistro.config.task import load_task
-    from redistro.process.session_owner import write_json
     from redistro.session.preflight import preflight
 
-    _writable("--json", args.json_path)
-    _writable("--plot", args.plot)
-    if not 0 <= args.offset_radius_mm <= 10:
-        raise ConfigError(f"--offset-radius-mm: expected 0 to 10, got {args.offset_radius_mm:g}")
-    if not 0 <= args.yaw_deg <= 10:
-        raise ConfigError(f"--yaw-deg: expected 0 to 10, got {args.yaw_deg:g}")
-    if not 0 <= args.seed <= 2**32 - 1 - args.trials:
-        raise ConfigError(f"--seed: expected 0 to {2**32 - 1 - args.trials}, got {args.seed}")
+    _check_campaign(args, max_radius_mm=10)
     dual.carried_object(load_task(args.task_file, cfg))
     task = preflight(cfg, args.task_file)
     with Progress(transient=False) as bar:
@@ -218,13 +228,7 @@ def _bench_dual(args: argparse.Namespace, cfg: Any) -> int:
             seed=args.seed,
             on_trial=done,
         )
-    dual.print_campaign(out)
-    if args.json_path:
-        write_json(Path(args.json_path), out)
-        print(f"wrote {args.json_path}")
-    if args.plot:
-        dual.plot_campaign(out, args.plot)
-        print(f"wrote {args.plot}")
+    _write_campaign(args, out, dual.print_campaign, dual.plot_campaign)
     return 0 if out["summary"]["placed"] == out["summary"]["trials"] else 1
 
 

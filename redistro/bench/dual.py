@@ -17,10 +17,10 @@ from __future__ import annotations
 import dataclasses
 import math
 import random
-import statistics
 from collections.abc import Callable
 from typing import Any
 
+from redistro.bench.campaign import median, run_trials
 from redistro.config.model import Config, ObjectTruth
 from redistro.config.task import Task
 from redistro.errors import ConfigError
@@ -73,11 +73,6 @@ def trial_row(
     }
 
 
-def _median(rows: list[dict[str, Any]], key: str) -> float | None:
-    vals = [float(r[key]) for r in rows if r.get(key) is not None]
-    return round(statistics.median(vals), 6) if vals else None
-
-
 def run(
     cfg: Config,
     task: Task,
@@ -88,8 +83,6 @@ def run(
     seed: int,
     on_trial: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    from redistro.bench.campaign import run_trials
-
     name = carried_object(task)
     cfgs = [trial_config(cfg, name, radius_m, yaw_deg, seed + k) for k in range(trials)]
     rows, out_root = run_trials(
@@ -116,9 +109,9 @@ def run(
             "trials": len(rows),
             "placed": len(placed),
             "success_rate": round(len(placed) / len(rows), 3) if rows else None,
-            "median_object_pose_error_m": _median(rows, "object_pose_error_m"),
-            "median_object_pose_error_rad": _median(rows, "object_pose_error_rad"),
-            "median_squeeze_rms_error_n": _median(rows, "squeeze_rms_error_n"),
+            "median_object_pose_error_m": median(rows, "object_pose_error_m", 6),
+            "median_object_pose_error_rad": median(rows, "object_pose_error_rad", 6),
+            "median_squeeze_rms_error_n": median(rows, "squeeze_rms_error_n", 6),
             "max_squeeze_peak_n": max(peaks) if peaks else None,
             "min_arm_distance_m": min(
                 (r["min_arm_distance_m"] for r in rows if r["min_arm_distance_m"] is not None),

@@ -15,10 +15,10 @@ the medians. ``--plot`` draws the offsets coloured by outcome.
 from __future__ import annotations
 
 import dataclasses
-import statistics
 from collections.abc import Callable
 from typing import Any
 
+from redistro.bench.campaign import median, run_trials
 from redistro.config.model import Config
 
 
@@ -61,11 +61,6 @@ def trial_row(k: int, seed: int, rc: int, summary: dict[str, Any]) -> dict[str, 
     }
 
 
-def _median(rows: list[dict[str, Any]], key: str) -> float | None:
-    vals = [float(r[key]) for r in rows if r.get(key) is not None]
-    return round(statistics.median(vals), 3) if vals else None
-
-
 def campaign_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     inserted = [r for r in rows if r["inserted"]]
     forces = [float(r["peak_force_n"]) for r in rows if r.get("peak_force_n") is not None]
@@ -73,10 +68,10 @@ def campaign_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "trials": len(rows),
         "inserted": len(inserted),
         "success_rate": round(len(inserted) / len(rows), 3) if rows else None,
-        "median_contact_to_bottom_s": _median(inserted, "contact_to_bottom_s"),
-        "median_peak_force_n": _median(rows, "peak_force_n"),
+        "median_contact_to_bottom_s": median(inserted, "contact_to_bottom_s"),
+        "median_peak_force_n": median(rows, "peak_force_n"),
         "max_peak_force_n": max(forces) if forces else None,
-        "median_search_mm": _median(inserted, "search_mm"),
+        "median_search_mm": median(inserted, "search_mm"),
         "guard_trips": sum(int(r["guard_trips"]) for r in rows),
         "results": {
             res: sum(r["result"] == res for r in rows) for res in {r["result"] for r in rows}
@@ -96,8 +91,6 @@ def run(
     overrides: list[str],
     on_trial: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    from redistro.bench.campaign import run_trials
-
     rows, out_root = run_trials(
         cfg,
         task_path,

@@ -11,7 +11,7 @@ from typing import Any
 from redistro.config.hardware import RobotHardware
 
 GRASP_REACH_M = 0.015  # a gripper takes an object whose top face is this near its tool point
-WELD_MAX_N = 5000.0  # the weld's strength (PyBullet's default, 500 N, let a 2 kg bar sag)
+WELD_MAX_N = 5000.0  # the weld's strength: far above what the arms' torques can pull
 
 
 class Grippers:

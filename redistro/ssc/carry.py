@@ -73,7 +73,6 @@ class CarryRun:
         n = float(np.linalg.norm(line))
         u = line / n if n > 1e-6 else np.array([1.0, 0.0, 0.0])
         self.u0 = [u, -u]  # each hand's inward direction, at the start
-        self.k_line = k_line
         self.squeeze = carry.squeeze_n
         # the spring's compression for the squeeze (fed forward; the loop trims it)
         self.inward = [carry.squeeze_n / k_line] * 2
@@ -141,9 +140,7 @@ class CarryRun:
         self.up[i] = min(max(z, -MAX_IN_M), MAX_IN_M)
 
 
-def carry_moves(
-    plan: SegmentPlan, moves: list[MovePlan | None], run: CarryRun
-) -> list[MovePlan | None]:
+def carry_moves(moves: list[MovePlan | None], run: CarryRun) -> list[MovePlan | None]:
     """The segment's moves with the carrying hands' goals from ``run``."""
     by = {mv.robot: mv for mv in run.moves}
     return [by.get(mv.robot, mv) if mv is not None else None for mv in moves]

@@ -363,7 +363,7 @@ class SscWorker(Worker):
         self.seg_moves = [plan.move_of(st.name) for st in self.states]
         self.carry = None if plan.carry is None else self._carry_run(plan)
         if self.carry is not None:
-            self.seg_moves = carry_moves(plan, self.seg_moves, self.carry)
+            self.seg_moves = carry_moves(self.seg_moves, self.carry)
         self.moving = list(self.seg_moves)
         for st, mv, moved in zip(self.states, self.moving, was, strict=True):
             if mv is None:
@@ -534,8 +534,9 @@ class SscWorker(Worker):
         if st.search is not None:
             self._search(st, plan, seg_t, dt, t)
         c = self.carry if plan.skill == "carry" else None
+        hand = c.index(st.name) if c is not None else -1
         if c is not None:
-            c.before(c.index(st.name), law, seg_t, v["wrench_goal"])
+            c.before(hand, law, seg_t, v["wrench_goal"])
         # the integral learns in free space, once the reference stands still:
         # in position segments, and in force segments until the first
         # contact (the descent to the hole: the arm's posture changes and,
@@ -548,7 +549,7 @@ class SscWorker(Worker):
         )  # (a carry never: the hands hold the object, and its squeeze has a loop of its own)
         law.update(seg_t, dt, seg_t, integrate)
         if c is not None:
-            c.after(c.index(st.name), law, dt)
+            c.after(hand, law, dt)
         st.to_records()
         v["q_cmd"][...] = q
         st.plan["contact"] = 1 if law.contact else 0

@@ -16,16 +16,24 @@ CONTACT_N = 2.0  # the task's guarded move ends at this wrist force
 PEAK_N = 60.0  # the impact's peak, sampled (the peg campaign's bound on contact)
 
 
+def _session(calibrated: Path, tmp_path: Path, task: str, *options: str) -> Path:
+    """A session of ``task`` from the calibrated runs folder, ended with
+    exit 0; its run folder."""
+    runs = copy_runs(calibrated, tmp_path)
+    out = tmp_path / "run"
+    done = run_cli(
+        *options, "--set", f"session.runs_dir={runs}", "session", task, "--out", str(out),
+        timeout=180,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    return out
+
+
 def test_two_arms_on_one_clock_and_a_guarded_move(calibrated: Path, tmp_path: Path) -> None:
     from redistro.config.loader import load_config
     from redistro.log.mcapfile import read_log
 
-    runs = copy_runs(calibrated, tmp_path)
-    out = tmp_path / "run"
-    done = run_cli(
-        "--set", f"session.runs_dir={runs}", "session", TASK, "--out", str(out), timeout=180
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    out = _session(calibrated, tmp_path, TASK)
     messages = (out / "messages.log").read_text()
     assert "segment 1/4 reach: r1 joint, r2 position" in messages
     assert "segment 2/4 touch: r1 joint, r2 position" in messages
@@ -120,13 +128,7 @@ def test_a_gripper_picks_the_block_up_and_sets_it_down(calibrated: Path, tmp_pat
     from redistro.config.model import table_top_m
     from redistro.log.mcapfile import read_log
 
-    runs = copy_runs(calibrated, tmp_path)
-    out = tmp_path / "run"
-    done = run_cli(
-        *DUAL, "--set", f"session.runs_dir={runs}", "session", GRASP_TASK, "--out", str(out),
-        timeout=180,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    out = _session(calibrated, tmp_path, GRASP_TASK, *DUAL)
     messages = (out / "messages.log").read_text()
     assert "r1 grasp: gripper closed at t=" in messages
     assert "r1 release: gripper opened at t=" in messages
@@ -171,13 +173,7 @@ def test_two_hands_carry_one_bar(calibrated: Path, tmp_path: Path) -> None:
     task commanded from where it really was, squeezed at 10 N throughout."""
     from redistro.log.mcapfile import read_log
 
-    runs = copy_runs(calibrated, tmp_path)
-    out = tmp_path / "run"
-    done = run_cli(
-        *DUAL, "--set", f"session.runs_dir={runs}", "session", CARRY_TASK, "--out", str(out),
-        timeout=180,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    out = _session(calibrated, tmp_path, CARRY_TASK, *DUAL)
     summary = load_json(out / "summary.json")
     plant = summary["plant"]
     events = sorted((e["robot"], e["closed"], e["took"]) for e in plant["grippers"])
