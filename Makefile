@@ -53,12 +53,14 @@ install-test: $(VENV)/.installed-test
 
 # Debian packages the tests need: rt-tests gives cyclictest, the timer
 # baseline; iproute2 gives ip, for the two-namespace node test (run as root);
-# openssl makes the tests' own certificate authority (zenoh over TLS).
+# openssl makes the tests' own certificate authority (zenoh over TLS);
+# util-linux gives unshare (tests/apart-python).
 system-deps:
 	@PKGS=; \
 	command -v cyclictest >/dev/null 2>&1 || PKGS="$$PKGS rt-tests"; \
 	command -v ip >/dev/null 2>&1 || PKGS="$$PKGS iproute2"; \
 	command -v openssl >/dev/null 2>&1 || PKGS="$$PKGS openssl"; \
+	command -v unshare >/dev/null 2>&1 || PKGS="$$PKGS util-linux"; \
 	if [ -n "$$PKGS" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	  echo "installing$$PKGS with apt-get"; \
@@ -71,11 +73,16 @@ system-deps:
 run: install bytecode
 	$(BIN)/redistro session tasks/peg_insertion.yaml
 
+# As root, pytest runs two workers: the tests that start real-time sessions in
+# one, the unit tests and the front door's beside them in the other, whose
+# Python (tests/apart-python) has a /dev/shm and SysV IPC of its own.
+PYTEST_WORKERS := $(if $(filter 0,$(shell id -u)),--dist load --tx popen --tx popen//python=$(CURDIR)/tests/apart-python)
+
 test: install-test system-deps bytecode
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy redistro tools
-	$(BIN)/pytest
+	$(BIN)/pytest $(PYTEST_WORKERS)
 
 # The front door's fuzzing at full strength: 2 000 hypothesis examples per
 # input kind (make test runs 300 of each); about 3 minutes on two vCPUs.

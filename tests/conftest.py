@@ -6,15 +6,28 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from redistro.ipc import signals
 
 SHM = Path("/dev/shm")
+
+# make test runs two pytest workers: the integration tests (real-time sessions)
+# in one, the unit tests and the front door's (CPU only) in the other, whose
+# Python is tests/apart-python (a /dev/shm and SysV IPC of its own). Each
+# worker keeps its sessions' locks in a runtime folder of its own: neither
+# reaps the other's sessions, nor takes a live one of the other's for dead.
+WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+RUNTIME = f"{tempfile.gettempdir()}/redistro-{os.getuid()}-test-{WORKER}"
+if WORKER:
+    os.environ["REDISTRO_RUNTIME_DIR"] = RUNTIME
+APART = "apart-python"  # (the unit tests' worker's Python)
 
 
 def redistro_shm_entries() -> set[str]:
@@ -106,3 +119,51 @@ def no_leaks() -> Iterator[None]:
     if problems:
         reap_zombies()
         pytest.fail("; ".join(problems))
+
+
+# the session tests that open the run, beside the unit tests: their verdicts
+# come from the plant's truth, not from timing
+FIRST = ("test_peg_search.py", "test_moves.py")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    items.sort(key=_rank)
+
+
+def _rank(item: pytest.Item) -> int:
+    name = item.nodeid.split("::")[0].rsplit("/", 1)[-1]
+    return FIRST.index(name) if name in FIRST else len(FIRST)
+
+
+def _apart(nodeid: str) -> bool:
+    """Runs in the second worker: the unit tests, and the front door's (its
+    refusals start no session)."""
+    path = nodeid.split("::")[0]
+    return "integration/" not in path or path.endswith("/test_front_door.py")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """With two workers (make test): the tests that start real-time sessions
+    in the first, the rest in the one whose Python is tests/apart-python (the
+    sessions' nodes run at real-time priority, above the unit tests)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Apart(LoadScopeScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            return "apart" if _apart(nodeid) else "sessions"
+
+        def _assign_work_unit(self, node: Any) -> None:
+            apart = str(getattr(node.gateway.spec, "python", "")).endswith(APART)
+            want = "apart" if apart else "sessions"
+            if want in self.workqueue:
+                self.workqueue.move_to_end(want, last=False)
+            super()._assign_work_unit(node)
+
+    return Apart(config, log)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if WORKER:  # the worker's runtime folder, empty once its sessions ended
+        with contextlib.suppress(OSError):
+            os.rmdir(RUNTIME)
