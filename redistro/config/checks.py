@@ -115,6 +115,11 @@ def check_config(cfg: Config) -> None:
             problem = endpoint_problem(e)
             if problem:
                 raise ConfigError(f"{cfg.origin(key)}: {key}[{i}]: {problem}")
+    for name, o in cfg.workcell.objects.items():
+        problem = o.hole_problem()
+        if problem:
+            key = f"workcell.objects.{name}"
+            raise ConfigError(f"{cfg.origin(key)}: {key}: {problem}")
     names = list(cfg.robots)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:

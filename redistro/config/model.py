@@ -478,13 +478,41 @@ class ObjectConfig:
 
     size_xyz_m: its edges along its own x, y and z [m];
     xy_m: its centre on the table, world [m]; yaw_deg: about the world's z;
-    mass_kg: its mass.
+    mass_kg: its mass;
+    hole_side_m, hole_depth_m, hole_at_xy_m: a square hole in its top face
+    (0: none), its depth, and its centre on the top face in the object's
+    own x and y [m] (what a peg goes into when a hand holds the object).
     """
 
     size_xyz_m: list[float] = field(metadata={"len": 3, "gt": 0.005, "le": 0.6})
     xy_m: list[float] = field(metadata={"len": 2, "ge": -2, "le": 2})
     yaw_deg: float = field(default=0.0, metadata={"ge": -180, "le": 180})
     mass_kg: float = field(default=0.2, metadata={"gt": 0, "le": 5})
+    hole_side_m: float = field(default=0.0, metadata={"ge": 0, "le": 0.2})
+    hole_depth_m: float = field(default=0.0, metadata={"ge": 0, "le": 0.5})
+    hole_at_xy_m: list[float] = field(
+        default_factory=lambda: [0.0, 0.0], metadata={"len": 2, "ge": -0.3, "le": 0.3}
+    )
+
+    def hole_problem(self) -> str:
+        """Why the hole cannot be made in this box ('' when it can): walls
+        and floor of at least OBJECT_WALL_M around and under it."""
+        side, depth = self.hole_side_m, self.hole_depth_m
+        if side == 0:
+            return "hole_depth_m without hole_side_m" if depth else ""
+        for i, axis in enumerate("xy"):
+            room = self.size_xyz_m[i] / 2 - abs(self.hole_at_xy_m[i]) - side / 2
+            if room < OBJECT_WALL_M:
+                return (
+                    f"the hole's wall along {axis} is {room * 1e3:.1f} mm, at least "
+                    f"{OBJECT_WALL_M * 1e3:.0f} mm (size_xyz_m, hole_at_xy_m, hole_side_m)"
+                )
+        if not 0 < depth <= self.size_xyz_m[2] - OBJECT_WALL_M:
+            return (
+                f"hole_depth_m {depth} m: more than 0 and at most the height less "
+                f"{OBJECT_WALL_M * 1e3:.0f} mm of floor"
+            )
+        return ""
 
 
 @dataclass(frozen=True)
@@ -497,6 +525,8 @@ class ObjectTruth:
     )
     yaw_deg: float = field(default=0.0, metadata={"ge": -10, "le": 10})
 
+
+OBJECT_WALL_M = 0.003  # the thinnest wall or floor around a hole in an object
 
 # The work-cell's drawing around the hole (both the controller's belief,
 # from workcell.hole, and the plant's build, where plant.hole moves it)

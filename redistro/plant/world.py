@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from redistro.config.model import Config
+from redistro.config.model import Config, ObjectConfig
 from redistro.plant.truth import HolePose
 from redistro.robotmodel import JOINT_NAMES, SENSOR_JOINT, TOOL_LINK, Peg, write_arm_urdf
 
@@ -478,6 +478,27 @@ def _box(
     )
 
 
+def object_boxes(o: ObjectConfig) -> tuple[list[list[float]], list[list[float]]]:
+    """The boxes an object is made of (half extents, centres), in its own
+    frame (origin at its centre): the one box, or, with a hole in its top
+    face, a floor under the hole and four walls around it."""
+    sx, sy, sz = o.size_xyz_m
+    if o.hole_side_m <= 0:
+        return [[sx / 2, sy / 2, sz / 2]], [[0.0, 0.0, 0.0]]
+    side, depth = o.hole_side_m, o.hole_depth_m
+    ax, ay = o.hole_at_xy_m
+    floor, zc = sz - depth, sz / 2 - depth / 2
+    halves = [[sx / 2, sy / 2, floor / 2]]
+    centres = [[0.0, 0.0, -sz / 2 + floor / 2]]
+    for lo, hi in ((-sx / 2, ax - side / 2), (ax + side / 2, sx / 2)):  # full length in y
+        halves.append([(hi - lo) / 2, sy / 2, depth / 2])
+        centres.append([(lo + hi) / 2, 0.0, zc])
+    for lo, hi in ((-sy / 2, ay - side / 2), (ay + side / 2, sy / 2)):  # between those
+        halves.append([side / 2, (hi - lo) / 2, depth / 2])
+        centres.append([ax, (lo + hi) / 2, zc])
+    return halves, centres
+
+
 def build_objects(w: World) -> dict[str, int]:
     """The objects of ``workcell.objects``, where the plant's truth puts
     them (:func:`redistro.plant.truth.object_pose`): boxes resting on the table."""
@@ -487,11 +508,16 @@ def build_objects(w: World) -> dict[str, int]:
     out: dict[str, int] = {}
     for name, o in w.cfg.workcell.objects.items():
         (x, y, z), yaw = object_pose(w.cfg, name)
-        half = [v / 2 for v in o.size_xyz_m]
-        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=cid)
-        vis = pb.createVisualShape(
-            pb.GEOM_BOX, halfExtents=half, rgbaColor=[0.2, 0.5, 0.8, 1], physicsClientId=cid
-        )
+        halves, centres = object_boxes(o)
+        n = len(halves)
+        col = pb.createCollisionShapeArray(
+            shapeTypes=[pb.GEOM_BOX] * n, halfExtents=halves, collisionFramePositions=centres,
+            physicsClientId=cid,
+        )  # fmt: skip
+        vis = pb.createVisualShapeArray(
+            shapeTypes=[pb.GEOM_BOX] * n, halfExtents=halves, visualFramePositions=centres,
+            rgbaColors=[[0.2, 0.5, 0.8, 1]] * n, physicsClientId=cid,
+        )  # fmt: skip
         out[name] = int(
             pb.createMultiBody(
                 baseMass=o.mass_kg,

@@ -6,6 +6,7 @@ Real plant process, real PyBullet, real shared memory or real python-can
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import time
@@ -300,3 +301,42 @@ def test_the_plant_refuses_a_world_whose_bodies_overlap() -> None:
     )
     with pytest.raises(ConfigError, match=r"robot r1 stands \d+ mm inside the object crate"):
         World(bad)
+
+
+def test_an_object_with_a_hole_is_built_with_its_hole() -> None:
+    """A block with a square hole in its top face: a ray down the hole's
+    centre meets its floor at the hole's depth, a ray beside the hole the
+    top face; a hole without walls around it is refused at load."""
+    import dataclasses
+
+    from redistro.config import load_config
+    from redistro.config.loader import load_config as load
+    from redistro.config.model import ObjectConfig
+    from redistro.plant.truth import object_pose
+    from redistro.plant.world import World
+
+    cfg = load_config("config/redistro.yaml")
+    block = ObjectConfig(
+        size_xyz_m=[0.16, 0.08, 0.06], xy_m=[0.45, 0.3], yaw_deg=30.0,
+        hole_side_m=0.031, hole_depth_m=0.04, hole_at_xy_m=[0.04, 0.0],
+    )  # fmt: skip
+    cfg = dataclasses.replace(
+        cfg, workcell=dataclasses.replace(cfg.workcell, objects={"block": block})
+    )
+    world = World(cfg)
+    try:
+        (x, y, z), yaw = object_pose(cfg, "block")
+        c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+        top = z + 0.03
+        for local, depth in (((0.04, 0.0), 0.04), ((-0.04, 0.0), 0.0), ((0.04, 0.03), 0.0)):
+            px, py = x + c * local[0] - s * local[1], y + s * local[0] + c * local[1]
+            hit = world.pb.rayTest(
+                [px, py, top + 0.1], [px, py, top - 0.2], physicsClientId=world.client
+            )[0]
+            assert hit[0] == world.objects["block"], (local, hit)
+            assert abs(hit[3][2] - (top - depth)) < 1e-4, (local, hit[3])
+    finally:
+        world.close()
+    bad = "block: {size_xyz_m: [0.16, 0.08, 0.06], xy_m: [0.45, 0.3], hole_side_m: 0.078}"
+    with pytest.raises(ConfigError, match=r"the hole's wall along y is 1.0 mm, at least 3 mm"):
+        load(None, [f"workcell.objects={{{bad}}}"])
