@@ -66,9 +66,11 @@ class Goal:
     pos_xyz_rot_xyz: TCP goal pose: position [m] and rotation vector [rad]
         (world from tool; the rotation is always absolute);
     relative_to: ``world``, ``hole`` (the position is an offset from the
-        hole's mouth centre as drawn, ``workcell.hole.xyz_m``), or an
-        object of ``workcell.objects`` (from the centre of its top face as
-        drawn);
+        hole's mouth centre as drawn, ``workcell.hole.xyz_m``), an object
+        of ``workcell.objects`` (from the centre of its top face as drawn),
+        or ``<object>.hole`` (from the mouth of the object's hole: as drawn,
+        or, once a hand has grasped the object, where that hand's pose
+        goals have taken it since; ssc/plan.py);
     force_xyz_torque_xyz: the wrench the tool applies [N, N m], task axes;
     selection_vector: per task axis, 1 force controlled, 0 position controlled;
     frame: the task frame's axes: ``world``, or ``tool`` (at segment start);
@@ -279,7 +281,8 @@ def load_task(path: Path | str, cfg: Config) -> Task:
                 if r not in seg.q_rad:
                     raise ConfigError(f"{where}: segments[{i}].q_rad: no goal for robot {r!r}")
     elif task.kind == "strategy":
-        _check_strategy(task, where, ("world", "hole", *cfg.workcell.objects))
+        holes = (f"{n}.hole" for n, o in cfg.workcell.objects.items() if o.hole_side_m)
+        _check_strategy(task, where, ("world", "hole", *cfg.workcell.objects, *holes))
     elif task.segments:
         raise ConfigError(f"{where}: segments: not used by a {task.kind} task")
     return Task(

@@ -84,15 +84,31 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     hole = frames["hole"]
     out = []
     last: dict[str, np.ndarray[Any, Any]] = {}  # each robot's last pose goal
+    held = Held(frames)
     for i, s in enumerate(task.segments):
-        moves = tuple(
-            _move(s, m, frames, hole, cfg.workcell.hole.depth_m)
-            for m in segment_moves(s, i)
-            if skill_of(m).name != "hold"
-        )
+        listed = [m for m in segment_moves(s, i) if skill_of(m).name != "hold"]
         carry = s.carry if s.carry.object else None
+        # a hand holding an object moves first: the goals relative to that
+        # object are where this segment's move takes it
+        listed.sort(key=lambda m: not held.holds(m.robot))
+        plans: dict[str, MovePlan] = {}
+        for m in listed:
+            plans[m.robot] = mv = _move(s, m, frames, hole, cfg.workcell.hole.depth_m)
+            if mv.scheme != "joint" and not np.all(np.isfinite(mv.pose[:3])):
+                raise ConfigError(
+                    f"{task.source}: {m.where}.goal.relative_to: where "
+                    f"{m.goal.relative_to} is, the plan does not know (the hand holding it "
+                    "made a joint move since the grasp)"
+                )
+            if carry is None:
+                held.moved(mv)
+        moves = tuple(plans[m.robot] for m in segment_moves(s, i) if m.robot in plans)
         if carry is not None:
             moves = _carry_goals(carry, moves, last, f"{task.source}: segments[{i}]")
+            for mv in moves:
+                held.moved(mv)
+        for m in listed:
+            held.gripped(m, next(x for x in moves if x.robot == m.robot))
         for mv in moves:
             if mv.scheme == "joint":
                 last.pop(mv.robot, None)
@@ -148,7 +164,10 @@ def _carry_goals(
 
 def frames_of(cfg: Config) -> dict[str, np.ndarray[Any, Any]]:
     """The origins a goal may be relative to, as drawn: the world's, the
-    hole's mouth centre, and each object's top-face centre."""
+    hole's mouth centre, each object's top-face centre, and the mouth of
+    an object's hole (``<object>.hole``)."""
+    import math
+
     from redistro.config.model import table_top_m
 
     top = table_top_m(cfg.workcell.hole)
@@ -158,7 +177,54 @@ def frames_of(cfg: Config) -> dict[str, np.ndarray[Any, Any]]:
     }
     for name, o in cfg.workcell.objects.items():
         out[name] = np.array([o.xy_m[0], o.xy_m[1], top + o.size_xyz_m[2]], dtype=np.float64)
+        if o.hole_side_m:
+            c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
+            ax, ay = o.hole_at_xy_m
+            out[f"{name}.hole"] = out[name] + np.array([c * ax - s * ay, s * ax + c * ay, 0.0])
     return out
+
+
+class Held:
+    """The objects the task's grasps put in a hand, as planned: once a move
+    grasps an object (skill grasp, its goal relative to the object), the
+    object's own frames (``<object>.hole``) go with that hand's later pose
+    goals (kept in the tool's frame at the grasp), until a move of that
+    hand opens the gripper; a joint move of the holding hand leaves them
+    unknown to the plan. ``<object>`` itself stays the place drawn on the
+    table."""
+
+    def __init__(self, frames: dict[str, np.ndarray[Any, Any]]) -> None:
+        self.frames = frames
+        self.by: dict[str, tuple[str, dict[str, np.ndarray[Any, Any]]]] = {}  # object -> ...
+
+    def holds(self, robot: str) -> bool:
+        return any(r == robot for r, _ in self.by.values())
+
+    def moved(self, mv: MovePlan) -> None:
+        """``mv`` planned: the frames of what its hand holds follow it."""
+        from redistro.control.cartesian import rotvec_to_matrix
+
+        for robot, local in self.by.values():
+            if robot != mv.robot:
+                continue
+            for key, d in local.items():
+                if mv.scheme == "joint":
+                    self.frames[key] = np.full(3, np.nan)
+                else:
+                    self.frames[key] = mv.pose[:3] + rotvec_to_matrix(mv.pose[3:]) @ d
+
+    def gripped(self, m: Move, mv: MovePlan) -> None:
+        """After the segment: a grasp takes its object, an opening lets go."""
+        from redistro.control.cartesian import rotvec_to_matrix
+
+        if mv.gripper == "open":
+            self.by = {o: v for o, v in self.by.items() if v[0] != mv.robot}
+        obj = m.goal.relative_to.split(".")[0]
+        if mv.gripper != "close" or mv.scheme == "joint" or obj not in self.frames:
+            return
+        R = rotvec_to_matrix(mv.pose[3:])
+        keys = [k for k in self.frames if k.startswith(obj + ".")]
+        self.by[obj] = (mv.robot, {k: R.T @ (self.frames[k] - mv.pose[:3]) for k in keys})
 
 
 def _move(

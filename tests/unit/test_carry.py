@@ -67,3 +67,52 @@ def test_the_reference_is_the_objects_arc_plus_the_squeeze_and_the_weight() -> N
         assert math.isclose(run.measured[i], f, abs_tol=1e-12)
         want = min(max(before + 0.015 * (plan.carry.squeeze_n - f) * 0.005, 0.0), 0.1)
         assert math.isclose(run.inward[i], want, abs_tol=1e-15)
+
+
+def test_a_held_objects_hole_goes_with_the_hand_that_grasped_it(tmp_path: Path) -> None:
+    """r1 grasps the block (a hole in it) and presents it turned and lifted;
+    r2's goal over ``block.hole`` is where that move takes the hole, not
+    where it was drawn; a joint move of r1 leaves it unknown (refused)."""
+    import pytest
+
+    from redistro.control.cartesian import rotvec_to_matrix
+    from redistro.errors import ConfigError
+
+    cfg = load_config(
+        ROOT / "config/dual_arm.yaml",
+        ["workcell.objects.block.hole_side_m=0.02", "workcell.objects.block.hole_depth_m=0.03",
+         "workcell.objects.block.hole_at_xy_m=[0.005, 0]"],
+    )  # fmt: skip
+    down, turned = [0, math.pi, 0], [0.3, math.pi - 0.2, 0.1]
+    present = [0.45, 0.1, 0.35]
+    task = tmp_path / "present.yaml"
+    task.write_text(
+        "task: present\nkind: strategy\nrobots: [r1, r2]\nsegments:\n"
+        f"  - {{name: grasp, robot: r1, skill: grasp, scheme: position, duration_s: 2,\n"
+        f"     goal: {{relative_to: block, pos_xyz_rot_xyz: [0, 0, 0.005, {down[0]}, "
+        f"{down[1]}, {down[2]}]}}}}\n"
+        "  - name: present\n    duration_s: 3\n    moves:\n"
+        f"      r1: {{scheme: position, goal: {{pos_xyz_rot_xyz: {present + turned}}}}}\n"
+        f"      r2: {{scheme: position, goal: {{relative_to: block.hole, "
+        f"pos_xyz_rot_xyz: [0, 0, 0.05, {down[0]}, {down[1]}, {down[2]}]}}}}\n"
+    )
+    plans = segment_plans(load_task(task, cfg), cfg)
+    grasp_p = plans[0].moves[0].pose[:3]
+    block = cfg.workcell.objects["block"]
+    drawn_hole = grasp_p + np.array([0.005, 0.0, -0.005])  # (the block's yaw is 0)
+    R0, R1 = rotvec_to_matrix(np.array(down, float)), rotvec_to_matrix(np.array(turned, float))
+    hole = np.array(present) + R1 @ (R0.T @ (drawn_hole - grasp_p))
+    r2 = plans[1].move_of("r2")
+    assert r2 is not None and block.hole_side_m == 0.02
+    assert np.allclose(r2.pose[:3], hole + np.array([0, 0, 0.05]), atol=1e-9), (r2.pose[:3], hole)
+    assert not np.allclose(hole, drawn_hole, atol=0.01)  # (it did move)
+    text = (
+        task.read_text()
+        .replace(
+            f"{{pos_xyz_rot_xyz: {present + turned}}}", "{q_rad: [0, 0.3, 0, -1.6, 0, 1.9, 0.8]}"
+        )
+        .replace("r1: {scheme: position", "r1: {scheme: joint")
+    )
+    task.write_text(text)
+    with pytest.raises(ConfigError, match=r"r2.goal.relative_to: where block.hole is"):
+        segment_plans(load_task(task, cfg), cfg)
