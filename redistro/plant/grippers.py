@@ -90,7 +90,8 @@ class Grippers:
 
     def object_poses(self) -> dict[str, dict[str, Any]]:
         """Each object's pose (its centre [m], its yaw about the world's z
-        [deg], its tilt from upright [deg]) and the robots holding it (two
+        [deg], its tilt from upright [deg], its orientation as a quaternion
+        x, y, z, w) and the robots holding it (two
         hands on one object: a closed chain)."""
         pb, cid = self.world.pb, self.world.client
         holders: dict[str, list[str]] = {}
@@ -104,6 +105,7 @@ class Grippers:
                 "xyz_m": [round(float(v), 5) for v in pos],
                 "yaw_deg": round(math.degrees(math.atan2(R[3], R[0])), 3),
                 "tilt_deg": round(math.degrees(math.acos(max(-1.0, min(1.0, R[8])))), 3),
+                "quat_xyzw": [round(float(v), 7) for v in orn],
                 "held_by": holders.get(name, []),
             }
         return out
