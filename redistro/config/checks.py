@@ -115,11 +115,7 @@ def check_config(cfg: Config) -> None:
             problem = endpoint_problem(e)
             if problem:
                 raise ConfigError(f"{cfg.origin(key)}: {key}[{i}]: {problem}")
-    for name, o in cfg.workcell.objects.items():
-        problem = o.hole_problem()
-        if problem:
-            key = f"workcell.objects.{name}"
-            raise ConfigError(f"{cfg.origin(key)}: {key}: {problem}")
+    _check_objects(cfg)
     names = list(cfg.robots)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
@@ -132,6 +128,14 @@ def check_config(cfg: Config) -> None:
                     f"{gap:.3f} m from {a}'s base, at least {BASE_CLEARANCE_M} m apart "
                     "(the arms would stand in each other)"
                 )
+
+
+def _check_objects(cfg: Config) -> None:
+    for name, o in cfg.workcell.objects.items():
+        problem = o.hole_problem()
+        if problem:
+            key = f"workcell.objects.{name}"
+            raise ConfigError(f"{cfg.origin(key)}: {key}: {problem}")
 
 
 def endpoint_problem(text: str) -> str:
