@@ -220,8 +220,8 @@ class Held:
         if mv.gripper == "open":
             self.by = {o: v for o, v in self.by.items() if v[0] != mv.robot}
         obj = m.goal.relative_to.split(".")[0]
-        if mv.gripper != "close" or mv.scheme == "joint" or obj not in self.frames:
-            return
+        if mv.gripper != "close" or mv.scheme == "joint" or obj in ("world", "hole"):
+            return  # (a grasp relative to no object: nothing known is taken)
         R = rotvec_to_matrix(mv.pose[3:])
         keys = [k for k in self.frames if k.startswith(obj + ".")]
         self.by[obj] = (mv.robot, {k: R.T @ (self.frames[k] - mv.pose[:3]) for k in keys})
