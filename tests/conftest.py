@@ -137,8 +137,12 @@ def _rank(item: pytest.Item) -> int:
 
 def _apart(nodeid: str) -> bool:
     """Runs in the second worker: the unit tests, and the front door's (its
-    refusals start no session)."""
+    refusals start no session); not the transports' contract tests, whose
+    zenoh drops records on a loaded host (congestion control DROP), as a
+    session's ddm would."""
     path = nodeid.split("::")[0]
+    if path.endswith("/test_transports.py"):
+        return False
     return "integration/" not in path or path.endswith("/test_front_door.py")
 
 
