@@ -7,7 +7,6 @@ ddm's general path."""
 from __future__ import annotations
 
 import errno
-import functools
 from typing import TYPE_CHECKING, Any
 
 from redistro.ddm.transport import Accelerator
@@ -25,21 +24,27 @@ class SocketSteps:
     step is the hot path: its call is bound once, with its plans and the
     receive buffer, and the object keeps its few fields in slots.)"""
 
-    __slots__ = ("call", "d", "generation", "reply_fd")
+    __slots__ = ("admit", "d", "emit", "generation", "kernel", "reply_fd", "rx", "send_plan")
 
     def __init__(self, ddm: Ddm) -> None:
         self.d = ddm
         self.generation = -1  # the transport's peers the send fds are for
-        self.call: Any = None  # ddm_reply(fd), bound (bind)
-        self.reply_fd: Any = None  # the accelerator's reply_fd, bound (bind)
+        # (bind: ddm_reply, its plans and the receive buffer; the
+        # accelerator's reply_fd)
+        self.kernel: Any = None
+        self.admit: Any = None
+        self.emit: Any = None
+        self.send_plan: Any = None
+        self.rx: Any = None
+        self.reply_fd: Any = None
 
     def bind(self, kpath: KernelPath, accel: Accelerator) -> None:
-        """ddm_reply bound to the kernel path's plans and the socket's
-        receive buffer (both made once), for :meth:`reply`."""
+        """ddm_reply, its plans (made once) and the socket's receive buffer,
+        for :meth:`reply`."""
         self.reply_fd = accel.reply_fd
-        self.call = functools.partial(
-            kpath.reply_call, kpath.admit_plan, kpath.emit_plan, kpath.send_plan, accel.rx
-        )
+        self.kernel = kpath.reply_call
+        self.admit, self.emit, self.send_plan = kpath.admit_plan, kpath.emit_plan, kpath.send_plan
+        self.rx = accel.rx
 
     def reply(self) -> bool:
         """An ESC's usual step in one kernel call. True when that was the
@@ -47,10 +52,15 @@ class SocketSteps:
         exchange counted, the starving index paid back, the latency taken by
         the kernel). Else the general path takes the step on, with what the
         call received."""
-        fd = self.reply_fd(self.d.ready_fds)
+        # (each callable read into a local first: called straight from its
+        # slot, the interpreter looks it up as a method, the slow way; and
+        # ddm_reply called with its arguments, not through a partial)
+        reply_fd = self.reply_fd
+        fd = reply_fd(self.d.ready_fds)
         if fd < 0:
             return False
-        got = self.call(fd)  # (the reply goes back on fd: no send fds to refresh)
+        kernel = self.kernel
+        got = kernel(self.admit, self.emit, self.send_plan, self.rx, fd)
         if got == REPLIED:
             self.d.dirty = True
             return True
