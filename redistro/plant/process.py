@@ -33,7 +33,7 @@ from redistro.drivers.io.shm import ShmPort
 from redistro.ipc import names, signals
 from redistro.ipc.session import Manifest
 from redistro.localdata.block import Record
-from redistro.plant.truth import ArmsTruth, PegTruth
+from redistro.plant.truth import ArmsTruth, ObjectsInHoles, PegTruth
 from redistro.process import hooks
 
 log = logging.getLogger(__name__)
@@ -230,7 +230,7 @@ def _loop(
     gc.freeze()
     gc.disable()  # no collector pauses inside steps: a step allocates little
     io = (read_outputs, publish_truth, publish_boards)
-    truth = (ArmsTruth(chassis.world), PegTruth(chassis.world))
+    truth = (ArmsTruth(chassis.world), PegTruth(chassis.world), ObjectsInHoles(chassis.world))
     while True:
         _step(chassis, io, whole, physics, truth)
         now = monotonic_ns()
@@ -257,7 +257,7 @@ def _loop(
         port.service(next_ns)
     gc.enable()
     counts: dict[str, Any] = {"late_steps": late, "skipped_steps": skipped}
-    counts.update(arms=truth[0].report(), pegs=truth[1].report())
+    counts.update(arms=truth[0].report(), pegs=truth[1].report(), in_holes=truth[2].report())
     return _result(
         chassis,
         port,
@@ -279,7 +279,7 @@ def _step(
     io: tuple[Any, Any, Any],
     whole: Any,
     physics: Any,
-    truth: tuple[ArmsTruth, PegTruth],
+    truth: tuple[ArmsTruth, PegTruth, ObjectsInHoles],
 ) -> None:
     """One step: the controller's outputs applied, PyBullet's step, the
     joints sampled into the boards, the truth then the boards published

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from redistro.config.model import FIXTURE_FLOOR_M, TABLE_HALF_XY_M, Config
+from redistro.plant.in_hole import in_hole
 
 
 @dataclass(frozen=True)
@@ -211,3 +212,41 @@ class PegTruth:
 
     def report(self) -> dict[str, Any]:
         return {name: {"depth_m": round(d, 6)} for name, d in self.depth.items()}
+
+
+class ObjectsInHoles:
+    """How deep each object went into another's hole: for every object
+    with a hole and every other whose footprint fits it, every ``EVERY``
+    steps the pair's poses (PyBullet's, the plant's own view) through
+    :func:`~redistro.plant.in_hole.in_hole`; a bottom laterally inside the
+    hole counts, and the deepest is kept."""
+
+    EVERY = 8
+
+    def __init__(self, world: Any) -> None:
+        self.pb, self.cid = world.pb, world.client
+        objs, bodies = world.cfg.workcell.objects, world.objects
+        self.pairs = [
+            (peg, hole, objs[peg], objs[hole], bodies[peg], bodies[hole])
+            for hole, h in objs.items()
+            if h.hole_side_m > 0 and hole in bodies
+            for peg, p in objs.items()
+            if peg != hole and peg in bodies and max(p.size_xyz_m[:2]) < h.hole_side_m
+        ]
+        self.depth = {peg: (hole, 0.0) for peg, hole, *_ in self.pairs}
+
+    def sample(self, step: int) -> None:
+        if step % self.EVERY or not self.pairs:
+            return
+        pose = self.pb.getBasePositionAndOrientation
+        for peg, hole, p_cfg, h_cfg, p_body, h_body in self.pairs:
+            p_xyz, p_q = pose(p_body, physicsClientId=self.cid)
+            h_xyz, h_q = pose(h_body, physicsClientId=self.cid)
+            got = in_hole(
+                p_cfg, {"xyz_m": p_xyz, "quat_xyzw": p_q}, h_cfg, {"xyz_m": h_xyz, "quat_xyzw": h_q}
+            )
+            if got["inside"] and float(got["depth_m"]) > self.depth[peg][1]:
+                self.depth[peg] = (hole, float(got["depth_m"]))
+
+    def report(self) -> dict[str, Any]:
+        return {p: {"hole_of": h, "depth_m": round(d, 6)} for p, (h, d) in self.depth.items()}

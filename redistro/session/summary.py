@@ -21,6 +21,34 @@ RESULTS = ("ok", "unsafe", "starving", "estop", "abnormal", "failed")
 MIN_STRATEGY_RTF = 0.15
 
 
+# what summary.json keeps of the plant's result
+PLANT_KEYS = (
+    "state",
+    "error",
+    "kernels",
+    "steps",
+    "rtf",
+    "late_steps",
+    "skipped_steps",
+    "step_us",
+    "physics_us",
+    "chassis_us",
+    "cpu_s",
+    "cpu_percent",
+    "max_step_gap_ms",
+    "torn_outputs",
+    "bad_frames",
+    "freezes",
+    "grippers",
+    "objects",
+    "objects_start",
+    "watchdog_trips",
+    "hole",
+    "arms",
+    "pegs",
+    "in_holes",
+)
+
 INSERTED_WITHIN_M = 0.002  # a peg this close to the hole's depth is in
 DISAGREE_M = 0.001  # the controller's depth this far from the plant's is flagged
 
@@ -43,6 +71,23 @@ def _inserted(
     summary["inserted_belief"] = belief
     summary["plant_insertion_depth_m"] = round(truth, 6)
     summary["belief_disagrees"] = abs(truth - depth) > DISAGREE_M
+
+
+def _plant_depths(task: Task, plant: dict[str, Any]) -> dict[str, Any]:
+    """The plant's depths for the task's insertion: into an object's hole
+    (its first force move relative to ``<object>.hole``), the objects' that
+    went into that hole; else the pegs' on the robots' flanges."""
+    from redistro.config.task import segment_moves
+
+    forces = [
+        m for i, s in enumerate(task.segments) for m in segment_moves(s, i) if m.scheme == "force"
+    ]
+    rel = forces[0].goal.relative_to if forces else ""
+    if rel.endswith(".hole"):
+        hole = rel.split(".")[0]
+        got = plant.get("in_holes") or {}
+        return {p: d for p, d in got.items() if d.get("hole_of") == hole}
+    return dict(plant.get("pegs") or {})
 
 
 def budget_s(task: Task) -> float:
@@ -234,36 +279,8 @@ def build_summary(
             summary["search"] = ssc.search
         if ssc is not None and ssc.clearance:
             summary["clearance"] = ssc.clearance  # the controller's; the plant's: plant.arms
-        _inserted(summary, ssc is not None, depth, hole_depth, plant.get("pegs") or {})
+        _inserted(summary, ssc is not None, depth, hole_depth, _plant_depths(task, plant))
         summary.update(placed(task, plant))  # (a task that carries an object)
         summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}
-    summary["plant"] = {
-        k: plant.get(k)
-        for k in (
-            "state",
-            "error",
-            "kernels",
-            "steps",
-            "rtf",
-            "late_steps",
-            "skipped_steps",
-            "step_us",
-            "physics_us",
-            "chassis_us",
-            "cpu_s",
-            "cpu_percent",
-            "max_step_gap_ms",
-            "torn_outputs",
-            "bad_frames",
-            "freezes",
-            "grippers",
-            "objects",
-            "objects_start",
-            "watchdog_trips",
-            "hole",
-            "arms",
-            "pegs",
-        )
-        if k in plant
-    }
+    summary["plant"] = {k: plant.get(k) for k in PLANT_KEYS if k in plant}
     return summary

@@ -99,22 +99,24 @@ class SscLogger(Worker):
                 j += 1
         # per move: the plan of its robot at the segment's last cycle
         self.last_plan = [Record(PLAN) for _ in moves]
-        hole = cfg.workcell.hole
-        self.hole = [float(v) for v in hole.xyz_m]
-        self.hole_depth = hole.depth_m
-        # the peg is in the hole below its mouth, within the hole's half side
-        # and the widest search of the believed centre
+        # the insertion: the first force move's robot, at its hole (the
+        # fixture's, or an object's where the plan has it); the tool's tip
+        # is in the hole below its mouth, within the hole's half side and
+        # the widest search of the believed centre
         reach = max(
             (mv.search.max_radius_m for mv in moves if mv.search.pattern != "none"), default=0.0
         )
-        self.hole_half = (cfg.workcell.peg.side_m + hole.clearance_m) / 2 + reach
+        first = next((mv for mv in moves if mv.scheme == "force"), None)
+        h = cfg.workcell.hole
+        self.hole = [*first.mouth_xy_m, first.mouth_z_m] if first else [float(v) for v in h.xyz_m]
+        self.hole_depth = first.hole_depth_m if first else h.depth_m
+        self.hole_half = (first.hole_half_m if first else 0.0) + reach
         self.phase = 0  # the search's last phase and path
         self.search_m = 0.0
         self.contact_t: float | None = None
         self.bottom_t: float | None = None
         self.peak_f2 = 0.0  # the peak contact force, squared [N^2]
-        pegs = [r for r in self.robots if cfg.robots[r].peg]
-        self.peg_index = self.robots.index(pegs[0]) if pegs else -1
+        self.peg_index = self.robots.index(first.robot) if first else -1
         # the depth counts from the first force segment on (1-based): a peg
         # left in the hole by an earlier session is pulled out by the approach
         forces = [

@@ -41,8 +41,10 @@ class MovePlan:
     force_within_n: float
     hold_s: float
     search: Search
-    mouth_z_m: float  # the believed height of the hole's mouth [m]
+    mouth_z_m: float  # the TCP's height with the tool's tip at the hole's mouth, as believed [m]
     hole_depth_m: float  # the hole's depth as drawn [m]
+    mouth_xy_m: tuple[float, float] = (0.0, 0.0)  # the mouth's centre, as believed [m, world]
+    hole_half_m: float = 0.0  # half the hole's side [m]
     name: str = ""  # the segment's
     duration_s: float = 0.0  # the segment's
     skill: str = "move"  # (config/skills.py)
@@ -81,10 +83,9 @@ class SegmentPlan:
 def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
     """The task's segments with goals resolved (relative poses made absolute)."""
     frames = frames_of(cfg)
-    hole = frames["hole"]
     out = []
     last: dict[str, np.ndarray[Any, Any]] = {}  # each robot's last pose goal
-    held = Held(frames)
+    held = Held(frames, {n: o.size_xyz_m[2] for n, o in cfg.workcell.objects.items()})
     for i, s in enumerate(task.segments):
         listed = [m for m in segment_moves(s, i) if skill_of(m).name != "hold"]
         carry = s.carry if s.carry.object else None
@@ -93,7 +94,7 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
         listed.sort(key=lambda m: not held.holds(m.robot))
         plans: dict[str, MovePlan] = {}
         for m in listed:
-            plans[m.robot] = mv = _move(s, m, frames, hole, cfg.workcell.hole.depth_m)
+            plans[m.robot] = mv = _move(s, m, frames, _hole_of(cfg, m, frames, held))
             if mv.scheme != "joint" and not np.all(np.isfinite(mv.pose[:3])):
                 raise ConfigError(
                     f"{task.source}: {m.where}.goal.relative_to: where "
@@ -193,9 +194,18 @@ class Held:
     unknown to the plan. ``<object>`` itself stays the place drawn on the
     table."""
 
-    def __init__(self, frames: dict[str, np.ndarray[Any, Any]]) -> None:
+    def __init__(
+        self, frames: dict[str, np.ndarray[Any, Any]], heights: dict[str, float] | None = None
+    ) -> None:
         self.frames = frames
+        self.heights = heights or {}  # each object's, as drawn [m]
         self.by: dict[str, tuple[str, dict[str, np.ndarray[Any, Any]]]] = {}  # object -> ...
+        self.below: dict[str, float] = {}  # robot -> the held object's bottom under its TCP [m]
+
+    def reach_below(self, robot: str) -> float:
+        """How far under the robot's TCP the object its hand holds reaches
+        (0: it holds none), as grasped with the tool pointing down."""
+        return self.below.get(robot, 0.0)
 
     def holds(self, robot: str) -> bool:
         return any(r == robot for r, _ in self.by.values())
@@ -219,20 +229,42 @@ class Held:
 
         if mv.gripper == "open":
             self.by = {o: v for o, v in self.by.items() if v[0] != mv.robot}
+            self.below.pop(mv.robot, None)
         obj = m.goal.relative_to.split(".")[0]
         if mv.gripper != "close" or mv.scheme == "joint" or obj in ("world", "hole"):
             return  # (a grasp relative to no object: nothing known is taken)
+        if obj in self.heights:  # (its top face is its frame; its bottom this far under)
+            self.below[mv.robot] = float(mv.pose[2] - self.frames[obj][2] + self.heights[obj])
         R = rotvec_to_matrix(mv.pose[3:])
         keys = [k for k in self.frames if k.startswith(obj + ".")]
         self.by[obj] = (mv.robot, {k: R.T @ (self.frames[k] - mv.pose[:3]) for k in keys})
+
+
+def _hole_of(
+    cfg: Config, m: Move, frames: dict[str, np.ndarray[Any, Any]], held: Held
+) -> tuple[np.ndarray[Any, Any], float, float]:
+    """The hole a move works at: the mouth's centre as believed, its depth
+    and half its side. An object's hole (goal relative to ``<object>.hole``)
+    where the plan has it, else the fixture's; the mouth's height is the
+    TCP's with the tool's tip there: below the TCP by the peg of a robot
+    with one, or by the object its hand holds (to the object's bottom)."""
+    rel = m.goal.relative_to
+    if rel.endswith(".hole"):
+        o = cfg.workcell.objects[rel.split(".")[0]]
+        mouth, depth, half = frames[rel].copy(), o.hole_depth_m, o.hole_side_m / 2
+    else:
+        h = cfg.workcell.hole
+        mouth, depth = frames["hole"].copy(), h.depth_m
+        half = (cfg.workcell.peg.side_m + h.clearance_m) / 2
+    mouth[2] += held.reach_below(m.robot)
+    return mouth, depth, half
 
 
 def _move(
     s: MoveSegment,
     m: Move,
     frames: dict[str, np.ndarray[Any, Any]],
-    hole: np.ndarray[Any, Any],
-    depth_m: float,
+    hole: tuple[np.ndarray[Any, Any], float, float],
 ) -> MovePlan:
     g = m.goal
     pose = np.zeros(6)
@@ -253,8 +285,10 @@ def _move(
         force_within_n=m.end.force_within_n,
         hold_s=m.end.hold_s,
         search=m.search,
-        mouth_z_m=float(hole[2]),
-        hole_depth_m=depth_m,
+        mouth_z_m=float(hole[0][2]),
+        hole_depth_m=hole[1],
+        mouth_xy_m=(float(hole[0][0]), float(hole[0][1])),
+        hole_half_m=hole[2],
         name=s.name,
         duration_s=s.duration_s,
         skill=skill_of(m).name,

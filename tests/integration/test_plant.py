@@ -340,3 +340,48 @@ def test_an_object_with_a_hole_is_built_with_its_hole() -> None:
     bad = "block: {size_xyz_m: [0.16, 0.08, 0.06], xy_m: [0.45, 0.3], hole_side_m: 0.078}"
     with pytest.raises(ConfigError, match=r"the hole's wall along y is 1.0 mm, at least 3 mm"):
         load(None, [f"workcell.objects={{{bad}}}"])
+
+
+def test_the_plant_sees_how_deep_an_object_went_into_another_objects_hole() -> None:
+    """The plant's truth for an insertion of one object into another:
+    a peg dropped into a turned block's hole comes to rest on its floor,
+    and ObjectsInHoles reports the hole's depth; a peg standing beside the
+    hole, on the block's top face, counts nothing."""
+    import dataclasses
+
+    from redistro.config import load_config
+    from redistro.config.model import ObjectConfig
+    from redistro.plant.truth import ObjectsInHoles, object_pose
+    from redistro.plant.world import World
+
+    cfg = load_config("config/redistro.yaml")
+    block = ObjectConfig(
+        size_xyz_m=[0.16, 0.08, 0.06], xy_m=[0.45, 0.3], yaw_deg=30.0, mass_kg=2.0,
+        hole_side_m=0.031, hole_depth_m=0.04, hole_at_xy_m=[0.04, 0.0],
+    )  # fmt: skip
+    peg = ObjectConfig(size_xyz_m=[0.02, 0.02, 0.1], xy_m=[0.45, 0.1], mass_kg=0.1)
+    objects = {"block": block, "peg": peg}
+    cfg = dataclasses.replace(cfg, workcell=dataclasses.replace(cfg.workcell, objects=objects))
+    for local, depth in (((0.04, 0.0), 0.04), ((-0.04, 0.0), None)):
+        world = World(cfg)
+        try:
+            pb, cid = world.pb, world.client
+            (x, y, z), yaw = object_pose(cfg, "block")
+            c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+            px, py = x + c * local[0] - s * local[1], y + s * local[0] + c * local[1]
+            q = pb.getQuaternionFromEuler([0, 0, math.radians(yaw)])
+            pb.resetBasePositionAndOrientation(
+                world.objects["peg"], [px, py, z + 0.03 + 0.051], q, physicsClientId=cid
+            )
+            truth = ObjectsInHoles(world)
+            for step in range(1, 1500):  # (1.5 s: dropped, at rest)
+                pb.stepSimulation(physicsClientId=cid)
+                truth.sample(step)
+            got = truth.report()["peg"]
+            assert got["hole_of"] == "block"
+            if depth is None:
+                assert got["depth_m"] == 0.0, got
+            else:
+                assert abs(got["depth_m"] - depth) < 0.002, got
+        finally:
+            world.close()

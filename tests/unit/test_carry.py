@@ -116,3 +116,49 @@ def test_a_held_objects_hole_goes_with_the_hand_that_grasped_it(tmp_path: Path) 
     task.write_text(text)
     with pytest.raises(ConfigError, match=r"r2.goal.relative_to: where block.hole is"):
         segment_plans(load_task(task, cfg), cfg)
+
+
+def test_an_insertion_into_a_held_objects_hole_takes_that_hole_and_the_held_peg(
+    tmp_path: Path,
+) -> None:
+    """r1 grasps the block, r2 the peg (an object, no peg on its flange);
+    r2's search relative to ``block.hole`` works at the block's hole where
+    r1's move put it, with the block's depth and side, and its mouth is the
+    TCP's height with the peg's bottom there (the peg's height and the
+    grasp's offset above its top under the TCP). Without a held object, a
+    force move at the fixture keeps the fixture's mouth."""
+    cfg = load_config(ROOT / "tests/data/dual_peg_cell.yaml")
+    down = "0, 3.14159265, 0"
+    task = tmp_path / "insert.yaml"
+    task.write_text(
+        "task: insert\nkind: strategy\nrobots: [r1, r2]\nsegments:\n"
+        "  - name: grasp\n    duration_s: 2\n    moves:\n"
+        f"      r1: {{skill: grasp, scheme: position, goal: {{relative_to: block, "
+        f"pos_xyz_rot_xyz: [0, 0.07, 0.005, {down}]}}}}\n"
+        f"      r2: {{skill: grasp, scheme: position, goal: {{relative_to: peg, "
+        f"pos_xyz_rot_xyz: [0, 0, 0.004, {down}]}}}}\n"
+        f"  - {{name: present, robot: r1, scheme: position, duration_s: 3,\n"
+        f"     goal: {{pos_xyz_rot_xyz: [0.55, 0.22, 0.3, {down}]}}}}\n"
+        f"  - {{name: insert, robot: r2, scheme: force, duration_s: 5,\n"
+        f"     goal: {{relative_to: block.hole, pos_xyz_rot_xyz: [0, 0, 0.12, {down}],\n"
+        "       force_xyz_torque_xyz: [0, 0, -8, 0, 0, 0], selection_vector: [0, 0, 1, 0, 0, 0]},\n"
+        "     search: {pattern: spiral, force_n: 4}}\n"
+    )
+    plans = segment_plans(load_task(task, cfg), cfg)
+    block, peg = cfg.workcell.objects["block"], cfg.workcell.objects["peg"]
+    mouth = np.array([0.55, 0.22 - 0.07 + block.hole_at_xy_m[1], 0.3 - 0.005])
+    mv = plans[2].moves[0]
+    assert np.allclose([*mv.mouth_xy_m], mouth[:2], atol=1e-9), mv.mouth_xy_m
+    assert abs(mv.mouth_z_m - (mouth[2] + peg.size_xyz_m[2] + 0.004)) < 1e-9, mv.mouth_z_m
+    assert (mv.hole_depth_m, mv.hole_half_m) == (block.hole_depth_m, block.hole_side_m / 2)
+    fixture = load_config(ROOT / "config/redistro.yaml")
+    tmp_task = tmp_path / "fixture.yaml"
+    tmp_task.write_text(
+        "task: f\nkind: strategy\nrobots: [r1, r2]\nsegments:\n"
+        f"  - {{name: insert, robot: r2, scheme: force, duration_s: 5,\n"
+        f"     goal: {{relative_to: hole, pos_xyz_rot_xyz: [0, 0, 0.01, {down}],\n"
+        "       force_xyz_torque_xyz: [0, 0, -8, 0, 0, 0], selection_vector: [0, 0, 1, 0, 0, 0]}}\n"
+    )
+    mv = segment_plans(load_task(tmp_task, fixture), fixture)[0].moves[0]
+    h = fixture.workcell.hole
+    assert (*mv.mouth_xy_m, mv.mouth_z_m) == tuple(h.xyz_m) and mv.hole_depth_m == h.depth_m

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 from redistro.config.model import ObjectConfig
-from redistro.session.in_hole import in_hole
+from redistro.plant.in_hole import in_hole
 
 PEG = ObjectConfig(size_xyz_m=[0.02, 0.02, 0.1], xy_m=[0.0, 0.0])
 BLOCK = ObjectConfig(

@@ -124,3 +124,33 @@ def test_inserted_comes_from_the_plant_with_the_belief_beside_it() -> None:
     s = {}  # no plant's peg (a node alone): the belief
     _inserted(s, True, 0.0400, 0.04, {})
     assert s == {"inserted": True}
+
+
+def test_an_insertion_into_an_objects_hole_is_judged_by_the_objects_in_that_hole(
+    tmp_path: Path,
+) -> None:
+    """The plant's depths for the verdict: the objects that went into the
+    task's target hole (its force move relative to ``block.hole``), not
+    the flange pegs, nor objects in another object's hole."""
+    from redistro.session.summary import _plant_depths
+
+    cfg = load_config(ROOT / "tests" / "data" / "dual_peg_cell.yaml")
+    task = tmp_path / "t.yaml"
+    task.write_text(
+        "task: t\nkind: strategy\nrobots: [r1, r2]\nsegments:\n"
+        "  - {name: grasp, robot: r1, skill: grasp, scheme: position, duration_s: 2,\n"
+        "     goal: {relative_to: block, pos_xyz_rot_xyz: [0, 0.07, 0.005, 0, 3.14159265, 0]}}\n"
+        "  - {name: insert, robot: r2, scheme: force, duration_s: 5,\n"
+        "     goal: {relative_to: block.hole, pos_xyz_rot_xyz: [0, 0, 0.12, 0, 3.14159265, 0],\n"
+        "       force_xyz_torque_xyz: [0, 0, -8, 0, 0, 0], selection_vector: [0, 0, 1, 0, 0, 0]}}\n"
+    )
+    plant = {
+        "pegs": {"r2": {"depth_m": 0.03}},
+        "in_holes": {
+            "peg": {"hole_of": "block", "depth_m": 0.039},
+            "pin": {"hole_of": "crate", "depth_m": 0.02},
+        },
+    }
+    assert _plant_depths(load_task(task, cfg), plant) == {"peg": plant["in_holes"]["peg"]}
+    peg_task = load_task(ROOT / "tasks" / "peg_insertion_short.yaml", load_config())
+    assert _plant_depths(peg_task, plant) == plant["pegs"]
