@@ -51,6 +51,11 @@ class MovePlan:
     contact_n: float = 0.0  # a guarded move's contact [N]: it ends there
     gripper: str = ""  # at the move's end the gripper closes ("close") or opens ("open")
     where: str = ""  # the task file's field, for messages
+    # a goal relative to an object another hand holds (ssc/follow.py): that
+    # robot, its pose goal and the goal's frame's origin, as planned
+    follows: str = ""
+    holder_pose: np.ndarray[Any, Any] | None = None
+    follow_point: np.ndarray[Any, Any] | None = None
 
     @property
     def ends_early(self) -> bool:
@@ -94,7 +99,8 @@ def segment_plans(task: Task, cfg: Config) -> list[SegmentPlan]:
         listed.sort(key=lambda m: not held.holds(m.robot))
         plans: dict[str, MovePlan] = {}
         for m in listed:
-            plans[m.robot] = mv = _move(s, m, frames, _hole_of(cfg, m, frames, held))
+            mv = _move(s, m, frames, _hole_of(cfg, m, frames, held))
+            plans[m.robot] = mv = held.follow(m, mv)
             if mv.scheme != "joint" and not np.all(np.isfinite(mv.pose[:3])):
                 raise ConfigError(
                     f"{task.source}: {m.where}.goal.relative_to: where "
@@ -201,6 +207,7 @@ class Held:
         self.heights = heights or {}  # each object's, as drawn [m]
         self.by: dict[str, tuple[str, dict[str, np.ndarray[Any, Any]]]] = {}  # object -> ...
         self.below: dict[str, float] = {}  # robot -> the held object's bottom under its TCP [m]
+        self.pose_of: dict[str, np.ndarray[Any, Any]] = {}  # each hand's last pose goal
 
     def reach_below(self, robot: str) -> float:
         """How far under the robot's TCP the object its hand holds reaches
@@ -210,9 +217,26 @@ class Held:
     def holds(self, robot: str) -> bool:
         return any(r == robot for r, _ in self.by.values())
 
+    def follow(self, m: Move, mv: MovePlan) -> MovePlan:
+        """``mv`` made to follow the hand that holds the object its goal is
+        relative to (another robot's), from that hand's pose goal."""
+        obj = m.goal.relative_to.split(".")[0]
+        holder = self.by.get(obj, ("", {}))[0]
+        if not holder or holder == m.robot or holder not in self.pose_of:
+            return mv
+        point = self.frames[m.goal.relative_to].copy()
+        return dataclasses.replace(
+            mv, follows=holder, holder_pose=self.pose_of[holder].copy(), follow_point=point
+        )
+
     def moved(self, mv: MovePlan) -> None:
         """``mv`` planned: the frames of what its hand holds follow it."""
         from redistro.control.cartesian import rotvec_to_matrix
+
+        if mv.scheme == "joint":
+            self.pose_of.pop(mv.robot, None)
+        else:
+            self.pose_of[mv.robot] = mv.pose.copy()
 
         for robot, local in self.by.values():
             if robot != mv.robot:

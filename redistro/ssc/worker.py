@@ -52,6 +52,7 @@ from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
 from redistro.ssc.carry import CarryRun, carry_moves
 from redistro.ssc.clearance import ClearanceWatch
+from redistro.ssc.follow import Follow
 from redistro.ssc.plan import SCHEMES, MovePlan, SegmentPlan, segment_plans
 from redistro.ssc.search_steps import steer
 
@@ -93,6 +94,8 @@ class RobotState:
     fast_z: float = -math.inf  # in the hole: down fast below this height ...
     slow_z: float = -math.inf  # ... to this one, then at the law's own speed
     goal_z_n: float = 0.0  # the segment's goal force along z
+    follow: Follow | None = None  # its move follows another hand (ssc/follow.py) ...
+    holder: Any = None  # ... this robot's state
 
     def __post_init__(self) -> None:
         fb, cmd, pl = self.fb.array, self.cmd.array, self.plan.array
@@ -392,6 +395,7 @@ class SscWorker(Worker):
         st.pid.reset()
         st.start_q = q.copy()
         kin = st.model.kinematics(q)
+        p0 = _follows(st, mv, self.states, kin.p)  # (following: its TCP in the plan's frame)
         st.plan["scheme"] = SCHEMES[mv.scheme]
         v["q_goal"][...] = mv.q_goal
         if mv.scheme in ("position", "force"):
@@ -409,10 +413,10 @@ class SscWorker(Worker):
             # turned a carried bar 8 mrad too far
             carried = st.law.integral.copy() if st.cartesian and mv.skill != "carry" else None
             st.law.gains[...] = st.gains0  # a search may have changed them
-            st.law.start(cmd, kin.p, kin.R, mv.move_s, st.start_q, carried)
+            st.law.start(cmd, p0, kin.R, mv.move_s, st.start_q, carried)
             st.cartesian = True
             st.short_move = bool(
-                np.linalg.norm(cmd.goal_p - kin.p) < 0.002
+                np.linalg.norm(cmd.goal_p - p0) < 0.002
                 and np.linalg.norm(matrix_to_rotvec(cmd.goal_R @ kin.R.T)) < 0.01
             )
             v["goal"][...] = mv.pose[:3]
@@ -528,11 +532,13 @@ class SscWorker(Worker):
             return
         law = st.law
         st.model.terms_into(q, law.J, law.R, law.t, law.M, law.g)
+        if st.follow is not None:
+            law.t -= st.follow.update(st.holder)
         law.q[...] = q
         law.qd[...] = v["qd"]
         law.wrench[...] = v["wrench"]
         if st.search is not None:
-            self._search(st, plan, seg_t, dt, t)
+            steer(self, st, plan, seg_t, dt, t)  # the search (ssc/search_steps.py)
         c = self.carry if plan.skill == "carry" else None
         hand = c.index(st.name) if c is not None else -1
         if c is not None:
@@ -553,10 +559,6 @@ class SscWorker(Worker):
         st.to_records()
         v["q_cmd"][...] = q
         st.plan["contact"] = 1 if law.contact else 0
-
-    def _search(self, st: RobotState, plan: MovePlan, seg_t: float, dt: float, t: float) -> None:
-        """The segment's search, before the law (:mod:`redistro.ssc.search_steps`)."""
-        steer(self, st, plan, seg_t, dt, t)
 
     def _fail(self, st: RobotState, plan: MovePlan, t: float, why: str) -> None:
         """The task cannot be done (the search found no hole): the robot lifts
@@ -582,6 +584,20 @@ class SscWorker(Worker):
         for k, other in enumerate(self.states):  # (their moves' clock restarts: they stop)
             if other is not st and self.moving[k] is not None:
                 self._stop(k, other)
+
+
+def _follows(
+    st: RobotState, mv: MovePlan, states: list[RobotState], p: np.ndarray[Any, Any]
+) -> np.ndarray[Any, Any]:
+    """A move's following of another hand set up (or none); ``p``, the
+    TCP's measured position, in the frame the law will see."""
+    st.follow = st.holder = None
+    if mv.follows and mv.holder_pose is not None and mv.follow_point is not None:
+        st.holder = next(h for h in states if h.name == mv.follows)
+        st.follow = Follow(mv.holder_pose, mv.follow_point)
+        out: np.ndarray[Any, Any] = p - st.follow.update(st.holder)
+        return out
+    return p
 
 
 def _pose(st: RobotState, q: np.ndarray[Any, Any], goal: bool) -> None:

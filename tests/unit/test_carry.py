@@ -151,6 +151,10 @@ def test_an_insertion_into_a_held_objects_hole_takes_that_hole_and_the_held_peg(
     assert np.allclose([*mv.mouth_xy_m], mouth[:2], atol=1e-9), mv.mouth_xy_m
     assert abs(mv.mouth_z_m - (mouth[2] + peg.size_xyz_m[2] + 0.004)) < 1e-9, mv.mouth_z_m
     assert (mv.hole_depth_m, mv.hole_half_m) == (block.hole_depth_m, block.hole_side_m / 2)
+    # r2 follows r1's hand: from r1's pose goal and the mouth where it puts it
+    assert mv.follows == "r1" and mv.holder_pose is not None and mv.follow_point is not None
+    assert np.allclose(mv.holder_pose, plans[1].moves[0].pose)
+    assert np.allclose(mv.follow_point, mouth)
     fixture = load_config(ROOT / "config/redistro.yaml")
     tmp_task = tmp_path / "fixture.yaml"
     tmp_task.write_text(
@@ -162,3 +166,4 @@ def test_an_insertion_into_a_held_objects_hole_takes_that_hole_and_the_held_peg(
     mv = segment_plans(load_task(tmp_task, fixture), fixture)[0].moves[0]
     h = fixture.workcell.hole
     assert (*mv.mouth_xy_m, mv.mouth_z_m) == tuple(h.xyz_m) and mv.hole_depth_m == h.depth_m
+    assert not mv.follows  # (the fixture stands still)
