@@ -12,14 +12,9 @@ from redistro.config.model import ObjectConfig
 
 
 def _rotation(q: list[float]) -> np.ndarray[Any, Any]:
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    import pybullet as pb  # (its math only: no physics client)
+
+    return np.asarray(pb.getMatrixFromQuaternion(q), dtype=np.float64).reshape(3, 3)
 
 
 def in_hole(

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from redistro.config.task import Task
+from redistro.config.task import Task, segment_moves
 from redistro.esc.plan import task_seconds
 from redistro.process.manager import iso_time
 from redistro.process.result import EscResult, NodeResult
@@ -77,8 +77,6 @@ def _plant_depths(task: Task, plant: dict[str, Any]) -> dict[str, Any]:
     """The plant's depths for the task's insertion: into an object's hole
     (its first force move relative to ``<object>.hole``), the objects' that
     went into that hole; else the pegs' on the robots' flanges."""
-    from redistro.config.task import segment_moves
-
     forces = [
         m for i, s in enumerate(task.segments) for m in segment_moves(s, i) if m.scheme == "force"
     ]

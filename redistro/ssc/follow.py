@@ -23,12 +23,11 @@ class Follow:
     mouth) it carries, for :meth:`delta`."""
 
     def __init__(self, holder_pose: np.ndarray[Any, Any], point: np.ndarray[Any, Any]) -> None:
-        self.p_goal = np.asarray(holder_pose[:3], dtype=np.float64)
+        self.point = np.asarray(point, dtype=np.float64)
         # the point in the holder's tool frame, as planned
         self.local = rotvec_to_matrix(np.asarray(holder_pose[3:])).T @ (
-            np.asarray(point, dtype=np.float64) - self.p_goal
+            self.point - np.asarray(holder_pose[:3], dtype=np.float64)
         )
-        self.point = np.asarray(point, dtype=np.float64)
         # scratch, made once: the holder's tool frame, its TCP, a product
         self.R, self.t, self.p, self.v = np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3)
         self.d = np.zeros(3)
