@@ -224,6 +224,11 @@ def _settings(user: str, users_file: str, *, scouting: bool) -> dict[str, Any]:
     return {
         "scouting/multicast/enabled": scouting,
         "scouting/gossip/enabled": scouting,
+        # the opening does not wait for its peers: a peer whose connect
+        # endpoint is not up yet (another group's SSC still starting) waited
+        # scouting's default 500 ms inside zenoh.open, in the ddm's routine
+        # (25 heartbeats missed at 200 Hz); zenoh connects in the background
+        "scouting/delay": 0,
         # records of a few hundred bytes, between hosts: no zenoh shared
         # memory (on by default, it leaves a /dev/shm/*.zenoh file per process)
         "transport/shared_memory/enabled": False,
