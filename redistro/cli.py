@@ -140,12 +140,15 @@ def _parser() -> argparse.ArgumentParser:
 
     du = bsub.add_parser(
         "dual",
-        help="a campaign of two-hand carries with the object off where the controller believes it",
+        help="a campaign of two-arm jobs (a carry, a peg insertion) with the object off "
+        "where the controller believes it",
         parents=[common],
     )
-    du.add_argument("--task", choices=["carry"], default="carry", help="the two-arm job")
+    du.add_argument("--task", choices=["carry", "peg"], default="carry", help="the two-arm job")
     du.add_argument(
-        "--task-file", default="tasks/dual_carry_short.yaml", help="the carry's task file"
+        "--task-file",
+        default=None,
+        help="the job's task file (default tasks/dual_carry_short.yaml, tasks/dual_peg_short.yaml)",
     )
     _campaign_args(du, "object", trials=10, radius_mm=5.0, yaw_deg=3.0)
 

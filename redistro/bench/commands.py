@@ -205,23 +205,25 @@ def _bench_dual(args: argparse.Namespace, cfg: Any) -> int:
     from redistro.session.preflight import preflight
 
     _check_campaign(args, max_radius_mm=10)
-    dual.carried_object(load_task(args.task_file, cfg))
-    task = preflight(cfg, args.task_file)
+    task_file = args.task_file or dual.TASK_FILES[args.task]
+    dual.target_object(load_task(task_file, cfg), args.task)
+    task = preflight(cfg, task_file)
     with Progress(transient=False) as bar:
         job = bar.add_task(f"bench dual ({cfg.ddm.transport})", total=args.trials)
 
         def done(row: dict[str, Any]) -> None:
             bar.advance(job)
-            err = row["object_pose_error_m"]
+            err, verdict = row["object_pose_error_m"], dual.VERDICT[args.task]
             bar.console.print(
                 f"trial {row['trial']}: offset {row['offset_xy_mm']} mm, yaw {row['yaw_deg']} "
-                f"deg, {row['result']}, {'placed' if row['placed'] else 'not placed'}"
+                f"deg, {row['result']}, {verdict if row[verdict] else 'not ' + verdict}"
                 + (f" ({err * 1e3:.2f} mm off)" if err is not None else "")
             )
 
         out = dual.run(
             cfg,
             task,
+            job=args.task,
             trials=args.trials,
             radius_m=args.offset_radius_mm / 1e3,
             yaw_deg=args.yaw_deg,
@@ -229,7 +231,7 @@ def _bench_dual(args: argparse.Namespace, cfg: Any) -> int:
             on_trial=done,
         )
     _write_campaign(args, out, dual.print_campaign, dual.plot_campaign)
-    return 0 if out["summary"]["placed"] == out["summary"]["trials"] else 1
+    return 0 if out["summary"][out["verdict"]] == out["summary"]["trials"] else 1
 
 
 def _bench_kernels(args: argparse.Namespace, cfg: Any) -> int:

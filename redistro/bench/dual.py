@@ -1,15 +1,19 @@
-"""``redistro bench dual --task carry``: a campaign of two-hand carries with
-the object where the controller does not believe it is.
+"""``redistro bench dual --task carry|peg``: a campaign of two-arm jobs with
+an object where the controller does not believe it is.
 
-Each trial is a real session of the carry (``tasks/dual_carry_short.yaml``
-by default, under a config that has its object: ``config/dual_arm.yaml``)
-with the carried object's truth (``plant.objects.<name>``) drawn: an offset
-uniform over the disc of ``--offset-radius-mm``, a yaw uniform within
-``--yaw-deg``, seeded ``--seed + trial``. The hands grasp it where it is;
-per trial: the result, ``placed`` and the displacement's error (the plant's
-truth), the squeeze's RMS error and peak over every carrying hand and
-segment, the nearest the arms came (the SSC's watch), guard trips. The
-campaign's summary: the success rate and the medians.
+Each trial is a real session of the job under a config that has its
+objects: the carry (``tasks/dual_carry_short.yaml`` by default,
+``config/dual_arm.yaml``) with the carried object's truth
+(``plant.objects.<name>``) drawn, or the dual-arm peg insertion
+(``tasks/dual_peg_short.yaml``, ``config/dual_peg.yaml``) with the truth
+of the object whose hole the peg goes into (r1 grasps it where it is: the
+hole is off through the grasp). An offset uniform over the disc of
+``--offset-radius-mm``, a yaw uniform within ``--yaw-deg``, seeded
+``--seed + trial``. Per trial: the result, ``placed`` (carry) or
+``inserted`` (peg) by the plant's truth, the displacement's error, the
+squeeze's RMS error and peak over every carrying hand and segment, the
+peak contact force, the nearest the arms came (the SSC's watch), guard
+trips. The campaign's summary: the success rate and the medians.
 """
 
 from __future__ import annotations
@@ -22,8 +26,12 @@ from typing import Any
 
 from redistro.bench.campaign import median, run_trials
 from redistro.config.model import Config, ObjectTruth
-from redistro.config.task import Task
+from redistro.config.task import Task, segment_moves
 from redistro.errors import ConfigError
+
+# a job's verdict, by the plant's truth
+VERDICT = {"carry": "placed", "peg": "inserted"}
+TASK_FILES = {"carry": "tasks/dual_carry_short.yaml", "peg": "tasks/dual_peg_short.yaml"}
 
 
 def carried_object(task: Task) -> str:
@@ -34,6 +42,25 @@ def carried_object(task: Task) -> str:
             f"{task.source}: bench dual --task carry needs a task that carries one object"
         )
     return names.pop()
+
+
+def target_object(task: Task, job: str) -> str:
+    """The object whose truth a trial draws: the one the carry carries, or
+    the one whose hole the insertion works at (a ConfigError when none)."""
+    if job == "carry":
+        return carried_object(task)
+    holes = {
+        m.goal.relative_to.split(".")[0]
+        for i, s in enumerate(task.segments)
+        for m in segment_moves(s, i)
+        if m.scheme == "force" and m.goal.relative_to.endswith(".hole")
+    }
+    if len(holes) != 1:
+        raise ConfigError(
+            f"{task.source}: bench dual --task peg needs a task that inserts into one held "
+            "object's hole (a force move relative to <object>.hole)"
+        )
+    return holes.pop()
 
 
 def trial_config(cfg: Config, name: str, radius_m: float, yaw_deg: float, seed: int) -> Config:
@@ -62,6 +89,9 @@ def trial_row(
         "result": summary.get("result"),
         "reason": summary.get("reason"),
         "placed": bool(summary.get("placed")),
+        "inserted": bool(summary.get("inserted")),
+        "depth_mm": _mm(summary.get("plant_insertion_depth_m")),
+        "peak_force_n": (summary.get("search") or {}).get("peak_force_n"),
         "object_pose_error_m": summary.get("object_pose_error_m"),
         "object_pose_error_rad": summary.get("object_pose_error_rad"),
         "squeeze_rms_error_n": max((s["squeeze_rms_error_n"] for s in carrying), default=None),
@@ -73,17 +103,22 @@ def trial_row(
     }
 
 
+def _mm(v: float | None) -> float | None:
+    return round(v * 1e3, 3) if v is not None else None
+
+
 def run(
     cfg: Config,
     task: Task,
     *,
+    job: str,
     trials: int,
     radius_m: float,
     yaw_deg: float,
     seed: int,
     on_trial: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    name = carried_object(task)
+    name = target_object(task, job)
     cfgs = [trial_config(cfg, name, radius_m, yaw_deg, seed + k) for k in range(trials)]
     rows, out_root = run_trials(
         cfg,
@@ -94,10 +129,14 @@ def run(
         lambda k, rc, summary: trial_row(k, seed + k, cfgs[k].plant.objects[name], rc, summary),
         on_trial,
     )
-    placed = [r for r in rows if r["placed"]]
+    verdict = VERDICT[job]
+    good = [r for r in rows if r[verdict]]
     peaks = [float(r["squeeze_peak_n"]) for r in rows if r["squeeze_peak_n"] is not None]
+    forces = [float(r["peak_force_n"]) for r in rows if r["peak_force_n"] is not None]
     return {
         "task": task.source,
+        "job": job,
+        "verdict": verdict,
         "object": name,
         "transport": cfg.ddm.transport,
         "offset_radius_mm": radius_m * 1e3,
@@ -107,12 +146,14 @@ def run(
         "interrupted": len(rows) < trials,
         "summary": {
             "trials": len(rows),
-            "placed": len(placed),
-            "success_rate": round(len(placed) / len(rows), 3) if rows else None,
+            verdict: len(good),
+            "success_rate": round(len(good) / len(rows), 3) if rows else None,
             "median_object_pose_error_m": median(rows, "object_pose_error_m", 6),
             "median_object_pose_error_rad": median(rows, "object_pose_error_rad", 6),
             "median_squeeze_rms_error_n": median(rows, "squeeze_rms_error_n", 6),
             "max_squeeze_peak_n": max(peaks) if peaks else None,
+            "median_peak_force_n": median(rows, "peak_force_n"),
+            "max_peak_force_n": max(forces) if forces else None,
             "min_arm_distance_m": min(
                 (r["min_arm_distance_m"] for r in rows if r["min_arm_distance_m"] is not None),
                 default=None,
@@ -127,9 +168,10 @@ def print_campaign(out: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    verdict = out["verdict"]
     t = Table(title=f"bench dual: {out['task']} ({out['object']}) over {out['transport']}")
-    for col in ("trial", "offset mm", "yaw deg", "result", "placed", "error mm", "error mrad",
-                "squeeze rms N", "squeeze peak N", "arms m"):  # fmt: skip
+    for col in ("trial", "offset mm", "yaw deg", "result", verdict, "error mm", "error mrad",
+                "squeeze rms N", "squeeze peak N", "peak force N", "arms m"):  # fmt: skip
         t.add_column(col, justify="right")
 
     def mm(v: float | None, k: float = 1e3) -> str:
@@ -139,18 +181,23 @@ def print_campaign(out: dict[str, Any]) -> None:
         off = math.hypot(*r["offset_xy_mm"])
         t.add_row(
             str(r["trial"]), f"{off:.2f}", str(r["yaw_deg"]), str(r["result"]),
-            "yes" if r["placed"] else "no", mm(r["object_pose_error_m"]),
+            "yes" if r[verdict] else "no", mm(r["object_pose_error_m"]),
             mm(r["object_pose_error_rad"]), str(r["squeeze_rms_error_n"]),
-            str(r["squeeze_peak_n"]), str(r["min_arm_distance_m"]),
+            str(r["squeeze_peak_n"]), str(r["peak_force_n"]), str(r["min_arm_distance_m"]),
         )  # fmt: skip
     console = Console()
     console.print(t)
     s = out["summary"]
-    console.print(
-        f"placed {s['placed']}/{s['trials']}; median error "
-        f"{mm(s['median_object_pose_error_m'])} mm "
+    what = (
+        f"median error {mm(s['median_object_pose_error_m'])} mm "
         f"{mm(s['median_object_pose_error_rad'])} mrad; squeeze RMS error median "
-        f"{s['median_squeeze_rms_error_n']} N, peak {s['max_squeeze_peak_n']} N; "
+        f"{s['median_squeeze_rms_error_n']} N, peak {s['max_squeeze_peak_n']} N"
+        if out["job"] == "carry"
+        else f"peak contact force median {s['median_peak_force_n']} N, "
+        f"max {s['max_peak_force_n']} N"
+    )
+    console.print(
+        f"{verdict} {s[verdict]}/{s['trials']}; {what}; "
         f"arms at least {s['min_arm_distance_m']} m apart; guard trips {s['guard_trips']}"
     )
 
@@ -163,9 +210,10 @@ def plot_campaign(out: dict[str, Any], path: str) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Circle
 
+    verdict = out["verdict"]
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 4.5))
-    for ok, colour, label in ((True, "tab:green", "placed"), (False, "tab:red", "not placed")):
-        pts = [t for t in out["trials"] if t["placed"] == ok]
+    for ok, colour, label in ((True, "tab:green", verdict), (False, "tab:red", f"not {verdict}")):
+        pts = [t for t in out["trials"] if t[verdict] == ok]
         if pts:
             ax.scatter([t["offset_xy_mm"][0] for t in pts], [t["offset_xy_mm"][1] for t in pts],
                        c=colour, label=label, s=30)  # fmt: skip
@@ -179,15 +227,21 @@ def plot_campaign(out: dict[str, Any], path: str) -> None:
     ax.set_ylabel("object offset y [mm]")
     ax.legend(loc="upper right", fontsize=8)
     ks = [t["trial"] for t in out["trials"]]
-    err = [(t["object_pose_error_m"] or math.nan) * 1e3 for t in out["trials"]]
-    sq = [t["squeeze_rms_error_n"] or math.nan for t in out["trials"]]
-    bx.plot(ks, err, "o-", label="displacement error [mm]")
-    bx.plot(ks, sq, "s-", label="squeeze RMS error [N]")
-    bx.axhline(2.0, ls=":", color="grey")
+    if out["job"] == "carry":
+        err = [(t["object_pose_error_m"] or math.nan) * 1e3 for t in out["trials"]]
+        sq = [t["squeeze_rms_error_n"] or math.nan for t in out["trials"]]
+        bx.plot(ks, err, "o-", label="displacement error [mm]")
+        bx.plot(ks, sq, "s-", label="squeeze RMS error [N]")
+        bx.axhline(2.0, ls=":", color="grey")
+    else:
+        bx.plot(ks, [t["peak_force_n"] or math.nan for t in out["trials"]], "o-",
+                label="peak contact force [N]")  # fmt: skip
+        bx.plot(ks, [t["depth_mm"] or math.nan for t in out["trials"]], "s-",
+                label="depth by the plant [mm]")  # fmt: skip
     bx.set_xlabel("trial")
     bx.legend(fontsize=8)
     s = out["summary"]
-    fig.suptitle(f"{s['placed']}/{s['trials']} placed ({out['transport']})")
+    fig.suptitle(f"{s[verdict]}/{s['trials']} {verdict} ({out['transport']})")
     fig.tight_layout()
     from redistro import files
 

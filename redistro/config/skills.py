@@ -70,6 +70,10 @@ SKILLS: dict[str, Skill] = {
 }  # fmt: skip
 
 
+# a move's rotational stiffness at most [N m/rad]
+ROT_STIFFNESS_MAX = 100.0
+
+
 def skill_of(m: Move) -> Skill:
     """The move's skill: named, or the one its scheme has always meant."""
     if m.skill:
@@ -86,6 +90,14 @@ def check_skill(m: Move, at: str) -> Skill:
         if m.goal.q_rad or m.goal.pos_xyz_rot_xyz:
             raise ConfigError(f"{at}.goal: a hold has no goal (it holds where it is)")
         return s
+    k = m.goal.stiffness_xyz_rot_xyz
+    if k and m.scheme == "joint":
+        raise ConfigError(f"{at}.goal.stiffness_xyz_rot_xyz: a joint move has no Cartesian one")
+    if k and max(k[3:]) > ROT_STIFFNESS_MAX:
+        raise ConfigError(
+            f"{at}.goal.stiffness_xyz_rot_xyz: {max(k[3:]):g} N m/rad is over "
+            f"{ROT_STIFFNESS_MAX:g} (the loop closes through two ddms: a stiffer wrist rings)"
+        )
     if s.carry and (m.goal.q_rad or m.goal.pos_xyz_rot_xyz):
         raise ConfigError(f"{at}.goal: a carry's goal is the segment's carry (give move_s only)")
     if m.scheme not in s.schemes:

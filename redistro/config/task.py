@@ -74,7 +74,11 @@ class Goal:
     force_xyz_torque_xyz: the wrench the tool applies [N, N m], task axes;
     selection_vector: per task axis, 1 force controlled, 0 position controlled;
     frame: the task frame's axes: ``world``, or ``tool`` (at segment start);
-    move_s: time to reach the goal pose (default: 3/4 of the segment).
+    move_s: time to reach the goal pose (default: 3/4 of the segment);
+    stiffness_xyz_rot_xyz: the Cartesian impedance's stiffness for this move
+        [N/m, N m/rad], world axes (default ``ssc.impedance.k``): a hand that
+        holds an object against a push stiffer than the soft default; the
+        rotation's damping scales with it (the same damping ratio).
     """
 
     q_rad: list[float] = field(default_factory=list, metadata={"len": 7})
@@ -88,6 +92,9 @@ class Goal:
     )
     frame: Literal["world", "tool"] = "world"
     move_s: float = field(default=0.0, metadata={"ge": 0, "le": 3600})
+    stiffness_xyz_rot_xyz: list[float] = field(
+        default_factory=list, metadata={"len": 6, "gt": 0, "le": 3000}
+    )
 
 
 @dataclass(frozen=True)

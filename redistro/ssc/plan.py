@@ -56,6 +56,7 @@ class MovePlan:
     follows: str = ""
     holder_pose: np.ndarray[Any, Any] | None = None
     follow_point: np.ndarray[Any, Any] | None = None
+    stiffness: tuple[float, ...] = ()  # the impedance's for this move ((): ssc.impedance.k)
 
     @property
     def ends_early(self) -> bool:
@@ -319,6 +320,7 @@ def _move(
         contact_n=m.end.contact_n,
         gripper=skill_of(m).gripper,
         where=m.where,
+        stiffness=tuple(g.stiffness_xyz_rot_xyz),
     )
 
 

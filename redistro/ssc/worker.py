@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -90,7 +91,8 @@ class RobotState:
     views: dict[str, np.ndarray[Any, Any]] = field(default_factory=dict)
     to_records: Any = None  # the law's outputs -> plan and command records
     search: SpiralSearch | None = None  # the running force segment's search
-    gains0: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(0))  # the law's own
+    gains0: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(0))  # the move's
+    gains_cfg: np.ndarray[Any, Any] = field(default_factory=lambda: np.zeros(0))  # the config's
     fast_z: float = -math.inf  # in the hole: down fast below this height ...
     slow_z: float = -math.inf  # ... to this one, then at the law's own speed
     goal_z_n: float = 0.0  # the segment's goal force along z
@@ -233,7 +235,7 @@ class SscWorker(Worker):
             st = RobotState(
                 r, model, law, offset, base, Record(FEEDBACK), Record(COMMAND), Record(PLAN)
             )
-            st.gains0 = law.gains.copy()
+            st.gains_cfg, st.gains0 = law.gains.copy(), law.gains.copy()
             self.states.append(st)
         for st in self.states:
             st.loops(self.pid)
@@ -412,7 +414,8 @@ class SscWorker(Worker):
             # carry, which holds it: learned in free space at the grasp, it
             # turned a carried bar 8 mrad too far
             carried = st.law.integral.copy() if st.cartesian and mv.skill != "carry" else None
-            st.law.gains[...] = st.gains0  # a search may have changed them
+            move_gains(st.gains0, st.gains_cfg, mv.stiffness)
+            st.law.gains[...] = st.gains0  # (a search may have changed them)
             st.law.start(cmd, p0, kin.R, mv.move_s, st.start_q, carried)
             st.cartesian = True
             st.short_move = bool(
@@ -584,6 +587,19 @@ class SscWorker(Worker):
         for k, other in enumerate(self.states):  # (their moves' clock restarts: they stop)
             if other is not st and self.moving[k] is not None:
                 self._stop(k, other)
+
+
+def move_gains(
+    into: np.ndarray[Any, Any], config: np.ndarray[Any, Any], k: Sequence[float]
+) -> None:
+    """A move's law gains (``into``): the config's, with the move's own
+    stiffness ``k`` where it gives one (6: N/m, N m/rad), the rotation's
+    damping scaled by sqrt(k / k_config) to keep its damping ratio."""
+    into[...] = config
+    if k:
+        k0, d0 = config["k"][3:], config["d"][3:]
+        into["k"][:] = k
+        into["d"][3:] = d0 * np.sqrt(into["k"][3:] / np.where(k0 > 0, k0, into["k"][3:]))
 
 
 def _follows(

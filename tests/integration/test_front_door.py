@@ -71,6 +71,7 @@ def _run_with_summary(
 
 TRY = "tests/data/moves_and_skills.yaml"
 CARRY = "tasks/dual_carry_short.yaml"
+PEG = "tasks/dual_peg.yaml"
 
 
 def _swap(task: str, old: bytes, new: bytes, count: int = -1) -> bytes:
@@ -133,6 +134,10 @@ def _inputs(tmp: Path) -> dict[str, Path]:
         ),
         "carry_one_hand": _swap(
             CARRY, b"      r2: {skill: carry, scheme: position, goal: {move_s: 1.5}}\n", b"", 1
+        ),
+        "stiff_wrist": _swap(PEG, b"1500, 40, 40, 30]}\n", b"1500, 400, 40, 30]}\n"),
+        "joint_stiffness": _swap(
+            PEG, b"scheme: position\n    duration_s: 9\n", b"scheme: joint\n    duration_s: 9\n"
         ),
         "until_alone": _swap(TRY, b"skill: hold\n", b"skill: hold\n    until: any\n"),
         "hold_with_goal": _swap(
@@ -347,6 +352,11 @@ CASES = [
         "bench dual --task carry needs a task that carries one object",
     ),
     (
+        "a bench dual of a peg insertion that inserts into no held object",
+        ["bench", "dual", "--task", "peg", "--task-file", "tasks/dual_reach.yaml"],
+        "bench dual --task peg needs a task that inserts into one held object's hole",
+    ),
+    (
         "a carry that names no object",
         ["--config", "config/dual_arm.yaml", "check", "{carry_no_object}"],
         "segments[2].carry.object: name the object the hands carry",
@@ -355,6 +365,16 @@ CASES = [
         "a carry of one hand",
         ["--config", "config/dual_arm.yaml", "check", "{carry_one_hand}"],
         "segments[2].moves: a carry is two hands' moves, both skill: carry",
+    ),
+    (
+        "a held block's wrist stiffer than the loop allows",
+        ["--config", "config/dual_peg.yaml", "check", "{stiff_wrist}"],
+        "segments[4].goal.stiffness_xyz_rot_xyz: 400 N m/rad is over 100",
+    ),
+    (
+        "a Cartesian stiffness on a joint move",
+        ["--config", "config/dual_peg.yaml", "check", "{joint_stiffness}"],
+        "segments[4].goal.stiffness_xyz_rot_xyz: a joint move has no Cartesian one",
     ),
     (
         "the plant's truth of an object the work-cell does not have",
@@ -496,9 +516,14 @@ def test_the_shipped_inputs_pass_the_front_door() -> None:
     load_hardware(cfg, ROOT / "config")
     dual = load_config(ROOT / "config/dual_arm.yaml")  # (the two-arm tasks' objects)
     load_hardware(dual, ROOT / "config")
-    two_arm = {"dual_carry.yaml", "dual_carry_short.yaml", "grasp_lift.yaml"}
+    peg = load_config(ROOT / "config/dual_peg.yaml")
+    load_hardware(peg, ROOT / "config")
+    two_arm = {
+        "dual_carry.yaml": dual, "dual_carry_short.yaml": dual, "grasp_lift.yaml": dual,
+        "dual_peg.yaml": peg, "dual_peg_short.yaml": peg,
+    }  # fmt: skip
     for task in sorted((ROOT / "tasks").glob("*.yaml")):
-        assert load_task(task, dual if task.name in two_arm else cfg).segments is not None
+        assert load_task(task, two_arm.get(task.name, cfg)).segments is not None
         if task.name in two_arm:
             with pytest.raises(ConfigError, match="no frame named"):  # (their objects)
                 load_task(task, cfg)
