@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from redistro.ssc.plan import MovePlan
     from redistro.ssc.worker import RobotState, SscWorker
 
-X, Y, Z, RZ = 0, 1, 2, 5  # Cartesian axes, in the law's 6-vectors
+X, Y, Z, RX, RY, RZ = 0, 1, 2, 3, 4, 5  # Cartesian axes, in the law's 6-vectors
 DEEP_IN = 3.0  # this many search.drop_m below the contact: in the hole for sure
 TOUCH_ABOVE_M = 0.003  # a searching descent slows to search.touch_m_s this far above the mouth
 
@@ -132,6 +132,13 @@ def _dropped_in(w: SscWorker, st: RobotState, plan: MovePlan, before: Phase, t: 
     # the yaw stays as soft as the search had it: a stiffer yaw now would
     # snap back whatever the walls turned (a jolt at the wrist)
     law.gains["k"][RZ] = srch.p.yaw_stiffness_nm_rad
+    # ... and the tilt as soft as the config has it, where the move held it
+    # stiffer for the search (a long peg's tip on the spiral): the walls
+    # guide the peg now, and a hole held by another hand tilts under the
+    # push (a stiff wrist wedged the peg 2.4 mm above the bottom)
+    for ax in (RX, RY):
+        law.gains["k"][ax] = min(law.gains["k"][ax], st.gains_cfg["k"][ax])
+        law.gains["d"][ax] = min(law.gains["d"][ax], st.gains_cfg["d"][ax])
     # the peg is falling in: free space again along z (no spring wound up,
     # no goal force fed forward), down the hole at the search's descent
     # speed to a little above its bottom as drawn (below the mouth the

@@ -98,6 +98,7 @@ class RobotState:
     goal_z_n: float = 0.0  # the segment's goal force along z
     follow: Follow | None = None  # its move follows another hand (ssc/follow.py) ...
     holder: Any = None  # ... this robot's state
+    let_go: bool = False  # its gripper opened as the last segment ended
 
     def __post_init__(self) -> None:
         fb, cmd, pl = self.fb.array, self.cmd.array, self.plan.array
@@ -392,6 +393,7 @@ class SscWorker(Worker):
 
     def _start_move(self, st: RobotState, mv: MovePlan) -> None:
         """A robot's move begins: its law or its quintic, its plan's goal."""
+        let_go, st.let_go = st.let_go, False
         q = st.views["q"].astype(np.float64)
         v = st.views
         st.pid.reset()
@@ -408,12 +410,11 @@ class SscWorker(Worker):
                 mv.selection if force else np.zeros(6),
                 "tool" if mv.frame == "tool" else "world",
             )
-            # the same robot staying under Cartesian control keeps what the
-            # integral learned (a fresh one would let the pose sag back to
-            # its uncompensated error at every segment start); not into a
-            # carry, which holds it: learned in free space at the grasp, it
-            # turned a carried bar 8 mrad too far
-            carried = st.law.integral.copy() if st.cartesian and mv.skill != "carry" else None
+            # staying Cartesian keeps the integral (else the pose sags back at
+            # each start); not into a carry (learned at the grasp: a bar turned
+            # 8 mrad off), nor once the hand let go (a jolt at the free wrist)
+            keep = st.cartesian and mv.skill != "carry" and not let_go
+            carried = st.law.integral.copy() if keep else None
             move_gains(st.gains0, st.gains_cfg, mv.stiffness)
             st.law.gains[...] = st.gains0  # (a search may have changed them)
             st.law.start(cmd, p0, kin.R, mv.move_s, st.start_q, carried)
@@ -641,6 +642,7 @@ def _grip(states: list[RobotState], moves: list[MovePlan | None], t: float, post
     for st, mv in zip(states, moves, strict=True):
         if mv is not None and mv.gripper:
             st.cmd["gripper"] = 1 if mv.gripper == "close" else 0
+            st.let_go = mv.gripper == "open"
             done = "closed" if mv.gripper == "close" else "opened"
             post(f"{st.name} {mv.skill}: gripper {done} at t={t:.2f} s")
 
