@@ -175,10 +175,13 @@ def test_a_resolved_config_and_task_come_back_equal(tmp_path: Path) -> None:
     from redistro.process.spec import NodeSpec
 
     root = Path(__file__).parents[2]
-    # (the objects of grasp_lift and dual_carry_short)
+    # (the objects of grasp_lift, dual_carry_short and dual_peg)
     block = (
         "{block: {size_xyz_m: [0.04, 0.04, 0.06], xy_m: [0.5, 0.3]}, "
-        "bar: {size_xyz_m: [0.04, 0.4, 0.06], xy_m: [0.5, 0.0], mass_kg: 2.0}}"
+        "bar: {size_xyz_m: [0.04, 0.4, 0.06], xy_m: [0.5, 0.0], mass_kg: 2.0}, "
+        "socket: {size_xyz_m: [0.05, 0.24, 0.06], xy_m: [0.45, 0.25], hole_side_m: 0.021, "
+        "hole_depth_m: 0.04, hole_at_xy_m: [0.0, -0.09]}, "
+        "peg: {size_xyz_m: [0.02, 0.02, 0.18], xy_m: [0.42, -0.28]}}"
     )
     cfg = load_config(
         root / "config" / "redistro.yaml",
