@@ -87,7 +87,7 @@ def check_skill(m: Move, at: str) -> Skill:
     """The move against its skill (else a ConfigError naming the field)."""
     s = skill_of(m)
     if s.name == "hold":
-        if m.goal.q_rad or m.goal.pos_xyz_rot_xyz:
+        if m.goal.q_rad or m.goal.pos_xyz_rot_xyz or m.goal.stiffness_xyz_rot_xyz:
             raise ConfigError(f"{at}.goal: a hold has no goal (it holds where it is)")
         return s
     k = m.goal.stiffness_xyz_rot_xyz

@@ -140,6 +140,11 @@ def _inputs(tmp: Path) -> dict[str, Path]:
             PEG, b"scheme: position\n    duration_s: 9\n", b"scheme: joint\n    duration_s: 9\n"
         ),
         "until_alone": _swap(TRY, b"skill: hold\n", b"skill: hold\n    until: any\n"),
+        "hold_stiffness": _swap(
+            TRY,
+            b"skill: hold\n",
+            b"skill: hold\n    goal: {stiffness_xyz_rot_xyz: [9, 9, 9, 9, 9, 9]}\n",
+        ),
         "hold_with_goal": _swap(
             TRY, b"skill: hold\n", b"skill: hold\n    goal: {q_rad: [0, 0, 0, 0, 0, 0, 0]}\n"
         ),
@@ -324,6 +329,11 @@ CASES = [
         "segments[1].moves.r2.end.contact_n: a guarded_move ends at contact: give the force",
     ),
     ("a hold with a goal", ["check", "{hold_with_goal}"], "segments[2].goal: a hold has no goal"),
+    (
+        "a hold with a stiffness",
+        ["check", "{hold_stiffness}"],
+        "segments[2].goal: a hold has no goal",
+    ),
     (
         "until on a segment of one robot",
         ["check", "{until_alone}"],
