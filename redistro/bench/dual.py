@@ -26,7 +26,7 @@ from typing import Any
 
 from redistro.bench.campaign import median, run_trials
 from redistro.config.model import Config, ObjectTruth
-from redistro.config.task import Task, segment_moves
+from redistro.config.task import Task, insertion_object
 from redistro.errors import ConfigError
 
 # a job's verdict, by the plant's truth
@@ -49,18 +49,13 @@ def target_object(task: Task, job: str) -> str:
     the one whose hole the insertion works at (a ConfigError when none)."""
     if job == "carry":
         return carried_object(task)
-    holes = {
-        m.goal.relative_to.split(".")[0]
-        for i, s in enumerate(task.segments)
-        for m in segment_moves(s, i)
-        if m.scheme == "force" and m.goal.relative_to.endswith(".hole")
-    }
-    if len(holes) != 1:
+    hole = insertion_object(task)
+    if not hole:
         raise ConfigError(
             f"{task.source}: bench dual --task peg needs a task that inserts into one held "
             "object's hole (a force move relative to <object>.hole)"
         )
-    return holes.pop()
+    return hole
 
 
 def trial_config(cfg: Config, name: str, radius_m: float, yaw_deg: float, seed: int) -> Config:

@@ -238,6 +238,15 @@ def segment_moves(seg: MoveSegment, i: int) -> list[Move]:
     return [Move(seg.robot, seg.scheme, seg.goal, seg.end, seg.search, where, seg.skill)]
 
 
+def insertion_object(task: Task) -> str:
+    """The object whose hole the task inserts into: its first force move's,
+    relative to ``<object>.hole`` ("": the fixture's hole, or no force move)."""
+    forces = [m for i, s in enumerate(task.segments) for m in segment_moves(s, i)
+              if m.scheme == "force"]  # fmt: skip
+    rel = forces[0].goal.relative_to if forces else ""
+    return rel.split(".")[0] if rel.endswith(".hole") else ""
+
+
 def move_s(seg: MoveSegment, m: Move) -> float:
     """How long a move takes to its goal (3/4 of its segment unless given)."""
     return m.goal.move_s or 0.75 * seg.duration_s

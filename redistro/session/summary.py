@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from redistro.config.task import Task, segment_moves
+from redistro.config.task import Task, insertion_object
 from redistro.esc.plan import task_seconds
 from redistro.process.manager import iso_time
 from redistro.process.result import EscResult, NodeResult
@@ -77,12 +77,8 @@ def _plant_depths(task: Task, plant: dict[str, Any]) -> dict[str, Any]:
     """The plant's depths for the task's insertion: into an object's hole
     (its first force move relative to ``<object>.hole``), the objects' that
     went into that hole; else the pegs' on the robots' flanges."""
-    forces = [
-        m for i, s in enumerate(task.segments) for m in segment_moves(s, i) if m.scheme == "force"
-    ]
-    rel = forces[0].goal.relative_to if forces else ""
-    if rel.endswith(".hole"):
-        hole = rel.split(".")[0]
+    hole = insertion_object(task)
+    if hole:
         got = plant.get("in_holes") or {}
         return {p: d for p, d in got.items() if d.get("hole_of") == hole}
     return dict(plant.get("pegs") or {})
