@@ -257,6 +257,7 @@ def _cpu_s() -> float:
 
 
 def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: float) -> None:
+    from redistro.ddm.record import KIND_COMMAND
     from redistro.ddm.worker import Ddm
     from redistro.localdata.block import Record
     from redistro.localdata.layout import COMMAND, FEEDBACK
@@ -310,9 +311,11 @@ def _side(kind: str, spec_path: str, out_path: str, seconds: float, end_by: floa
     if kind == "esc":
         out["command_latency_us"] = ddm.latency.summary_us()
         out["taken"] = int(ex[0]["updates"])
-        # commands a newer one overwrote on the card before this ddm read it
-        # (reflective memory keeps the latest record of each slot)
-        out["superseded"] = int(getattr(ddm.transport, "superseded", 0))
+        # this robot's commands a newer one overwrote on the card before this
+        # ddm read it (reflective memory keeps the latest record of each
+        # slot; the card holds the other robots' commands too, not counted)
+        of = getattr(ddm.transport, "superseded_of", None)
+        out["superseded"] = 0 if of is None else int(of(KIND_COMMAND, ddm.gid[spec.robots[0]]))
     # the records the ddm took whole in its transport's thread (zenoh's),
     # without a step of its own
     out["answered"] = ddm.answers.taken

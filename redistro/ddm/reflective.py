@@ -102,7 +102,8 @@ class ReflectiveTransport(Transport):
         self.peers = list(peers or [])
         self.card = Card.create_new(KINDS * MAX_ROBOTS * SLOT, manifest)
         self.seqs = [0] * (KINDS * MAX_ROBOTS)
-        self.superseded = 0  # records overwritten on the card before a receive handed them over
+        # per slot: records overwritten on the card before a receive handed them over
+        self.superseded_at = [0] * (KINDS * MAX_ROBOTS)
         self.pending: list[bytes] = []  # written this step, not yet sent (flush)
         self.check: Callable[[bytes], bool] | None = None  # (links.verify_with)
         self.links = _Links(self)
@@ -132,6 +133,15 @@ class ReflectiveTransport(Transport):
         self.card.write(record, at + 8)
         self.card.write(struct.pack("<Q", seq + 1), at)
         self.seqs[slot] = seq + 1
+
+    @property
+    def superseded(self) -> int:
+        """Records of every slot overwritten before a receive handed them over."""
+        return sum(self.superseded_at)
+
+    def superseded_of(self, kind: int, robot: int) -> int:
+        """Records of (kind, robot) overwritten before a receive handed them over."""
+        return self.superseded_at[(kind - 1) * MAX_ROBOTS + robot]
 
     def read_card(self, kind: int, robot: int) -> bytes | None:
         """The latest record of (kind, robot) on this node's card (None: never written)."""
@@ -198,7 +208,7 @@ class ReflectiveTransport(Transport):
                     slot = self._slot(rec, robot)
                     self._write_card(slot, rec)
                     if slot in written:
-                        self.superseded += 1  # (a node that fell behind reads the latest)
+                        self.superseded_at[slot] += 1  # (a node that fell behind reads the latest)
                     written[slot] = (kind, robot)
                 else:
                     out.append(rec)  # a hello

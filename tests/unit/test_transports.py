@@ -213,6 +213,27 @@ def test_reflective_cards_hold_the_latest_record() -> None:
         esc.close()
 
 
+def test_reflective_supersession_is_counted_per_slot() -> None:
+    """Another robot's commands overwritten on the card are not this robot's
+    (an ESC's card holds every robot's commands)."""
+    ssc, esc = _reflective_pair()
+    try:
+        for seq in (1, 2):
+            ssc.send(_command(seq), 0)
+        other = np.zeros((), COMMAND)
+        for seq in (1, 2, 3):
+            ssc.send(encode(KIND_COMMAND, 1, "ssc", seq, 1000 + seq, other), 1)
+        ssc.links.flush()  # two datagrams, both queued on loopback before a receive
+        got = sorted((r[7], decode(r).seq) for r in _collect(esc, 2))
+        assert got == [(0, 2), (1, 3)], got
+        assert esc.superseded_of(KIND_COMMAND, 0) == 1  # type: ignore[attr-defined]
+        assert esc.superseded_of(KIND_COMMAND, 1) == 2  # type: ignore[attr-defined]
+        assert esc.superseded == 3  # type: ignore[attr-defined]
+    finally:
+        ssc.close()
+        esc.close()
+
+
 def test_a_reflective_step_goes_out_as_one_datagram_and_never_comes_back() -> None:
     """The records a node writes in one step leave together (one datagram,
     one wake-up of each other node, up to BATCH records); its own writes do
