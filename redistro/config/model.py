@@ -258,12 +258,17 @@ class SscConfig:
     rate_hz: cycle rate [Hz] (paper: 200); heartbeat_limit_cycles: missed
     heartbeats that make a worker hung; cpus: CPUs for its processes;
     impedance, force: the Cartesian control laws; pid: joint PID of joint
-    segments and of robots that hold their pose (defaults: the ESC's).
+    segments and of robots that hold their pose (defaults: the ESC's);
+    parallel_arms: each robot's law in a worker of its own, all of them in
+    one stage that runs in parallel, the task's clock in a worker after
+    them (paper 000's parallel stages; ``redistro bench group`` measures
+    whether it pays: docs/PERFORMANCE.md).
     """
 
     rate_hz: float = field(default=200.0, metadata={"gt": 0, "le": 10000})
     heartbeat_limit_cycles: int = field(default=25, metadata={"ge": 2, "le": 100000})
     cpus: list[int] = field(default_factory=list, metadata={"ge": 0})
+    parallel_arms: bool = False
     impedance: ImpedanceConfig = field(default_factory=ImpedanceConfig)
     force: ForceControlConfig = field(default_factory=ForceControlConfig)
     pid: PidConfig = field(default_factory=PidConfig)

@@ -306,6 +306,22 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
     ]
 )
 
+SSC_CLOCK = np.dtype(  # the task's clock, when each arm's law runs in a worker of its own
+    [
+        ("cycle", "<u8"),  # the cycle whose end decided it (the arms take it in the next)
+        ("started", "u1"),  # 1: every robot reported; the task runs
+        ("t0_step", "<u8"),  # the boards' sample number at the task's start
+        ("segment", "<i4"),  # the running segment (0-based; len(segments): settling)
+        ("seg_start_t_s", "<f8"),  # when it began [s, task time]
+        ("done", "u1"),
+        ("failed", "u1"),  # 1: the task could not be done; every arm holds
+        ("fail_robot", "i1"),  # a robot whose search the segment's end found open (-1: none) ...
+        ("fail_t_s", "<f8"),  # ... then [s, task time]
+        ("arms_clearance_m", "<f8"),  # the watch's (ssc/clearance.py)
+        ("cell_clearance_m", "<f8"),
+    ]
+)
+
 # block name -> (payload dtype, count kind): "one", "proc" (per process), "robot" (per robot)
 BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
     "manager": (MANAGER, "one"),
@@ -322,6 +338,7 @@ BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
     "control": (CONTROL, "robot"),
     "guard": (GUARD, "robot"),
     "plan": (PLAN, "robot"),
+    "clock": (SSC_CLOCK, "one"),
 }
 
 SELF = "<self>"
@@ -344,6 +361,7 @@ WRITERS: dict[str, dict[str, str]] = {
     "control": {"esc": "pid"},
     "guard": {"esc": "sender"},
     "plan": {"ssc": "worker"},
+    "clock": {"ssc": "worker"},
 }
 
 

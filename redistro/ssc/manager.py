@@ -86,7 +86,9 @@ class SscManager(Manager):
             self._drain_messages()
             r = self.result
             r.result = "failed"
-            r.reason = self.last_error.get("worker", "the task could not be done")
+            errors = self.last_error  # (the worker's; in a parallel SSC, an arm's)
+            arms = [v for k, v in errors.items() if k.startswith("arm.")]
+            r.reason = errors.get("worker") or next(iter(arms), "the task could not be done")
             r.fault_monotonic_ns, r.fault_cycle = time.monotonic_ns(), cycle
         return True
 

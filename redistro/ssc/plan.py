@@ -22,6 +22,10 @@ SCHEMES = {"hold": 0, "joint": 1, "position": 2, "force": 3}
 # The logger drains the log ring the manager fills at every tick, off the
 # cycle on its own timer (log.drain_hz): nothing in the cycle waits for it.
 SSC_WORKERS = (("worker", 0), ("logger", -1), ("ddm", -1))
+# ssc.parallel_arms: a worker per robot ("arm.<robot>", each that robot's
+# law, all in stage 0, in parallel), then the worker in stage 1: the task's
+# clock (segments, end conditions, the arms' clearance) for the next cycle
+PARALLEL_WORKERS = (("worker", 1), ("logger", -1), ("ddm", -1))
 
 
 @dataclass(frozen=True)
@@ -336,7 +340,15 @@ def ssc_spec(
     """link: the id the DDMs meet on, for a node started alone (default: the session id)."""
     node_params = NodeParams(run_dir=run_dir, link=link, task_name=task.task)
     prio = cfg.scheduling.priorities
-    workers = worker_specs(cfg, SSC_WORKERS, {}, cfg.ssc.rate_hz)
+    if cfg.ssc.parallel_arms:
+        arms = worker_specs(cfg, tuple(("worker", 0) for _ in task.robots), {}, cfg.ssc.rate_hz)
+        for i, (w, r) in enumerate(zip(arms, task.robots, strict=True)):
+            w.name, w.params = f"arm.{r}", {"arm": i}
+        rest = worker_specs(cfg, PARALLEL_WORKERS, {}, cfg.ssc.rate_hz)
+        rest[0].params = {"lead": True}
+        workers = arms + rest
+    else:
+        workers = worker_specs(cfg, SSC_WORKERS, {}, cfg.ssc.rate_hz)
     return NodeSpec(
         session_id=session_id,
         node="ssc",

@@ -51,6 +51,7 @@ from redistro.localdata.layout import COMMAND, FEEDBACK, PLAN, SessionStatus
 from redistro.process import hooks
 from redistro.process.worker import Worker
 from redistro.robotmodel import PLATE, Peg
+from redistro.ssc import parallel
 from redistro.ssc.carry import CarryRun, carry_moves
 from redistro.ssc.clearance import ClearanceWatch
 from redistro.ssc.follow import Follow
@@ -196,29 +197,7 @@ class SscWorker(Worker):
         self.plans: list[SegmentPlan] = segment_plans(task, cfg)
         self.robots = list(self.spec.robots)
         self.physics_hz = cfg.plant.physics_hz
-        imp = cfg.ssc.impedance
-        self.gains = ImpedanceGains(
-            k=f64(imp.k),
-            d=f64(imp.d),
-            ki=f64(imp.ki),
-            i_max=f64(imp.i_max),
-            k_null=f64(imp.k_null),
-            d_joint=f64(imp.d_joint),
-            zeta=imp.zeta,
-        )
-        fc = cfg.ssc.force
-        self.force = ForceParams(
-            k_adm=fc.k_adm,
-            k_adm_rot=fc.k_adm_rot,
-            v_max=fc.v_max,
-            w_max=fc.w_max,
-            a_max=fc.a_max,
-            alpha_max=fc.alpha_max,
-            contact_n=fc.contact_n,
-            ramp_s=fc.ramp_s,
-        )
-        p = cfg.ssc.pid
-        self.pid = PidGains(f64(p.kp), f64(p.ki), f64(p.kd), f64(p.i_max_nm))
+        self.gains, self.force, self.pid = _law_params(cfg)
         peg = cfg.workcell.peg
         ld = self.ld
         n = len(self.robots)
@@ -267,32 +246,41 @@ class SscWorker(Worker):
         self.qs = [st.views["q"] for st in self.states]
         make = hooks.factory("ssc_hooks")
         self.hooks = make(self.spec.node) if make else None
+        # the robots whose laws this process runs (all; an arm worker its own),
+        # and its part in a parallel SSC (ssc/parallel.py; none in a serial one)
+        self.mine = list(range(n))
+        self.narrates = True  # it says what the task does (an arm worker only its own arm)
+        self.fail_robot, self.fail_t = -1, 0.0  # the last _fail's robot and time
+        self.arm, self.lead = parallel.parts(self, _grip, RETREAT_S + RETREAT_HOLD_S)
 
     # -- the cycle --
 
     def step(self, cycle: int) -> None:
-        fbs = self.fbs
-        for block, rec in zip(self.fb_blocks, fbs, strict=True):
-            block.read_into(rec.bytes)
-        if not all(rec["seq_src"] for rec in fbs):
+        if self.lead is not None:
+            self.lead.step(cycle)  # the task's clock, after the arms' laws
+            return
+        if not self.read_feedback():
             return  # the datum: not every robot has reported yet
-        step_now = max(rec["step"] for rec in fbs)
-        if not self.started:
-            self.started = True
-            self.t0_step = step_now
-            for st in self.states:
-                st.hold_q[...] = st.views["q"]
-            self.post(f"every robot reported; task starts ({len(self.plans)} segments)")
-            self._begin(0, 0.0)
+        step_now = max(rec["step"] for rec in self.fbs)
+        arm = self.arm
+        if arm is not None:
+            if not arm.take():
+                return  # (the task's clock has not started it)
+        elif not self.started:
+            self.start_task(step_now)
         t = (step_now - self.t0_step) / self.physics_hz
         dt = max(0.0, t - self.last_t)
         self.last_t = t
-        if not self.estop_request:
-            self._clearance(t)
-        arms_m, cell_m = self.watch.arms_m, self.watch.cell_m
+        if arm is None:
+            if not self.estop_request:
+                self._clearance(t)
+            arms_m, cell_m = self.watch.arms_m, self.watch.cell_m
+        else:
+            arms_m, cell_m = arm.clearance()
         if self.hooks is not None:
             self.hooks.steer(self.states, dt)
-        self._advance(t)
+        if arm is None:
+            self._advance(t)
         seg_t = t - self.seg_start_t
         law_t = t - self.law_start_t
         status = SessionStatus.FINISHED if self.done else SessionStatus.IN_PROGRESS
@@ -301,7 +289,8 @@ class SscWorker(Worker):
         failed = 1 if self.failed else 0
         now = time.monotonic_ns()
         self.produced += 1
-        for i, st in enumerate(self.states):
+        for i in self.mine:
+            st = self.states[i]
             pl = st.plan
             pl["stamp_ns"] = now
             pl["cycle"] = cycle
@@ -324,13 +313,29 @@ class SscWorker(Worker):
             self.plan_blocks[i].publish(pl.bytes)
         # every robot's command at once, then one wake of the ddm: it sends
         # them together (a wake per robot cost the ddm a whole step each)
-        for i, st in enumerate(self.states):
-            c = st.cmd
+        for i in self.mine:
+            c = self.states[i].cmd
             c["stamp_ns"] = time.monotonic_ns()
             c["seq_src"] = self.produced
             c["session_status"] = status
             self.cmd_blocks[i].publish(c.bytes)
-        self.wake_ddm()
+        if arm is None:
+            self.wake_ddm()  # (in a parallel SSC the clock's worker, once every arm's is out)
+
+    def read_feedback(self) -> bool:
+        """Every robot's feedback into its record; whether each has reported."""
+        for block, rec in zip(self.fb_blocks, self.fbs, strict=True):
+            block.read_into(rec.bytes)
+        return all(rec["seq_src"] for rec in self.fbs)
+
+    def start_task(self, step_now: int) -> None:
+        """Every robot reported: the task's clock starts at this sample."""
+        self.started = True
+        self.t0_step = step_now
+        for st in self.states:
+            st.hold_q[...] = st.views["q"]
+        self.post(f"every robot reported; task starts ({len(self.plans)} segments)")
+        self._begin(0, 0.0)
 
     def _clearance(self, t: float) -> None:
         """Ask for the group's e-stop when a measured arm comes within TRIP_M
@@ -363,7 +368,8 @@ class SscWorker(Worker):
                 st.pid.reset()
                 st.cartesian = False
                 st.hold_plan()
-            self.post(f"every segment done at t={t:.2f} s; settling {self.settle_s} s")
+            if self.narrates:
+                self.post(f"every segment done at t={t:.2f} s; settling {self.settle_s} s")
             return
         plan = self.plans[k]
         self.seg_moves = [plan.move_of(st.name) for st in self.states]
@@ -379,9 +385,10 @@ class SscWorker(Worker):
                 st.cartesian = False
                 st.hold_plan()
             else:
-                self._start_move(st, mv)
-        moves = ", ".join(f"{m.robot} {m.scheme}" for m in plan.moves) or "every robot holds"
-        self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {moves}")
+                _start_move(st, mv, self.states)
+        if self.narrates:
+            moves = ", ".join(f"{m.robot} {m.scheme}" for m in plan.moves) or "every robot holds"
+            self.post(f"segment {k + 1}/{len(self.plans)} {plan.name}: {moves}")
 
     def _carry_run(self, plan: SegmentPlan) -> CarryRun:
         """A carry: from where the carry before it left the hands (its goals),
@@ -390,61 +397,6 @@ class SscWorker(Worker):
         kins = [st.model.kinematics(st.views["q"].astype(np.float64)) for st in sts]
         k = self.k_trans
         return CarryRun(plan, kins, min(k[0], k[1]), k[2], self.carry)
-
-    def _start_move(self, st: RobotState, mv: MovePlan) -> None:
-        """A robot's move begins: its law or its quintic, its plan's goal."""
-        let_go, st.let_go = st.let_go, False
-        q = st.views["q"].astype(np.float64)
-        v = st.views
-        st.pid.reset()
-        st.start_q = q.copy()
-        kin = st.model.kinematics(q)
-        p0 = _follows(st, mv, self.states, kin.p)  # (following: its TCP in the plan's frame)
-        st.plan["scheme"] = SCHEMES[mv.scheme]
-        v["q_goal"][...] = mv.q_goal
-        if mv.scheme in ("position", "force"):
-            force = mv.scheme == "force"
-            cmd = TaskFrameCommand(
-                mv.pose,
-                mv.force,
-                mv.selection if force else np.zeros(6),
-                "tool" if mv.frame == "tool" else "world",
-            )
-            # staying Cartesian keeps the integral (else the pose sags back at
-            # each start); not into a carry (learned at the grasp: a bar turned
-            # 8 mrad off), nor once the hand let go (a jolt at the free wrist)
-            keep = st.cartesian and mv.skill != "carry" and not let_go
-            carried = st.law.integral.copy() if keep else None
-            move_gains(st.gains0, st.gains_cfg, mv.stiffness)
-            st.law.gains[...] = st.gains0  # (a search may have changed them)
-            st.law.start(cmd, p0, kin.R, mv.move_s, st.start_q, carried)
-            st.cartesian = True
-            st.short_move = bool(
-                np.linalg.norm(cmd.goal_p - p0) < 0.002
-                and np.linalg.norm(matrix_to_rotvec(cmd.goal_R @ kin.R.T)) < 0.01
-            )
-            v["goal"][...] = mv.pose[:3]
-            v["goal_rot"][...] = mv.pose[3:]
-            v["wrench_goal"][...] = mv.force if force else 0.0
-            v["selection"][...] = mv.selection if force else 0
-            st.plan["phase"] = Phase.NONE
-            st.search = None
-            if force and mv.search.pattern == "spiral":
-                st.search = SpiralSearch(mv.search, mv.mouth_z_m)
-                st.goal_z_n = float(mv.force[2])
-                st.plan["phase"] = Phase.DESCENT
-                st.plan["search_m"] = 0.0
-                v["search_xy"][...] = 0.0
-        else:
-            st.cartesian = False
-            st.quintic.start(st.start_q, mv.q_goal, mv.move_s)
-            goal = st.model.kinematics(mv.q_goal)
-            v["goal"][...] = goal.p
-            v["goal_rot"][...] = matrix_to_rotvec(goal.R)
-            v["wrench_task"][...] = 0.0
-            v["wrench_goal"][...] = 0.0
-            v["selection"][...] = 0
-            st.plan["contact"] = 0
 
     def _advance(self, t: float) -> None:
         if self.done:
@@ -461,15 +413,9 @@ class SscWorker(Worker):
                 self._begin(len(self.plans), t)  # lifted off: hold, then end
         elif seg_t >= plan.duration_s or self._ended_early(plan, t):
             for st, mv in zip(self.states, self.moving, strict=True):
-                srch = st.search
-                if mv is None or srch is None:
-                    continue
-                if srch.phase in (Phase.DESCENT, Phase.SETTLE, Phase.SEARCH):
-                    st.law.gains[...] = st.gains0
-                    srch.phase = Phase.NOT_FOUND
-                    st.plan["phase"] = Phase.NOT_FOUND
+                if mv is not None and search_open(st, self.lead is not None):
                     why = f"hole not found within the segment's {plan.duration_s:g} s"
-                    self._fail(st, mv, t, why)
+                    self._fail(st, mv, t, why, closing=True)
                     return
             _grip(self.states, self.seg_moves, t, self.post)
             self._begin(self.k + 1, t)
@@ -564,13 +510,20 @@ class SscWorker(Worker):
         v["q_cmd"][...] = q
         st.plan["contact"] = 1 if law.contact else 0
 
-    def _fail(self, st: RobotState, plan: MovePlan, t: float, why: str) -> None:
-        """The task cannot be done (the search found no hole): the robot lifts
-        its tool straight up to the segment's start height under position
-        control (off the surface it pressed, so that the next session starts
-        free), every other robot holds, then the task ends ``failed``."""
+    def _fail(
+        self, st: RobotState, plan: MovePlan, t: float, why: str, closing: bool = False
+    ) -> None:
+        """The task cannot be done (the search found no hole; ``closing``: its
+        segment ended with the search still open): the robot lifts its tool
+        straight up to the segment's start height under position control (off
+        the surface it pressed, so that the next session starts free), every
+        other robot holds, then the task ends ``failed``."""
+        if closing:
+            close_search(st)
         self.failed = f"{plan.name}: {why}"
-        self.post(f"{self.failed}; the tool lifts off and the task stops", logging.ERROR)
+        self.fail_robot, self.fail_t = self.states.index(st), t
+        if self.narrates or not closing:  # (an arm worker: the clock's worker said it)
+            self.post(f"{self.failed}; the tool lifts off and the task stops", logging.ERROR)
         q = st.views["q"].astype(np.float64)
         kin = st.model.kinematics(q)
         lift = np.concatenate(
@@ -588,6 +541,109 @@ class SscWorker(Worker):
         for k, other in enumerate(self.states):  # (their moves' clock restarts: they stop)
             if other is not st and self.moving[k] is not None:
                 self._stop(k, other)
+
+
+def _start_move(st: RobotState, mv: MovePlan, states: list[RobotState]) -> None:
+    """A robot's move begins: its law or its quintic, its plan's goal."""
+    let_go, st.let_go = st.let_go, False
+    q = st.views["q"].astype(np.float64)
+    v = st.views
+    st.pid.reset()
+    st.start_q = q.copy()
+    kin = st.model.kinematics(q)
+    p0 = _follows(st, mv, states, kin.p)  # (following: its TCP in the plan's frame)
+    st.plan["scheme"] = SCHEMES[mv.scheme]
+    v["q_goal"][...] = mv.q_goal
+    if mv.scheme in ("position", "force"):
+        force = mv.scheme == "force"
+        cmd = TaskFrameCommand(
+            mv.pose,
+            mv.force,
+            mv.selection if force else np.zeros(6),
+            "tool" if mv.frame == "tool" else "world",
+        )
+        # staying Cartesian keeps the integral (else the pose sags back at
+        # each start); not into a carry (learned at the grasp: a bar turned
+        # 8 mrad off), nor once the hand let go (a jolt at the free wrist)
+        keep = st.cartesian and mv.skill != "carry" and not let_go
+        carried = st.law.integral.copy() if keep else None
+        move_gains(st.gains0, st.gains_cfg, mv.stiffness)
+        st.law.gains[...] = st.gains0  # (a search may have changed them)
+        st.law.start(cmd, p0, kin.R, mv.move_s, st.start_q, carried)
+        st.cartesian = True
+        st.short_move = bool(
+            np.linalg.norm(cmd.goal_p - p0) < 0.002
+            and np.linalg.norm(matrix_to_rotvec(cmd.goal_R @ kin.R.T)) < 0.01
+        )
+        v["goal"][...] = mv.pose[:3]
+        v["goal_rot"][...] = mv.pose[3:]
+        v["wrench_goal"][...] = mv.force if force else 0.0
+        v["selection"][...] = mv.selection if force else 0
+        st.plan["phase"] = Phase.NONE
+        st.search = None
+        if force and mv.search.pattern == "spiral":
+            st.search = SpiralSearch(mv.search, mv.mouth_z_m)
+            st.goal_z_n = float(mv.force[2])
+            st.plan["phase"] = Phase.DESCENT
+            st.plan["search_m"] = 0.0
+            v["search_xy"][...] = 0.0
+    else:
+        st.cartesian = False
+        st.quintic.start(st.start_q, mv.q_goal, mv.move_s)
+        goal = st.model.kinematics(mv.q_goal)
+        v["goal"][...] = goal.p
+        v["goal_rot"][...] = matrix_to_rotvec(goal.R)
+        v["wrench_task"][...] = 0.0
+        v["wrench_goal"][...] = 0.0
+        v["selection"][...] = 0
+        st.plan["contact"] = 0
+
+
+def _law_params(cfg: Any) -> tuple[ImpedanceGains, ForceParams, PidGains]:
+    """The config's Cartesian law gains, force control and joint PID."""
+    imp = cfg.ssc.impedance
+    gains = ImpedanceGains(
+        k=f64(imp.k),
+        d=f64(imp.d),
+        ki=f64(imp.ki),
+        i_max=f64(imp.i_max),
+        k_null=f64(imp.k_null),
+        d_joint=f64(imp.d_joint),
+        zeta=imp.zeta,
+    )
+    fc = cfg.ssc.force
+    force = ForceParams(
+        k_adm=fc.k_adm,
+        k_adm_rot=fc.k_adm_rot,
+        v_max=fc.v_max,
+        w_max=fc.w_max,
+        a_max=fc.a_max,
+        alpha_max=fc.alpha_max,
+        contact_n=fc.contact_n,
+        ramp_s=fc.ramp_s,
+    )
+    p = cfg.ssc.pid
+    pid = PidGains(f64(p.kp), f64(p.ki), f64(p.kd), f64(p.i_max_nm))
+    return gains, force, pid
+
+
+OPEN = (Phase.DESCENT, Phase.SETTLE, Phase.SEARCH)
+
+
+def search_open(st: RobotState, by_plan: bool) -> bool:
+    """Whether the robot's search is still looking for the hole (``by_plan``:
+    as its plan record says, where its law runs in another process)."""
+    if by_plan:
+        return int(st.plan["phase"]) in OPEN
+    return st.search is not None and st.search.phase in OPEN
+
+
+def close_search(st: RobotState) -> None:
+    """The robot's search ends, the hole not found: the law's own gains back."""
+    st.law.gains[...] = st.gains0
+    if st.search is not None:
+        st.search.phase = Phase.NOT_FOUND
+    st.plan["phase"] = Phase.NOT_FOUND
 
 
 def move_gains(

@@ -167,14 +167,23 @@ def test_a_gripper_picks_the_block_up_and_sets_it_down(calibrated: Path, tmp_pat
 CARRY_TASK = str(ROOT / "tasks/dual_carry_short.yaml")
 
 
-def test_two_hands_carry_one_bar(calibrated: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("parallel", [False, True], ids=["serial", "parallel"])
+def test_two_hands_carry_one_bar(calibrated: Path, tmp_path: Path, parallel: bool) -> None:
     """A closed chain: both grippers on one 2 kg bar, lifted, carried 0.2 m
     while turned 30 degrees, set down: the plant's bar moved by what the
-    task commanded from where it really was, squeezed at 10 N throughout."""
+    task commanded from where it really was, squeezed at 10 N throughout.
+    Parallel: each arm's law in a worker of its own (ssc.parallel_arms),
+    the task's clock in a worker after them."""
     from redistro.log.mcapfile import read_log
 
-    out = _session(calibrated, tmp_path, CARRY_TASK, *DUAL)
+    options = [*DUAL, "--set", f"ssc.parallel_arms={str(parallel).lower()}"]
+    out = _session(calibrated, tmp_path, CARRY_TASK, *options)
     summary = load_json(out / "summary.json")
+    workers = [w["name"] for w in summary["nodes"]["ssc"]["workers"]]
+    want = ["arm.r1", "arm.r2", "worker"] if parallel else ["worker"]
+    assert workers == [*want, "logger", "ddm"], workers
+    messages = (out / "messages.log").read_text()
+    assert messages.count("segment 4/") == 1, messages  # (said once, by the clock's worker)
     plant = summary["plant"]
     events = sorted((e["robot"], e["closed"], e["took"]) for e in plant["grippers"])
     assert events == [

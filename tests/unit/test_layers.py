@@ -185,3 +185,26 @@ def test_controller_nodes_get_no_plant_truth() -> None:
         assert seen.plant.encoder_disturbance_rad == {} and seen.plant.ft_bias == {}, spec.node
         assert seen.plant.physics_hz == cfg.plant.physics_hz  # the boards' rate stays
         assert seen.workcell == cfg.workcell  # what it believes: the drawn work-cell
+
+
+def test_a_parallel_ssc_runs_each_arm_in_one_stage_and_the_clock_after() -> None:
+    """ssc.parallel_arms: a worker per robot in stage 0 (they run in
+    parallel), each owning its robot, then the clock's worker in stage 1."""
+    from redistro.config import load_config
+    from redistro.config.task import load_task
+    from redistro.ssc.plan import ssc_spec
+
+    root = PACKAGE.parent
+    for parallel, names, stages in (
+        (False, ["worker"], [[0]]),
+        (True, ["arm.r1", "arm.r2", "worker"], [[0, 1], [2]]),
+    ):
+        cfg = load_config(root / "config" / "redistro.yaml", [f"ssc.parallel_arms={parallel}"])
+        task = load_task(root / "tasks" / "peg_insertion_short.yaml", cfg)
+        spec = ssc_spec(cfg, task, "s", run_dir="")
+        assert [w.name for w in spec.workers] == [*names, "logger", "ddm"]
+        assert spec.stages() == stages
+        assert all(w.role == "worker" for w in spec.workers[: len(names)])
+        params = [w.params for w in spec.workers]
+        want = [{"arm": 0}, {"arm": 1}, {"lead": True}] if parallel else [{}]
+        assert params == [*want, {}, {}]
