@@ -18,6 +18,7 @@ KIND_HEADER = 2
 KIND_END = 3
 
 # how the channels are encoded (redistro.log.schema makes the definitions)
-SCHEMA_ENCODING = "ros1msg"
-MESSAGE_ENCODING = "ros1"
+SCHEMA_ENCODING = "ros2msg"
+MESSAGE_ENCODING = "cdr"
+CDR_HEADER = b"\x00\x01\x00\x00"  # (as redistro.log.schema's)
 JSON_SCHEMA = b'{"type": "object"}'

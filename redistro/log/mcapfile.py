@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from redistro.log.frames import MESSAGE_ENCODING
-from redistro.log.schema import dtype_from_ros1
+from redistro.log.frames import CDR_HEADER, MESSAGE_ENCODING
+from redistro.log.schema import cdr_dtype, dtype_from_msg
 
 log = logging.getLogger(__name__)
 
@@ -157,11 +157,16 @@ def read_log(path: Path) -> SessionLog:
             for schema, channel, msg in reader.iter_messages(log_time_order=True):
                 topic = channel.topic
                 out.counts[topic] = out.counts.get(topic, 0) + 1
+                if channel.message_encoding not in (MESSAGE_ENCODING, "json"):
+                    raise ValueError(
+                        f"{topic}: {channel.message_encoding!r} messages, not a log of this "
+                        f"redistro (its channels are ROS 2 CDR)"
+                    )
                 if channel.message_encoding == MESSAGE_ENCODING and schema is not None:
                     if topic not in dtypes:
                         text = schema.data.decode()
                         out.schemas[topic] = text
-                        dtypes[topic] = dtype_from_ros1(text)
+                        dtypes[topic] = dtype_from_msg(text)
                     chunks.setdefault(topic, []).append(msg.data)
                     times.setdefault(topic, []).append(msg.log_time)
                 else:
@@ -182,10 +187,17 @@ def read_log(path: Path) -> SessionLog:
         raise ValueError(f"{path}: not a readable session log ({text})") from exc
     for topic, parts in chunks.items():
         dt = dtypes[topic]
+        wire = cdr_dtype(dt)
         blob = b"".join(parts)
-        if len(blob) != dt.itemsize * len(parts):
+        if len(blob) != wire.itemsize * len(parts) or any(
+            p[:4] != CDR_HEADER for p in (parts[0], parts[-1])
+        ):
             raise ValueError(f"{path}: {topic}: messages do not match their schema")
-        out.arrays[topic] = np.frombuffer(blob, dt)
+        got = np.frombuffer(blob, wire)
+        packed = np.empty(len(parts), dt)
+        for name in dt.names or ():
+            packed[name] = got[name]
+        out.arrays[topic] = packed
         out.log_times[topic] = np.asarray(times[topic], dtype=np.int64)
     return out
 

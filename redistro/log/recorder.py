@@ -80,6 +80,7 @@ class Channel:
     topic: str
     dtype: np.dtype[Any]  # the message: log_cycle, then the block's fields
     offset: int  # of the block's payload in the frame payload
+    block: str = ""  # the Local Data block's name
 
     @property
     def size(self) -> int:
@@ -104,7 +105,7 @@ class CycleRecorder:
         n = len(spec.workers)
         self.layout = RingLayout.of(topics, n)
         self.channels = [
-            Channel(topic, schema.with_cycle(BLOCKS[name][0]), at)
+            Channel(topic, schema.with_cycle(BLOCKS[name][0]), at, name)
             for (topic, name, _i), (_n, _x, at, _size) in zip(
                 topics, self.layout.blocks, strict=True
             )
@@ -189,8 +190,9 @@ class CycleRecorder:
             "channels": [
                 {
                     "topic": c.topic,
-                    "schema": "redistro/" + c.topic.strip("/").replace("/", "_"),
-                    "definition": schema.ros1_definition(c.dtype),
+                    "schema": schema.type_name(c.block),
+                    "definition": schema.msg_definition(c.dtype),
+                    "runs": schema.cdr_runs(c.dtype),
                     "offset": c.offset,
                     "size": c.size,
                 }
@@ -198,8 +200,9 @@ class CycleRecorder:
             ],
             "timing": {
                 "topic": f"/{self.node}/timing",
-                "schema": f"redistro/{self.node}_timing",
-                "definition": schema.ros1_definition(self.timing_dtype),
+                "schema": schema.type_name(f"timing{len(self.names)}"),
+                "definition": schema.msg_definition(self.timing_dtype),
+                "format": schema.cdr_struct(self.timing_dtype),
                 "rows_offset": self.layout.rows_offset,
                 "row_size": PROC_STATUS.itemsize,
                 "fields": {

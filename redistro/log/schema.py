@@ -1,12 +1,16 @@
-"""Message layouts of the session log, as numpy dtypes and ROS 1 message definitions.
+"""Message layouts of the session log, as numpy dtypes and ROS 2 message definitions.
 
-A per-cycle message is a little-endian packed record: ``uint64 log_cycle`` then
-the payload of a Local Data block (its dtype is packed already, so the raw
-block bytes *are* the message body). That is exactly the ROS 1 wire
-encoding of a message whose fields are those of the dtype in order (fixed
-arrays carry no length), so standard robotics log viewers decode the file
-with the ``ros1msg`` schema written beside each channel, and our own reader
-turns a whole channel into one numpy array with :func:`dtype_from_ros1`.
+A per-cycle message is ``uint64 log_cycle`` then the payload of a Local Data
+block, as a ROS 2 message whose fields are those of the block's dtype in
+order (fixed arrays carry no length; a text field is a ``uint8`` array):
+CDR-encoded, as ROS 2 puts it on the wire and rosbag2 in its MCAP files
+(the 4-byte encapsulation header, little-endian, then each field aligned
+to its element's size from the header's end). The blocks are packed, so
+the writer inserts the alignment's padding (:func:`cdr_runs`, worked out
+once here: the writer process has no numpy), and our reader turns a whole
+channel back into one packed numpy array (:func:`cdr_dtype`). Each
+channel's ``ros2msg`` schema is written beside it: standard robotics
+tools decode the file without redistro.
 """
 
 from __future__ import annotations
@@ -15,8 +19,10 @@ from typing import Any
 
 import numpy as np
 
-# numpy scalar code -> ROS 1 primitive
-_ROS1 = {
+CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little-endian: the encapsulation ROS 2 uses
+
+# numpy scalar code -> ROS 2 primitive
+_ROS = {
     "u1": "uint8",
     "i1": "int8",
     "u2": "uint16",
@@ -28,7 +34,7 @@ _ROS1 = {
     "f4": "float32",
     "f8": "float64",
 }
-_NUMPY = {v: k for k, v in _ROS1.items()}
+_NUMPY = {v: k for k, v in _ROS.items()}
 
 CYCLE_FIELD = ("log_cycle", "<u8")  # the recording node's cycle
 
@@ -42,8 +48,8 @@ def with_cycle(payload: np.dtype[Any]) -> np.dtype[Any]:
     return np.dtype([CYCLE_FIELD, *[(n, fields[n][0]) for n in payload.names]])
 
 
-def ros1_definition(dtype: np.dtype[Any]) -> str:
-    """The ROS 1 message definition of a packed structured dtype."""
+def msg_definition(dtype: np.dtype[Any]) -> str:
+    """The ROS 2 message definition (``.msg``) of a packed structured dtype."""
     lines = []
     fields = dtype.fields
     assert fields is not None and dtype.names is not None
@@ -57,15 +63,15 @@ def ros1_definition(dtype: np.dtype[Any]) -> str:
         if len(shape) > 1:
             raise ValueError(f"field {name}: only flat arrays can be logged")
         code = f"{base.kind}{base.itemsize}"
-        if code not in _ROS1:
-            raise ValueError(f"field {name}: no ROS 1 type for {base}")
+        if code not in _ROS:
+            raise ValueError(f"field {name}: no ROS 2 type for {base}")
         suffix = f"[{shape[0]}]" if shape else ""
-        lines.append(f"{_ROS1[code]}{suffix} {name}")
+        lines.append(f"{_ROS[code]}{suffix} {name}")
     return "\n".join(lines) + "\n"
 
 
-def dtype_from_ros1(text: str) -> np.dtype[Any]:
-    """The packed numpy dtype of a ROS 1 definition written by :func:`ros1_definition`."""
+def dtype_from_msg(text: str) -> np.dtype[Any]:
+    """The packed numpy dtype of a definition written by :func:`msg_definition`."""
     fields: list[tuple[str, Any]] = []
     for raw in text.splitlines():
         line = raw.split("#", 1)[0].strip()
@@ -99,3 +105,75 @@ def timing_dtype(n_procs: int) -> np.dtype[Any]:
             ("state", "u1", (n_procs,)),
         ]
     )
+
+
+def type_name(name: str) -> str:
+    """A ROS 2 type name for a log channel's message: ``redistro/msg/`` and
+    ``name`` in CamelCase (``feedback`` -> ``redistro/msg/Feedback``)."""
+    parts = name.replace(".", "_").replace("/", "_").split("_")
+    return "redistro/msg/" + "".join(p[:1].upper() + p[1:] for p in parts if p)
+
+
+def _aligns(dtype: np.dtype[Any]) -> list[tuple[str, int, int, int]]:
+    """Per field of a packed dtype: name, offset, size, CDR alignment."""
+    fields = dtype.fields
+    assert fields is not None and dtype.names is not None
+    out = []
+    for name in dtype.names:
+        ft, off = fields[name][0], int(fields[name][1])
+        base = ft.subdtype[0] if ft.subdtype else ft
+        out.append((name, off, int(ft.itemsize), 1 if base.kind == "S" else int(base.itemsize)))
+    return out
+
+
+def cdr_runs(dtype: np.dtype[Any]) -> list[tuple[int, int, int]]:
+    """How a packed message becomes its CDR body: (offset in the packed
+    message, bytes, zero bytes of padding before them), contiguous fields
+    merged (the header goes first, not counted here)."""
+    runs: list[list[int]] = []
+    at = 0  # in the CDR body
+    for _name, off, size, align in _aligns(dtype):
+        pad = -at % align
+        if runs and pad == 0 and runs[-1][0] + runs[-1][1] == off:
+            runs[-1][1] += size
+        else:
+            runs.append([off, size, pad])
+        at += pad + size
+    return [(a, b, c) for a, b, c in runs]
+
+
+def cdr_dtype(dtype: np.dtype[Any]) -> np.dtype[Any]:
+    """The dtype of a whole CDR message (header included) of a packed dtype's
+    fields: each field at its aligned place."""
+    names, formats, offsets = [], [], []
+    fields = dtype.fields
+    assert fields is not None
+    at = 0
+    for name, _off, size, align in _aligns(dtype):
+        at += -at % align
+        names.append(name)
+        formats.append(fields[name][0])
+        offsets.append(len(CDR_HEADER) + at)
+        at += size
+    return np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, "itemsize": len(CDR_HEADER) + at}
+    )
+
+
+_STRUCT = {"u1": "B", "i1": "b", "u2": "H", "i2": "h", "u4": "I", "i4": "i", "u8": "Q", "i8": "q"}
+_STRUCT.update({"f4": "f", "f8": "d"})
+
+
+def cdr_struct(dtype: np.dtype[Any]) -> str:
+    """The ``struct`` format of a packed dtype's CDR body (header excluded;
+    numeric fields only), padding included: for a writer without numpy."""
+    out, at = "<", 0
+    for name, _off, size, align in _aligns(dtype):
+        pad = -at % align
+        out += f"{pad}x" if pad else ""
+        ft = dtype.fields[name][0]  # type: ignore[index]
+        base, shape = ft.subdtype if ft.subdtype else (ft, ())
+        count = int(np.prod(shape)) if shape else 1
+        out += f"{count if shape else ''}{_STRUCT[f'{base.kind}{base.itemsize}']}"
+        at += pad + size
+    return out

@@ -19,7 +19,7 @@ import struct
 import time
 from typing import IO, Any
 
-from redistro.log.frames import FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
+from redistro.log.frames import CDR_HEADER, FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
 
 CHUNK_BYTES = 256 * 1024
 PACE_S = 0.01  # after a read that emptied the pipe, the next waits this long
@@ -117,7 +117,8 @@ class _McapSink:
         self.out = out
         self.writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self.writer.start(profile="", library="redistro")
-        self.cuts: list[tuple[int, int, int]] = []  # channel id, offset, size
+        # channel id, offset, size, and the CDR body's runs: (from, to, padding before)
+        self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]]]] = []
         self.timing: Timing | None = None
         self.json_schema = self.writer.register_schema("redistro/Event", "jsonschema", JSON_SCHEMA)
         self.json_channels: dict[str, int] = {}
@@ -137,7 +138,8 @@ class _McapSink:
             if ch is header["timing"]:
                 self.timing = Timing(header, cid)
             else:
-                self.cuts.append((cid, int(ch["offset"]), int(ch["size"])))
+                runs = [(int(a), int(a) + int(n), bytes(int(p))) for a, n, p in ch["runs"]]
+                self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs))
         skip = ("channels", "meta", "timing", "frame")
         node = {k: v for k, v in header.items() if k not in skip}
         w.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
@@ -152,8 +154,9 @@ class _McapSink:
         w = self.writer
         cycle_bytes = body[0:8]
         seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
-        for cid, off, n in self.cuts:
-            w.add_message(cid, log_ns, cycle_bytes + body[off : off + n], log_ns, seq)
+        for cid, off, n, runs in self.cuts:
+            data = cdr_message(cycle_bytes + body[off : off + n], runs)
+            w.add_message(cid, log_ns, data, log_ns, seq)
         w.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
         self.messages += len(self.cuts) + 1
         self.frames += 1
@@ -189,7 +192,8 @@ class Timing:
         self.fields = {name: (int(off), _code(code)) for name, (off, code) in t["fields"].items()}
         # log_cycle, tick_due_ns, tick_late_us, then per process: heartbeat
         # cycle, lateness, busy time, overruns, skipped, state
-        self.out = struct.Struct(f"<Qqf{n}Q{n}f{n}f{n}I{n}I{n}B")
+        # (in the CDR body's layout, its padding included)
+        self.out = struct.Struct(t["format"])
         self.states = [-1] * n
         self.estop = False
 
@@ -211,7 +215,9 @@ class Timing:
             skip.append(self._row(body, j, "skipped") & 0xFFFFFFFF)
             state.append(self._row(body, j, "state") & 0xFF)
         late_tick = (tick - due) / 1e3 if tick else nan
-        return self.out.pack(cycle, due, late_tick, *hb, *late, *busy, *over, *skip, *state)
+        return CDR_HEADER + self.out.pack(
+            cycle, due, late_tick, *hb, *late, *busy, *over, *skip, *state
+        )
 
     def events(self, body: bytes) -> list[dict[str, Any]]:
         """An e-stop raised, processes changing state: JSON events of this cycle."""
@@ -241,6 +247,18 @@ class Timing:
                     }
                 )
         return out
+
+
+def cdr_message(packed: bytes, runs: list[tuple[int, int, bytes]]) -> bytes:
+    """A packed message as CDR: the header, then its runs of fields, each
+    after its alignment's padding (``runs``: from
+    :func:`redistro.log.schema.cdr_runs`, as (from, to, zero bytes))."""
+    parts = [CDR_HEADER]
+    for a, b, pad in runs:
+        if pad:
+            parts.append(pad)
+        parts.append(packed[a:b])
+    return b"".join(parts)
 
 
 def _code(dtype_str: str) -> struct.Struct:

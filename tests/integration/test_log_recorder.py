@@ -20,7 +20,7 @@ from redistro.localdata.layout import BLOCKS
 from redistro.log.mcapfile import SESSION_LOG, finish_run_log, read_log
 from redistro.log.recorder import CycleRecorder
 from redistro.log.ring import Capture, LogRing, RingLayout
-from redistro.log.schema import dtype_from_ros1, ros1_definition, with_cycle
+from redistro.log.schema import dtype_from_msg, msg_definition, with_cycle
 from redistro.process.spec import NodeSpec, WorkerSpec
 
 ROLES = ["acquisition", "pid", "sender", "recorder"]
@@ -117,10 +117,10 @@ def _drive(
             rec.drain()
 
 
-def test_every_block_has_a_ros1_definition_that_reads_back() -> None:
+def test_every_block_has_a_ros2_definition_that_reads_back() -> None:
     for name, (payload, _) in BLOCKS.items():
         dt = with_cycle(payload)
-        back = dtype_from_ros1(ros1_definition(dt))
+        back = dtype_from_msg(msg_definition(dt))
         assert back.itemsize == dt.itemsize, name
         assert back.names == dt.names, name
 

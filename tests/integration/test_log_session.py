@@ -61,7 +61,10 @@ def test_the_mcap_file_holds_every_cycle_less_the_counted_drops(logged: dict[str
         for _, channel, msg in reader.iter_messages():
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
             if channel.topic.endswith("/feedback"):
-                cycles.setdefault(channel.topic, []).append(int.from_bytes(msg.data[:8], "little"))
+                # (after the CDR header: the ROS 2 message's first field)
+                cycles.setdefault(channel.topic, []).append(
+                    int.from_bytes(msg.data[4:12], "little")
+                )
     for r in ROBOTS:
         node = f"esc.{r}"
         node_cycles = summary["nodes"][node]["cycles"]
@@ -82,6 +85,39 @@ def test_the_mcap_file_holds_every_cycle_less_the_counted_drops(logged: dict[str
         assert counts[f"/{node}/segments"] >= 3  # the three calibration segments
     # the run's messages (what messages.log holds) are in the log too
     assert sum(v for k, v in counts.items() if k.endswith("/messages")) >= 1
+
+
+def test_every_cycle_message_decodes_in_a_ros2_reader(logged: dict[str, Any]) -> None:
+    """mcap-ros2-support (no part of redistro) decodes every message of every
+    cycle channel from its ros2msg schema: as many as we read, the same values."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from redistro.log.mcapfile import read_log
+
+    path = logged["run"] / "session.mcap"
+    ours = read_log(path)
+    decoded: dict[str, list[Any]] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, _msg in reader.iter_messages():
+            if channel.message_encoding == "cdr":
+                assert schema is not None and schema.encoding == "ros2msg", channel.topic
+                assert schema.name.startswith("redistro/msg/"), schema.name
+        f.seek(0)
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        topics = set(ours.arrays)
+        for _s, channel, _m, m in reader.iter_decoded_messages(topics=sorted(topics)):
+            decoded.setdefault(channel.topic, []).append(m)
+    assert set(decoded) == topics and len(topics) >= 10
+    for topic, msgs in decoded.items():
+        arr = ours.arrays[topic]
+        assert len(msgs) == len(arr) == ours.counts[topic], topic
+        cycles = np.asarray([m.log_cycle for m in msgs])
+        np.testing.assert_array_equal(cycles, arr["log_cycle"], err_msg=topic)
+    for r in ROBOTS:
+        q = np.asarray([m.q_rad for m in decoded[f"/{r}/feedback"]])
+        np.testing.assert_array_equal(q, ours.arrays[f"/{r}/feedback"]["q_rad"])
 
 
 def test_log_plot_writes_the_png_set(logged: dict[str, Any], tmp_path: Path) -> None:
@@ -139,6 +175,21 @@ def test_log_commands_refuse_what_is_not_a_log(tmp_path: Path) -> None:
     res = run_cli("log", "plot", str(bad))
     assert res.returncode == 2 and "not a readable session log" in res.stderr
     assert res.stderr.count("\n") == 1
+    # a log of an older redistro: ROS 1 messages
+    from mcap.writer import Writer
+
+    old = tmp_path / "old" / "session.mcap"
+    old.parent.mkdir()
+    with open(old, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="redistro")
+        sid = w.register_schema("redistro/r1_feedback", "ros1msg", b"uint64 log_cycle\n")
+        cid = w.register_channel("/r1/feedback", "ros1", sid)
+        w.add_message(cid, 1, (1).to_bytes(8, "little"), 1)
+        w.finish()  # type: ignore[no-untyped-call]
+    res = run_cli("log", "summary", str(old.parent))
+    assert res.returncode == 2 and "not a log of this redistro" in res.stderr, res.stderr
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
 
 
 def test_top_once_json_lists_every_process(logged: dict[str, Any]) -> None:
