@@ -162,6 +162,10 @@ def read_log(path: Path) -> SessionLog:
                         f"{topic}: {channel.message_encoding!r} messages, not a log of this "
                         f"redistro (its channels are ROS 2 CDR)"
                     )
+                if channel.message_encoding == MESSAGE_ENCODING and (
+                    schema is None or not schema.name.startswith("redistro/msg/")
+                ):
+                    continue  # a standard ROS 2 message (JointState ...): made from ours
                 if channel.message_encoding == MESSAGE_ENCODING and schema is not None:
                     if topic not in dtypes:
                         text = schema.data.decode()

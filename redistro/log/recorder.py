@@ -193,6 +193,7 @@ class CycleRecorder:
                     "schema": schema.type_name(c.block),
                     "definition": schema.msg_definition(c.dtype),
                     "runs": schema.cdr_runs(c.dtype),
+                    "ros2": _standard(c),
                     "offset": c.offset,
                     "size": c.size,
                 }
@@ -367,6 +368,23 @@ class CycleRecorder:
         while view:
             n = os.write(self.fd, view)
             view = view[n:]
+
+
+def _standard(c: Channel) -> dict[str, Any] | None:
+    """What the writer needs to make a feedback channel's standard ROS 2
+    messages (redistro.log.ros2): the robot, its joints, where the fields are."""
+    if c.block != "feedback":
+        return None
+    from redistro.robotmodel import JOINT_NAMES
+
+    fields = c.dtype.fields
+    assert fields is not None
+    want = ("q_rad", "qd_rad_s", "tau_nm", "wrench")
+    return {
+        "robot": c.topic.strip("/").split("/")[0],
+        "joints": list(JOINT_NAMES),
+        "fields": {k: [int(fields[k][1]), int(fields[k][0].shape[0])] for k in want},
+    }
 
 
 def robots_meta(cfg: Any, robots: list[str]) -> dict[str, Any]:

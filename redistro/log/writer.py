@@ -117,8 +117,10 @@ class _McapSink:
         self.out = out
         self.writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self.writer.start(profile="", library="redistro")
-        # channel id, offset, size, and the CDR body's runs: (from, to, padding before)
-        self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]]]] = []
+        # channel id, offset, size, the CDR body's runs (from, to, padding
+        # before), and a feedback channel's standard messages (or None)
+        self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]], Any]] = []
+        self.std_schemas: tuple[int, int] | None = None
         self.timing: Timing | None = None
         self.json_schema = self.writer.register_schema("redistro/Event", "jsonschema", JSON_SCHEMA)
         self.json_channels: dict[str, int] = {}
@@ -139,12 +141,33 @@ class _McapSink:
                 self.timing = Timing(header, cid)
             else:
                 runs = [(int(a), int(a) + int(n), bytes(int(p))) for a, n, p in ch["runs"]]
-                self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs))
+                std = self._standard(ch.get("ros2"), header["node"])
+                self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs, std))
         skip = ("channels", "meta", "timing", "frame")
         node = {k: v for k, v in header.items() if k not in skip}
         w.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
         meta = header.get("meta", {})
         w.add_metadata("redistro.meta", {k: json.dumps(v) for k, v in meta.items()})
+
+    def _standard(self, spec: dict[str, Any] | None, node: str) -> Any:
+        """A feedback channel's standard messages: JointState and WrenchStamped."""
+        if spec is None:
+            return None
+        from redistro.log import ros2
+
+        w, robot = self.writer, str(spec["robot"])
+        if not self.std_schemas:
+            self.std_schemas = (
+                w.register_schema(ros2.JOINT_STATE, "ros2msg", ros2.JOINT_STATE_DEF.encode()),
+                w.register_schema(ros2.WRENCH_STAMPED, "ros2msg", ros2.WRENCH_STAMPED_DEF.encode()),
+            )
+        js, ws = self.std_schemas
+        meta = {"node": node}
+        return (
+            ros2.Feedback(robot, list(spec["joints"]), spec["fields"]),
+            w.register_channel(f"/{robot}/joint_states", "cdr", js, meta),
+            w.register_channel(f"/{robot}/wrench", "cdr", ws, meta),
+        )
 
     def cycle(self, body: bytes, log_ns: int) -> None:
         """One cycle's messages, its timing, its events."""
@@ -154,9 +177,14 @@ class _McapSink:
         w = self.writer
         cycle_bytes = body[0:8]
         seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
-        for cid, off, n, runs in self.cuts:
-            data = cdr_message(cycle_bytes + body[off : off + n], runs)
-            w.add_message(cid, log_ns, data, log_ns, seq)
+        for cid, off, n, runs, std in self.cuts:
+            packed = cycle_bytes + body[off : off + n]
+            w.add_message(cid, log_ns, cdr_message(packed, runs), log_ns, seq)
+            if std is not None:  # (a robot's feedback: its JointState and WrenchStamped too)
+                fb, js, ws = std
+                w.add_message(js, log_ns, fb.joint_state(packed, log_ns), log_ns, seq)
+                w.add_message(ws, log_ns, fb.wrench(packed, log_ns), log_ns, seq)
+                self.messages += 2
         w.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
         self.messages += len(self.cuts) + 1
         self.frames += 1

@@ -103,7 +103,8 @@ def test_every_cycle_message_decodes_in_a_ros2_reader(logged: dict[str, Any]) ->
         for schema, channel, _msg in reader.iter_messages():
             if channel.message_encoding == "cdr":
                 assert schema is not None and schema.encoding == "ros2msg", channel.topic
-                assert schema.name.startswith("redistro/msg/"), schema.name
+                standard = ("sensor_msgs/msg/JointState", "geometry_msgs/msg/WrenchStamped")
+                assert schema.name.startswith("redistro/msg/") or schema.name in standard
         f.seek(0)
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         topics = set(ours.arrays)
@@ -118,6 +119,26 @@ def test_every_cycle_message_decodes_in_a_ros2_reader(logged: dict[str, Any]) ->
     for r in ROBOTS:
         q = np.asarray([m.q_rad for m in decoded[f"/{r}/feedback"]])
         np.testing.assert_array_equal(q, ours.arrays[f"/{r}/feedback"]["q_rad"])
+    # each robot's feedback as the standard messages too: JointState, WrenchStamped
+    std: dict[str, list[Any]] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        want = [f"/{r}/{k}" for r in ROBOTS for k in ("joint_states", "wrench")]
+        for schema, channel, _m, m in reader.iter_decoded_messages(topics=want):
+            assert schema is not None and schema.name in (
+                "sensor_msgs/msg/JointState",
+                "geometry_msgs/msg/WrenchStamped",
+            )
+            std.setdefault(channel.topic, []).append(m)
+    for r in ROBOTS:
+        fb = ours.arrays[f"/{r}/feedback"]
+        states, wrenches = std[f"/{r}/joint_states"], std[f"/{r}/wrench"]
+        assert len(states) == len(wrenches) == len(fb)
+        assert states[0].name[0] == f"{r}_lbr_iiwa_joint_1" and len(states[0].name) == 7
+        np.testing.assert_array_equal(np.asarray([m.position for m in states]), fb["q_rad"])
+        np.testing.assert_array_equal(
+            np.asarray([m.wrench.force.z for m in wrenches]), fb["wrench"][:, 2]
+        )
 
 
 def test_log_plot_writes_the_png_set(logged: dict[str, Any], tmp_path: Path) -> None:

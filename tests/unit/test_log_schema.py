@@ -85,3 +85,34 @@ def test_type_names_are_ros2_names() -> None:
     assert schema.type_name("feedback") == "redistro/msg/Feedback"
     assert schema.type_name("starving_sent") == "redistro/msg/StarvingSent"
     assert schema.type_name("timing12") == "redistro/msg/Timing12"
+
+
+def test_feedback_becomes_a_joint_state_and_a_wrench_in_a_ros2_reader() -> None:
+    """A robot's feedback as sensor_msgs/JointState and
+    geometry_msgs/WrenchStamped, as the writer makes them, decoded by
+    mcap-ros2-support: names, stamp, frame and values."""
+    from redistro.log import ros2
+    from redistro.robotmodel import JOINT_NAMES
+
+    dt = schema.with_cycle(BLOCKS["feedback"][0])
+    arr = _random(dt, 3, np.random.default_rng(3))
+    fields = dt.fields
+    assert fields is not None
+    want = ("q_rad", "qd_rad_s", "tau_nm", "wrench")
+    spec = {k: [int(fields[k][1]), int(fields[k][0].shape[0])] for k in want}
+    fb = ros2.Feedback("r2", list(JOINT_NAMES), spec)
+    stamps = [1_764_000_000_123_456_789 + k * 1_000_000 for k in range(len(arr))]
+    js = [fb.joint_state(r.tobytes(), t) for r, t in zip(arr, stamps, strict=True)]
+    ws = [fb.wrench(r.tobytes(), t) for r, t in zip(arr, stamps, strict=True)]
+    got_js = _decoded(_mcap(ros2.JOINT_STATE, ros2.JOINT_STATE_DEF, js))
+    got_ws = _decoded(_mcap(ros2.WRENCH_STAMPED, ros2.WRENCH_STAMPED_DEF, ws))
+    for r, t, j, w in zip(arr, stamps, got_js, got_ws, strict=True):
+        for m in (j, w):
+            assert (m.header.stamp.sec, m.header.stamp.nanosec) == divmod(t, 1_000_000_000)
+        assert j.header.frame_id == "" and w.header.frame_id == "r2_tool"
+        assert j.name == [f"r2_{n}" for n in JOINT_NAMES]
+        np.testing.assert_array_equal(j.position, r["q_rad"])
+        np.testing.assert_array_equal(j.velocity, r["qd_rad_s"])
+        np.testing.assert_array_equal(j.effort, r["tau_nm"])
+        f, tq = w.wrench.force, w.wrench.torque
+        np.testing.assert_array_equal([f.x, f.y, f.z, tq.x, tq.y, tq.z], r["wrench"])

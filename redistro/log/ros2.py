@@ -1,0 +1,123 @@
+"""Standard ROS 2 messages of the session log, CDR-encoded without numpy.
+
+Each robot's feedback becomes, beside redistro's own channel,
+``sensor_msgs/msg/JointState`` on ``/<robot>/joint_states`` (the arm's joints,
+named ``<robot>_<URDF joint>``: position, velocity, effort) and
+``geometry_msgs/msg/WrenchStamped`` on ``/<robot>/wrench`` (the wrist
+sensor, in its frame ``<robot>_tool``), stamped with the cycle's log time.
+The writer process makes them (off every cycle); what is constant (the
+names, the frame) is encoded once per channel. Definitions are the ROS 2
+ones, with their dependencies, as rosbag2 writes them into MCAP.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+SEPARATOR = "=" * 80 + "\n"
+
+_TIME = "int32 sec\nuint32 nanosec\n"
+_HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n"
+_VECTOR3 = "float64 x\nfloat64 y\nfloat64 z\n"
+
+
+def _with(main: str, *deps: tuple[str, str]) -> str:
+    return main + "".join(f"{SEPARATOR}MSG: {name}\n{text}" for name, text in deps)
+
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+JOINT_STATE_DEF = _with(
+    "std_msgs/Header header\nstring[] name\nfloat64[] position\nfloat64[] velocity\n"
+    "float64[] effort\n",
+    ("std_msgs/Header", _HEADER),
+    ("builtin_interfaces/Time", _TIME),
+)
+WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
+WRENCH_STAMPED_DEF = _with(
+    "std_msgs/Header header\ngeometry_msgs/Wrench wrench\n",
+    ("std_msgs/Header", _HEADER),
+    ("builtin_interfaces/Time", _TIME),
+    ("geometry_msgs/Wrench", "geometry_msgs/Vector3 force\ngeometry_msgs/Vector3 torque\n"),
+    ("geometry_msgs/Vector3", _VECTOR3),
+)
+
+CDR_HEADER = b"\x00\x01\x00\x00"
+_STAMP = struct.Struct("<iI")
+
+
+class Cdr:
+    """A CDR body being written: each value aligned to its size from the
+    body's start (after the 4-byte encapsulation header)."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray()
+
+    def _align(self, n: int) -> None:
+        self.buf += bytes(-len(self.buf) % n)
+
+    def u32(self, v: int) -> None:
+        self._align(4)
+        self.buf += struct.pack("<I", v)
+
+    def string(self, s: str) -> None:
+        data = s.encode() + b"\0"
+        self.u32(len(data))
+        self.buf += data
+
+    def strings(self, items: list[str]) -> None:
+        self.u32(len(items))
+        for s in items:
+            self.string(s)
+
+    def f64s(self, values: list[float] | tuple[float, ...]) -> None:
+        self.u32(len(values))
+        if values:
+            self._align(8)
+            self.buf += struct.pack(f"<{len(values)}d", *values)
+
+
+class Feedback:
+    """The standard messages of one robot's feedback channel: ``fields``
+    gives each source field's (offset, count) in the packed message."""
+
+    def __init__(self, robot: str, joints: list[str], fields: dict[str, Any]) -> None:
+        self.robot = robot
+        f = {k: (int(v[0]), int(v[1])) for k, v in fields.items()}
+        n = len(joints)
+        self.q, self.qd, self.tau = (struct.Struct(f"<{n}d") for _ in range(3))
+        self.at = (f["q_rad"][0], f["qd_rad_s"][0], f["tau_nm"][0], f["wrench"][0])
+        self.n = n
+        # the JointState after its stamp: "" frame, the names (constant), then the
+        # three sequences at fixed places (each a u32 count, its doubles at 8)
+        tail = Cdr()
+        tail.buf += bytes(8)  # (the stamp's place: alignment counts from the body's start)
+        tail.string("")
+        tail.strings([f"{robot}_{j}" for j in joints])
+        tail._align(4)
+        self.js_head = bytes(tail.buf[8:])
+        self.count = struct.pack("<I", n)
+        self.js_pads: list[bytes] = []
+        pos = len(tail.buf)
+        for _ in range(3):
+            pad = -(pos + 4) % 8 if n else 0
+            self.js_pads.append(bytes(pad))
+            pos += 4 + pad + 8 * n
+        w = Cdr()
+        w.buf += bytes(8)
+        w.string(f"{robot}_tool")
+        w._align(8)
+        self.ws_head = bytes(w.buf[8:])
+        self.six = struct.Struct("<6d")
+
+    def joint_state(self, packed: bytes, log_ns: int) -> bytes:
+        stamp = _STAMP.pack(log_ns // 1_000_000_000, log_ns % 1_000_000_000)
+        parts = [CDR_HEADER, stamp, self.js_head]
+        for s, at, pad in zip((self.q, self.qd, self.tau), self.at[:3], self.js_pads, strict=True):
+            parts += [self.count, pad, packed[at : at + s.size]]
+        return b"".join(parts)
+
+    def wrench(self, packed: bytes, log_ns: int) -> bytes:
+        stamp = _STAMP.pack(log_ns // 1_000_000_000, log_ns % 1_000_000_000)
+        at = self.at[3]
+        return b"".join((CDR_HEADER, stamp, self.ws_head, packed[at : at + self.six.size]))
