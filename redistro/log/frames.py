@@ -21,4 +21,3 @@ KIND_END = 3
 SCHEMA_ENCODING = "ros2msg"
 MESSAGE_ENCODING = "cdr"
 CDR_HEADER = b"\x00\x01\x00\x00"  # (as redistro.log.schema's)
-JSON_SCHEMA = b'{"type": "object"}'

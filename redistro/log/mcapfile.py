@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from redistro.log.frames import CDR_HEADER, MESSAGE_ENCODING
+from redistro.log.ros2 import EVENT, event_json
 from redistro.log.schema import cdr_dtype, dtype_from_msg
 
 log = logging.getLogger(__name__)
@@ -162,11 +163,16 @@ def read_log(path: Path) -> SessionLog:
                         f"{topic}: {channel.message_encoding!r} messages, not a log of this "
                         f"redistro (its channels are ROS 2 CDR)"
                     )
+                event = schema is not None and schema.name == EVENT
                 if channel.message_encoding == MESSAGE_ENCODING and (
                     schema is None or not schema.name.startswith("redistro/msg/")
                 ):
                     continue  # a standard ROS 2 message (JointState ...): made from ours
-                if channel.message_encoding == MESSAGE_ENCODING and schema is not None:
+                if (
+                    schema is not None
+                    and channel.message_encoding == MESSAGE_ENCODING
+                    and not event
+                ):
                     if topic not in dtypes:
                         text = schema.data.decode()
                         out.schemas[topic] = text
@@ -174,7 +180,8 @@ def read_log(path: Path) -> SessionLog:
                     chunks.setdefault(topic, []).append(msg.data)
                     times.setdefault(topic, []).append(msg.log_time)
                 else:
-                    doc = load_json(msg.data.decode("utf-8"))
+                    text = event_json(msg.data) if event else msg.data.decode("utf-8")
+                    doc = load_json(text)
                     if not isinstance(doc, dict):
                         raise ValueError(
                             f"{topic}: an event at {msg.log_time} ns is not a JSON object"

@@ -42,6 +42,10 @@ WRENCH_STAMPED_DEF = _with(
     ("geometry_msgs/Vector3", _VECTOR3),
 )
 
+# an event (a segment's start, a message, a state change): its JSON document
+EVENT = "redistro/msg/Event"
+EVENT_DEF = "string json\n"
+
 CDR_HEADER = b"\x00\x01\x00\x00"
 _STAMP = struct.Struct("<iI")
 
@@ -121,3 +125,19 @@ class Feedback:
         stamp = _STAMP.pack(log_ns // 1_000_000_000, log_ns % 1_000_000_000)
         at = self.at[3]
         return b"".join((CDR_HEADER, stamp, self.ws_head, packed[at : at + self.six.size]))
+
+
+def event(doc_json: str) -> bytes:
+    """An event's message: its JSON document as one ROS 2 string."""
+    data = doc_json.encode() + b"\0"
+    return CDR_HEADER + struct.pack("<I", len(data)) + data
+
+
+def event_json(message: bytes) -> str:
+    """The JSON document of an event's message (ValueError: not one)."""
+    if len(message) < 9 or message[:4] != CDR_HEADER:
+        raise ValueError("an event message without its CDR header")
+    (n,) = struct.unpack_from("<I", message, 4)
+    if n < 1 or 8 + n != len(message) or message[-1] != 0:
+        raise ValueError("an event message whose string does not fit it")
+    return message[8 : 8 + n - 1].decode("utf-8")

@@ -19,6 +19,7 @@ import struct
 import time
 from typing import IO, Any
 
+from redistro.log import ros2
 from redistro.log.frames import CDR_HEADER, FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
 
 CHUNK_BYTES = 256 * 1024
@@ -107,12 +108,11 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
 
 class _McapSink:
     """The MCAP file one node's frames go into: its channels from the
-    header, each cycle's messages cut from the frame, the events as JSON."""
+    header, each cycle's messages cut from the frame, the events (their
+    JSON documents as ROS 2 strings)."""
 
     def __init__(self, out: Any) -> None:
         from mcap.writer import CompressionType, Writer
-
-        from redistro.log.frames import JSON_SCHEMA
 
         self.out = out
         self.writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
@@ -122,7 +122,9 @@ class _McapSink:
         self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]], Any]] = []
         self.std_schemas: tuple[int, int] | None = None
         self.timing: Timing | None = None
-        self.json_schema = self.writer.register_schema("redistro/Event", "jsonschema", JSON_SCHEMA)
+        self.json_schema = self.writer.register_schema(
+            ros2.EVENT, "ros2msg", ros2.EVENT_DEF.encode()
+        )
         self.json_channels: dict[str, int] = {}
         self.node = ""
         self.frames = self.messages = 0
@@ -193,9 +195,10 @@ class _McapSink:
 
     def event(self, topic: str, doc: dict[str, Any], log_ns: int) -> None:
         if topic not in self.json_channels:
-            channel = self.writer.register_channel(topic, "json", self.json_schema)
+            channel = self.writer.register_channel(topic, "cdr", self.json_schema)
             self.json_channels[topic] = channel
-        self.writer.add_message(self.json_channels[topic], log_ns, json.dumps(doc).encode(), log_ns)
+        data = ros2.event(json.dumps(doc))  # (a ROS 2 string holding the JSON document)
+        self.writer.add_message(self.json_channels[topic], log_ns, data, log_ns)
         self.messages += 1
 
     def finish(self, stats: dict[str, Any]) -> None:

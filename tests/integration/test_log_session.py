@@ -111,6 +111,12 @@ def test_every_cycle_message_decodes_in_a_ros2_reader(logged: dict[str, Any]) ->
         for _s, channel, _m, m in reader.iter_decoded_messages(topics=sorted(topics)):
             decoded.setdefault(channel.topic, []).append(m)
     assert set(decoded) == topics and len(topics) >= 10
+    # every message of every channel decodes there: the events too
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        every = sum(1 for _ in reader.iter_decoded_messages())
+    assert every == sum(ours.counts.values())
+    assert sum(len(v) for v in ours.events.values()) >= 3
     for topic, msgs in decoded.items():
         arr = ours.arrays[topic]
         assert len(msgs) == len(arr) == ours.counts[topic], topic

@@ -116,3 +116,18 @@ def test_feedback_becomes_a_joint_state_and_a_wrench_in_a_ros2_reader() -> None:
         np.testing.assert_array_equal(j.effort, r["tau_nm"])
         f, tq = w.wrench.force, w.wrench.torque
         np.testing.assert_array_equal([f.x, f.y, f.z, tq.x, tq.y, tq.z], r["wrench"])
+
+
+def test_an_event_is_a_ros2_string_of_its_json_document() -> None:
+    import json
+
+    from redistro.log import ros2
+
+    docs = [{"cycle": 3, "event": "segment", "name": "insért"}, {"text": ""}]
+    messages = [ros2.event(json.dumps(d)) for d in docs]
+    got = _decoded(_mcap(ros2.EVENT, ros2.EVENT_DEF, messages))
+    assert [json.loads(m.json) for m in got] == docs
+    assert [json.loads(ros2.event_json(m)) for m in messages] == docs
+    for bad in (b"", messages[0][:-1], b"\x00\x01\x00\x00" + bytes(4), messages[0] + b"x"):
+        with pytest.raises(ValueError):
+            ros2.event_json(bad)
