@@ -20,4 +20,7 @@ KIND_END = 3
 # how the channels are encoded (redistro.log.schema makes the definitions)
 SCHEMA_ENCODING = "ros2msg"
 MESSAGE_ENCODING = "cdr"
-CDR_HEADER = b"\x00\x01\x00\x00"  # (as redistro.log.schema's)
+CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little-endian: the encapsulation ROS 2 uses
+# a numpy scalar (kind, size) -> its struct code (the writer has no numpy)
+STRUCT_CODES = {("u", 1): "B", ("i", 1): "b", ("u", 2): "H", ("i", 2): "h", ("u", 4): "I"}
+STRUCT_CODES.update({("i", 4): "i", ("u", 8): "Q", ("i", 8): "q", ("f", 4): "f", ("f", 8): "d"})

@@ -163,16 +163,12 @@ def read_log(path: Path) -> SessionLog:
                         f"{topic}: {channel.message_encoding!r} messages, not a log of this "
                         f"redistro (its channels are ROS 2 CDR)"
                     )
-                event = schema is not None and schema.name == EVENT
-                if channel.message_encoding == MESSAGE_ENCODING and (
-                    schema is None or not schema.name.startswith("redistro/msg/")
-                ):
+                name = schema.name if schema is not None else ""
+                event = channel.message_encoding == "json" or name == EVENT
+                if not event and not name.startswith("redistro/msg/"):
                     continue  # a standard ROS 2 message (JointState ...): made from ours
-                if (
-                    schema is not None
-                    and channel.message_encoding == MESSAGE_ENCODING
-                    and not event
-                ):
+                if not event:
+                    assert schema is not None
                     if topic not in dtypes:
                         text = schema.data.decode()
                         out.schemas[topic] = text
@@ -180,7 +176,8 @@ def read_log(path: Path) -> SessionLog:
                     chunks.setdefault(topic, []).append(msg.data)
                     times.setdefault(topic, []).append(msg.log_time)
                 else:
-                    text = event_json(msg.data) if event else msg.data.decode("utf-8")
+                    json_ = channel.message_encoding == "json"
+                    text = msg.data.decode("utf-8") if json_ else event_json(msg.data)
                     doc = load_json(text)
                     if not isinstance(doc, dict):
                         raise ValueError(

@@ -383,7 +383,7 @@ def _standard(c: Channel) -> dict[str, Any] | None:
     return {
         "robot": c.topic.strip("/").split("/")[0],
         "joints": list(JOINT_NAMES),
-        "fields": {k: [int(fields[k][1]), int(fields[k][0].shape[0])] for k in want},
+        "fields": {k: int(fields[k][1]) for k in want},
     }
 
 

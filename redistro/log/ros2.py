@@ -13,7 +13,8 @@ ones, with their dependencies, as rosbag2 writes them into MCAP.
 from __future__ import annotations
 
 import struct
-from typing import Any
+
+from redistro.log.frames import CDR_HEADER
 
 SEPARATOR = "=" * 80 + "\n"
 
@@ -46,7 +47,6 @@ WRENCH_STAMPED_DEF = _with(
 EVENT = "redistro/msg/Event"
 EVENT_DEF = "string json\n"
 
-CDR_HEADER = b"\x00\x01\x00\x00"
 _STAMP = struct.Struct("<iI")
 
 
@@ -74,24 +74,16 @@ class Cdr:
         for s in items:
             self.string(s)
 
-    def f64s(self, values: list[float] | tuple[float, ...]) -> None:
-        self.u32(len(values))
-        if values:
-            self._align(8)
-            self.buf += struct.pack(f"<{len(values)}d", *values)
-
 
 class Feedback:
     """The standard messages of one robot's feedback channel: ``fields``
-    gives each source field's (offset, count) in the packed message."""
+    gives each source field's offset in the packed message (q_rad,
+    qd_rad_s, tau_nm: a double per joint; wrench: six)."""
 
-    def __init__(self, robot: str, joints: list[str], fields: dict[str, Any]) -> None:
-        self.robot = robot
-        f = {k: (int(v[0]), int(v[1])) for k, v in fields.items()}
+    def __init__(self, robot: str, joints: list[str], fields: dict[str, int]) -> None:
         n = len(joints)
-        self.q, self.qd, self.tau = (struct.Struct(f"<{n}d") for _ in range(3))
-        self.at = (f["q_rad"][0], f["qd_rad_s"][0], f["tau_nm"][0], f["wrench"][0])
-        self.n = n
+        self.seq = 8 * n  # bytes of one sequence's doubles
+        self.at = tuple(int(fields[k]) for k in ("q_rad", "qd_rad_s", "tau_nm", "wrench"))
         # the JointState after its stamp: "" frame, the names (constant), then the
         # three sequences at fixed places (each a u32 count, its doubles at 8)
         tail = Cdr()
@@ -112,19 +104,18 @@ class Feedback:
         w.string(f"{robot}_tool")
         w._align(8)
         self.ws_head = bytes(w.buf[8:])
-        self.six = struct.Struct("<6d")
 
     def joint_state(self, packed: bytes, log_ns: int) -> bytes:
         stamp = _STAMP.pack(log_ns // 1_000_000_000, log_ns % 1_000_000_000)
         parts = [CDR_HEADER, stamp, self.js_head]
-        for s, at, pad in zip((self.q, self.qd, self.tau), self.at[:3], self.js_pads, strict=True):
-            parts += [self.count, pad, packed[at : at + s.size]]
+        for at, pad in zip(self.at[:3], self.js_pads, strict=True):
+            parts += [self.count, pad, packed[at : at + self.seq]]
         return b"".join(parts)
 
     def wrench(self, packed: bytes, log_ns: int) -> bytes:
         stamp = _STAMP.pack(log_ns // 1_000_000_000, log_ns % 1_000_000_000)
         at = self.at[3]
-        return b"".join((CDR_HEADER, stamp, self.ws_head, packed[at : at + self.six.size]))
+        return b"".join((CDR_HEADER, stamp, self.ws_head, packed[at : at + 48]))  # (6 doubles)
 
 
 def event(doc_json: str) -> bytes:

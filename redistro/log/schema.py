@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little-endian: the encapsulation ROS 2 uses
+from redistro.log.frames import CDR_HEADER, STRUCT_CODES
 
 # numpy scalar code -> ROS 2 primitive
 _ROS = {
@@ -160,10 +160,6 @@ def cdr_dtype(dtype: np.dtype[Any]) -> np.dtype[Any]:
     )
 
 
-_STRUCT = {"u1": "B", "i1": "b", "u2": "H", "i2": "h", "u4": "I", "i4": "i", "u8": "Q", "i8": "q"}
-_STRUCT.update({"f4": "f", "f8": "d"})
-
-
 def cdr_struct(dtype: np.dtype[Any]) -> str:
     """The ``struct`` format of a packed dtype's CDR body (header excluded;
     numeric fields only), padding included: for a writer without numpy."""
@@ -174,6 +170,6 @@ def cdr_struct(dtype: np.dtype[Any]) -> str:
         ft = dtype.fields[name][0]  # type: ignore[index]
         base, shape = ft.subdtype if ft.subdtype else (ft, ())
         count = int(np.prod(shape)) if shape else 1
-        out += f"{count if shape else ''}{_STRUCT[f'{base.kind}{base.itemsize}']}"
+        out += f"{count if shape else ''}{STRUCT_CODES[(base.kind, base.itemsize)]}"
         at += pad + size
     return out

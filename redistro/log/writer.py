@@ -20,7 +20,15 @@ import time
 from typing import IO, Any
 
 from redistro.log import ros2
-from redistro.log.frames import CDR_HEADER, FRAME, KIND_CYCLE, KIND_END, KIND_EVENT, KIND_HEADER
+from redistro.log.frames import (
+    CDR_HEADER,
+    FRAME,
+    KIND_CYCLE,
+    KIND_END,
+    KIND_EVENT,
+    KIND_HEADER,
+    STRUCT_CODES,
+)
 
 CHUNK_BYTES = 256 * 1024
 PACE_S = 0.01  # after a read that emptied the pipe, the next waits this long
@@ -122,10 +130,10 @@ class _McapSink:
         self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]], Any]] = []
         self.std_schemas: tuple[int, int] | None = None
         self.timing: Timing | None = None
-        self.json_schema = self.writer.register_schema(
+        self.event_schema = self.writer.register_schema(
             ros2.EVENT, "ros2msg", ros2.EVENT_DEF.encode()
         )
-        self.json_channels: dict[str, int] = {}
+        self.event_channels: dict[str, int] = {}
         self.node = ""
         self.frames = self.messages = 0
 
@@ -155,8 +163,6 @@ class _McapSink:
         """A feedback channel's standard messages: JointState and WrenchStamped."""
         if spec is None:
             return None
-        from redistro.log import ros2
-
         w, robot = self.writer, str(spec["robot"])
         if not self.std_schemas:
             self.std_schemas = (
@@ -194,11 +200,11 @@ class _McapSink:
             self.event(str(doc.pop("topic")), doc, log_ns)
 
     def event(self, topic: str, doc: dict[str, Any], log_ns: int) -> None:
-        if topic not in self.json_channels:
-            channel = self.writer.register_channel(topic, "cdr", self.json_schema)
-            self.json_channels[topic] = channel
+        if topic not in self.event_channels:
+            channel = self.writer.register_channel(topic, "cdr", self.event_schema)
+            self.event_channels[topic] = channel
         data = ros2.event(json.dumps(doc))  # (a ROS 2 string holding the JSON document)
-        self.writer.add_message(self.json_channels[topic], log_ns, data, log_ns)
+        self.writer.add_message(self.event_channels[topic], log_ns, data, log_ns)
         self.messages += 1
 
     def finish(self, stats: dict[str, Any]) -> None:
@@ -294,7 +300,4 @@ def cdr_message(packed: bytes, runs: list[tuple[int, int, bytes]]) -> bytes:
 
 def _code(dtype_str: str) -> struct.Struct:
     """A struct for one numpy scalar dtype string (``<u8``, ``|u1`` ...)."""
-    kind, size = dtype_str[-2], int(dtype_str[-1])
-    codes = {("u", 1): "B", ("u", 4): "I", ("u", 8): "Q", ("i", 4): "i", ("i", 8): "q"}
-    codes.update({("f", 4): "f", ("f", 8): "d", ("i", 1): "b", ("i", 2): "h", ("u", 2): "H"})
-    return struct.Struct("<" + codes[(kind, size)])
+    return struct.Struct("<" + STRUCT_CODES[(dtype_str[-2], int(dtype_str[-1]))])

@@ -99,7 +99,7 @@ def test_feedback_becomes_a_joint_state_and_a_wrench_in_a_ros2_reader() -> None:
     fields = dt.fields
     assert fields is not None
     want = ("q_rad", "qd_rad_s", "tau_nm", "wrench")
-    spec = {k: [int(fields[k][1]), int(fields[k][0].shape[0])] for k in want}
+    spec = {k: int(fields[k][1]) for k in want}
     fb = ros2.Feedback("r2", list(JOINT_NAMES), spec)
     stamps = [1_764_000_000_123_456_789 + k * 1_000_000 for k in range(len(arr))]
     js = [fb.joint_state(r.tobytes(), t) for r, t in zip(arr, stamps, strict=True)]
