@@ -266,7 +266,25 @@ def _parser() -> argparse.ArgumentParser:
         help="also the groups seen through this zenoh session (tcp/host:port of an SSC's "
         "ddm; ddm.zenoh.users_file names the viewer's password); repeatable",
     )
+    _bridge_parser(sub, common)
     return p
+
+
+def _bridge_parser(sub: Any, common: argparse.ArgumentParser) -> None:
+    br = sub.add_parser(
+        "bridge",
+        help="a running session's joint states, wrenches and segment as ROS 2 topics "
+        "over Zenoh (rmw_zenoh's conventions), read-only",
+        parents=[common],
+    )
+    br.add_argument("session", nargs="?", default=None, help="its id (default: the only one)")
+    br.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on (default: the session's ros2.listen); repeatable",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -396,6 +414,10 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
 
             return run_zenoh_top(args.zenoh, cfg, args.json, args.interval)
         return run_top(args.session, args.once, args.json, args.interval)
+    if args.command == "bridge":
+        from redistro.ros2bridge import run_bridge
+
+        return run_bridge(args.session, args.listen or None)
     raise ConfigError(f"unknown command {args.command}")
 
 

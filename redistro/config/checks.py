@@ -110,7 +110,8 @@ def check_config(cfg: Config) -> None:
             f"{cfg.origin('ddm.zenoh.group')}: ddm.zenoh.group: expected 1-64 letters, digits, "
             f"_ or - (no key-expression wildcards), got {_cut(z.group)}"
         )
-    for key, endpoints in (("ddm.zenoh.listen", z.listen), ("ddm.zenoh.connect", z.connect)):
+    listens = (("ddm.zenoh.listen", z.listen), ("ddm.zenoh.connect", z.connect))
+    for key, endpoints in (*listens, ("ros2.listen", cfg.ros2.listen)):
         for i, e in enumerate(endpoints):
             problem = endpoint_problem(e)
             if problem:

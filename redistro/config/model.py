@@ -672,6 +672,25 @@ class LogConfig:
 
 
 @dataclass(frozen=True)
+class Ros2Config:
+    """The running group's data as ROS 2 topics over Zenoh (``redistro bridge``).
+
+    bridge: ``redistro session`` starts the bridge beside the nodes.
+    listen: the bridge's zenoh endpoints, where a ROS 2 machine's zenoh
+        router (rmw_zenoh's ``zenohd``) or a client connects (7447: the
+        port rmw_zenoh's router listens on by default).
+    rate_hz: how often it publishes at most (it reads the nodes' Local Data
+        from outside, off every cycle).
+    domain_id: the ROS domain in the key expressions (``ROS_DOMAIN_ID``).
+    """
+
+    bridge: bool = False
+    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    rate_hz: float = field(default=50.0, metadata={"gt": 0, "le": 100})
+    domain_id: int = field(default=0, metadata={"ge": 0, "le": 232})
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole config. Sections are added as capabilities land."""
 
@@ -688,6 +707,7 @@ class Config:
     ssc: SscConfig = field(default_factory=SscConfig)
     ddm: DdmConfig = field(default_factory=DdmConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
     # The file this config was read from (relative hardware paths start from
     # its folder); set by the loader, never read from YAML.
     source: str = field(default="config/redistro.yaml", compare=False, metadata={"internal": True})

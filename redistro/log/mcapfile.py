@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.log.frames import CDR_HEADER, MESSAGE_ENCODING
+from redistro.log.frames import CDR_HEADER, MESSAGE_ENCODING, SCHEMA_ENCODING
 from redistro.log.ros2 import EVENT, event_json
 from redistro.log.schema import cdr_dtype, dtype_from_msg
 
@@ -47,22 +47,23 @@ def finish_run_log(run_dir: Path, node_cycles: dict[str, int] | None = None) -> 
             rec["cycles"] = cycles
             rec["dropped"] = max(0, cycles - rec["recorded"])
     out = run_dir / SESSION_LOG
-    if len(parts) == 1:
-        os.replace(parts[0], out)
-    else:
-        _merge(parts, out)
-        for p in parts:
-            p.unlink()
+    scene = _merge(parts, out)
+    for p in parts:
+        p.unlink()
     return {
         "file": SESSION_LOG,
         "bytes": out.stat().st_size,
-        "messages": sum(int(n.get("messages", 0)) for n in nodes.values()),
+        "messages": sum(int(n.get("messages", 0)) for n in nodes.values()) + scene,
+        "scene_messages": scene,
         "dropped": sum(int(n.get("dropped", 0)) for n in nodes.values()),
         "nodes": nodes,
     }
 
 
-def _merge(parts: list[Path], out: Path) -> None:
+def _merge(parts: list[Path], out: Path) -> int:
+    """The parts into one rosbag2-profile MCAP file, in time order, with the
+    3D scene made from them (:mod:`redistro.log.scene`); returns how many
+    scene messages it added."""
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
@@ -74,9 +75,10 @@ def _merge(parts: list[Path], out: Path) -> None:
         readers = [make_reader(f) for f in files]
         with safe.open_new(tmp, text=False) as sink:
             w = Writer(sink, chunk_size=1 << 20, compression=CompressionType.ZSTD)
-            w.start(profile="", library="redistro")
+            w.start(profile="ros2", library="redistro")
             schemas: dict[tuple[int, int], int] = {}
             channels: dict[tuple[int, int], int] = {}
+            meta: dict[str, Any] = {}
             for k, r in enumerate(readers):
                 summary = r.get_summary()
                 assert summary is not None
@@ -86,26 +88,92 @@ def _merge(parts: list[Path], out: Path) -> None:
                     channels[(k, cid)] = w.register_channel(
                         c.topic, c.message_encoding, schemas.get((k, c.schema_id), 0), c.metadata
                     )
-                for meta in r.iter_metadata():
-                    w.add_metadata(meta.name, meta.metadata)
+                for m in r.iter_metadata():
+                    w.add_metadata(m.name, m.metadata)
+                    if m.name == "redistro.meta":
+                        meta.update({key: _loads(v) for key, v in m.metadata.items()})
 
             def stream(k: int, r: Any) -> Any:
                 for _, ch, msg in r.iter_messages(log_time_order=True):
-                    yield msg.log_time, k, ch.id, msg
+                    yield msg.log_time, k, channels[(k, ch.id)], msg.data, msg.sequence
 
+            scene = _scene(w, readers, meta)
             merged = heapq.merge(
-                *(stream(k, r) for k, r in enumerate(readers)), key=lambda e: (e[0], e[1])
+                *(stream(k, r) for k, r in enumerate(readers)),
+                iter(scene),
+                key=lambda e: (e[0], e[1]),
             )
-            for _, k, cid, msg in merged:
-                w.add_message(
-                    channels[(k, cid)], msg.log_time, msg.data, msg.publish_time, msg.sequence
-                )
+            for t, _, cid, data, seq in merged:
+                w.add_message(cid, t, data, t, seq)
             w.finish()  # type: ignore[no-untyped-call]
         os.replace(tmp, out)
+        return len(scene)
     finally:
         for f in files:
             f.close()
         tmp.unlink(missing_ok=True)
+
+
+def _scene(
+    w: Any, readers: list[Any], meta: dict[str, Any]
+) -> list[tuple[int, int, int, bytes, int]]:
+    """The scene's messages, their channels registered in ``w``, sorted by
+    time (after the parts' messages of the same time)."""
+    from redistro.log import scene
+
+    robots = meta.get("robots")
+    if not isinstance(robots, dict) or not robots:
+        return []
+    arrays = _robot_arrays(readers, list(robots), ("feedback", "plan"))
+    feedback = {r: arrays[(r, "feedback")] for r in robots if (r, "feedback") in arrays}
+    plans = {r: arrays[(r, "plan")] for r in robots if (r, "plan") in arrays}
+    starts = [int(t[0]) for t, _ in arrays.values() if len(t)]
+    if not starts:
+        return []
+    types = {
+        "/robot_description": scene.STRING,
+        "/tf_static": scene.TF,
+        "/tf": scene.TF,
+        "/workcell/markers": scene.MARKER_ARRAY,
+        "/markers/wrench": scene.MARKER_ARRAY,
+    }
+    ids: dict[str, int] = {}
+    sids: dict[str, int] = {}
+    for topic, msgtype in types.items():
+        if msgtype not in sids:
+            sids[msgtype] = w.register_schema(
+                msgtype, SCHEMA_ENCODING, scene.definition(msgtype).encode()
+            )
+        ids[topic] = w.register_channel(topic, MESSAGE_ENCODING, sids[msgtype], {})
+    made = scene.Scene(meta).messages(feedback, plans, min(starts))
+    out = [(t, len(readers), ids[topic], data, 0) for t, topic, data in made]
+    out.sort(key=lambda e: e[0])
+    return out
+
+
+def _robot_arrays(
+    readers: list[Any], robots: list[str], blocks: tuple[str, ...]
+) -> dict[tuple[str, str], tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]:
+    """Each robot's logged blocks (the first part that has one) as (log
+    times, packed array)."""
+    want = {f"/{r}/{b}": (r, b) for r in robots for b in blocks}
+    out: dict[tuple[str, str], tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] = {}
+    for r in readers:
+        got: dict[str, tuple[list[int], list[bytes], str]] = {}
+        for schema, ch, msg in r.iter_messages(topics=list(want), log_time_order=True):
+            if want[ch.topic] in out:
+                continue
+            entry = got.setdefault(ch.topic, ([], [], schema.data.decode() if schema else ""))
+            entry[0].append(msg.log_time)
+            entry[1].append(msg.data)
+        for topic, (times, datas, text) in got.items():
+            dt = dtype_from_msg(text)
+            wire = np.frombuffer(b"".join(datas), cdr_dtype(dt))
+            packed = np.empty(len(datas), dt)
+            for name in dt.names or ():
+                packed[name] = wire[name]
+            out[want[topic]] = (np.asarray(times, np.int64), packed)
+    return out
 
 
 @dataclass

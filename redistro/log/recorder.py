@@ -390,9 +390,27 @@ def _standard(c: Channel) -> dict[str, Any] | None:
 def robots_meta(cfg: Any, robots: list[str]) -> dict[str, Any]:
     """What the inspection tools need to redo the kinematics: per robot its
     base and tool (peg or sensor plate), and the boards' sample rate."""
-    peg = cfg.workcell.peg
+    from redistro.config.model import FIXTURE_FLOOR_M, TABLE_HALF_XY_M, table_top_m
+
+    peg, hole = cfg.workcell.peg, cfg.workcell.hole
     return {
         "physics_hz": cfg.plant.physics_hz,
+        "workcell": {  # as drawn: what the controller believes (the log's 3D scene)
+            "table_top_m": table_top_m(hole),
+            "table_half_xy_m": list(TABLE_HALF_XY_M),
+            "table_x_m": hole.xyz_m[0],
+            "hole": {
+                "xyz_m": list(hole.xyz_m),
+                "side_m": peg.side_m + hole.clearance_m,
+                "wall_m": hole.wall_m,
+                "depth_m": hole.depth_m,
+                "floor_m": FIXTURE_FLOOR_M,
+            },
+            "objects": {
+                name: {"size_xyz_m": list(o.size_xyz_m), "xy_m": list(o.xy_m), "yaw_deg": o.yaw_deg}
+                for name, o in cfg.workcell.objects.items()
+            },
+        },
         "robots": {
             r: {
                 "base_xyz_m": list(cfg.robots[r].base_xyz_m),

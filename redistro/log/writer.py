@@ -124,7 +124,7 @@ class _McapSink:
 
         self.out = out
         self.writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-        self.writer.start(profile="", library="redistro")
+        self.writer.start(profile="ros2", library="redistro")
         # channel id, offset, size, the CDR body's runs (from, to, padding
         # before), and a feedback channel's standard messages (or None)
         self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]], Any]] = []

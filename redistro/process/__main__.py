@@ -1,4 +1,4 @@
-"""Process entry point: ``python -m redistro.process {manager|worker|plant|logwriter} ...``.
+"""Process entry point: ``python -m redistro.process {manager|worker|plant|logwriter|bridge} ...``.
 
 The runtime signals are blocked and the math libraries limited to one thread
 *before* anything that may start a thread (numpy/OpenBLAS, pybullet,
@@ -39,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     lw.add_argument("--fd", type=int, required=True)
     lw.add_argument("--out", required=True)
     lw.add_argument("--ready-fd", type=int, default=-1)
+    b = sub.add_parser("bridge")
+    b.add_argument("--session", required=True)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=os.environ.get("REDISTRO_LOG_LEVEL", "INFO"),
@@ -49,6 +51,10 @@ def main(argv: list[str] | None = None) -> int:
         from redistro.log.writer import run_writer
 
         return run_writer(args.fd, args.out, args.ready_fd)
+    if args.what == "bridge":
+        from redistro.ros2bridge import run_bridge
+
+        return run_bridge(args.session)
     if args.what == "plant":
         from redistro.plant.process import run_plant
 

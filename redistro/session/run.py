@@ -113,6 +113,7 @@ def _run_task(
         # the plant starts beside the first nodes (each waits for it before
         # it opens its driver): their start-ups overlap
         plant = PlantProcess.launch(s, run_dir, plant_config(cfg), hardware=hardware)
+        bridge = _start_bridge(cfg, s, say)
         try:
             order = task.calibration.order if task.kind == "self_calibration" else "together"
             groups = [task.robots] if order == "together" else [[r] for r in task.robots]
@@ -122,6 +123,7 @@ def _run_task(
                 if not all(r.ok for r in results):
                     break
         finally:
+            _stop_bridge(bridge)
             plant.stop()
             plant_result = plant.result()
             say("plant powered off")
@@ -236,6 +238,32 @@ def _say_summary(summary: dict[str, Any], say: Callable[[str], None]) -> None:
             f"inserted: {summary['inserted']} (depth {belief} "
             f"of {summary['hole_depth_m'] * 1e3:.1f} mm)"
         )
+
+
+def _start_bridge(cfg: Config, s: Any, say: Callable[[str], None]) -> Any:
+    """``ros2.bridge``: the ROS 2 bridge beside the nodes (its own process,
+    reading their Local Data from outside; ends with the session)."""
+    if not cfg.ros2.bridge:
+        return None
+    from redistro.process.spawn import spawn
+
+    say(f"ROS 2 bridge on {', '.join(cfg.ros2.listen)}")
+    return spawn(["bridge", "--session", s.id], env=s.child_env())
+
+
+def _stop_bridge(proc: Any) -> None:
+    import signal
+    import subprocess
+
+    if proc is None:
+        return
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(5.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def _finish_log(

@@ -103,7 +103,13 @@ def test_every_cycle_message_decodes_in_a_ros2_reader(logged: dict[str, Any]) ->
         for schema, channel, _msg in reader.iter_messages():
             if channel.message_encoding == "cdr":
                 assert schema is not None and schema.encoding == "ros2msg", channel.topic
-                standard = ("sensor_msgs/msg/JointState", "geometry_msgs/msg/WrenchStamped")
+                standard = (
+                    "sensor_msgs/msg/JointState",
+                    "geometry_msgs/msg/WrenchStamped",
+                    "tf2_msgs/msg/TFMessage",  # (the 3D scene: redistro.log.scene)
+                    "std_msgs/msg/String",
+                    "visualization_msgs/msg/MarkerArray",
+                )
                 assert schema.name.startswith("redistro/msg/") or schema.name in standard
         f.seek(0)
         reader = make_reader(f, decoder_factories=[DecoderFactory()])

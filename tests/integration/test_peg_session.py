@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from redistro.config import load_config
+from tests import ros2_log
 from tests.helpers import (
     ROOT,
     attach_running,
@@ -111,10 +112,39 @@ def test_peg_insertion_over_each_transport(
     assert all(n["kernels"] is compiled for n in summary["nodes"].values()), summary["nodes"]
     _check_peg(summary)
     _check_log(out, summary)
+    if transport == "reflective":
+        _check_ros2(out / "session.mcap", summary, tmp_path)
     print({s["name"]: s for s in summary["segments"]})
     print(
         {n: d["command_latency_us"] for n, d in summary["ddm"].items() if "command_latency_us" in d}
     )
+
+
+def _check_ros2(path: Path, summary: dict[str, Any], tmp: Path) -> None:
+    """The log opened by readers no one here wrote: rosbags and
+    mcap-ros2-support decode every message (as many as summary.json
+    counts), Rerun imports the robots, their joint states and transforms,
+    and the TF tree is whole at every cycle, the tools where Pinocchio puts them."""
+    from redistro.log.mcapfile import read_log
+
+    total = summary["log"]["messages"]
+    counts, kept = ros2_log.rosbags_counts(path)
+    assert sum(counts.values()) == total, (dict(counts), total)
+    assert ros2_log.mcap_ros2_count(path) == total
+    cycles = summary["log"]["nodes"]["ssc"]["recorded"]
+    for topic in ("/r1/joint_states", "/r2/joint_states", "/r1/wrench", "/r2/wrench"):
+        assert counts[topic] == cycles, (topic, counts[topic], cycles)
+    assert counts["/tf"] == 4 * cycles  # per robot: its joints, its goal
+    assert counts["/tf_static"] == counts["/robot_description"] == 1
+    assert counts["/workcell/markers"] == 1 and counts["/markers/wrench"] > 0
+    rows = ros2_log.rerun_entities(path, tmp)
+    for r in ("r1", "r2"):
+        assert rows[(f"/{r}/joint_states/position", "Scalars")] == cycles, r
+        link = f"/redistro_group/visual_geometries/{r}_lbr_iiwa_link_7/visual_0"
+        assert rows[(link, "Boxes3D")] == 1, sorted(k for k in rows if "visual" in k[0])
+    assert rows[("/tf", "Transform3D")] == cycles * (2 * 7 + 2)
+    checked = ros2_log.check_tf_tree(kept, read_log(path).robots())
+    assert checked["cycles"] == cycles and checked["poses"] > 100, checked
 
 
 def _check_bench(f: dict[str, Any]) -> None:

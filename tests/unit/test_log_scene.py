@@ -1,0 +1,128 @@
+"""The log's 3D scene: the group's URDF, the transforms packed by hand, checked by other code."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from redistro.log import scene
+
+ROBOTS = {"r1": {"base_xyz_m": [0.0, 0.45, 0.0], "peg": None}}
+ROBOTS["r2"] = {"base_xyz_m": [0.0, -0.45, 0.0], "peg": [0.02, 0.1, 0.1]}
+
+
+@pytest.fixture(scope="module")
+def arms() -> dict[str, scene.Arm]:
+    return {r: scene.Arm(r, v["peg"]) for r, v in ROBOTS.items()}
+
+
+def test_the_group_urdf_is_one_robot_with_both_arms_at_their_bases(
+    arms: dict[str, scene.Arm],
+) -> None:
+    """Pinocchio builds the group from the URDF text alone (no mesh to
+    find): 14 joints named as the joint states name them, and its forward
+    kinematics agrees with the transforms the log carries, on random poses."""
+    import pinocchio as pin
+
+    text = scene.group_urdf(arms, {r: v["base_xyz_m"] for r, v in ROBOTS.items()})
+    assert "<mesh" not in text and "package://" not in text
+    model = pin.buildModelFromXML(text)
+    names = [model.names[i] for i in range(1, model.njoints)]
+    assert names == [f"{r}_lbr_iiwa_joint_{k}" for r in ROBOTS for k in range(1, 8)]
+    data = model.createData()
+    rng = np.random.default_rng(7)
+    q = rng.uniform(-2.0, 2.0, (200, 14))
+    for r, arm in arms.items():
+        i = list(ROBOTS).index(r)
+        values = arm.transforms(q[:, 7 * i : 7 * i + 7])
+        tool = model.getFrameId(f"{r}_tool")
+        for n in range(0, 200, 7):
+            pin.framesForwardKinematics(model, data, q[n])
+            pose = np.eye(4)
+            pose[:3, 3] = ROBOTS[r]["base_xyz_m"]
+            for k in range(7):
+                pose = pose @ _matrix(values[n, k])
+            flange = data.oMf[model.getFrameId(f"{r}_lbr_iiwa_link_7")]
+            np.testing.assert_allclose(pose[:3, 3], flange.translation, atol=1e-12)
+            np.testing.assert_allclose(pose[:3, :3], flange.rotation, atol=1e-12)
+            assert np.linalg.norm(data.oMf[tool].translation - flange.translation) > 0.04
+
+
+def _matrix(v: np.ndarray) -> np.ndarray:
+    import pinocchio as pin
+
+    m = np.eye(4)
+    m[:3, :3] = pin.Quaternion(v[6], v[3], v[4], v[5]).toRotationMatrix()
+    m[:3, 3] = v[:3]
+    return m
+
+
+def test_packed_transforms_decode_in_rosbags_to_the_same_values() -> None:
+    """The hand-packed TFMessage, deserialized by rosbags' own CDR code."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    pairs = [("world", "a"), ("a", "bb_longer_name"), ("bb_longer_name", "c")]
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=(50, 3, 7))
+    stamps = rng.integers(0, 2**31 * 10**9, 50)
+    for data, v, t in zip(scene.TfPacker(pairs).pack(stamps, values), values, stamps, strict=True):
+        msg = store.deserialize_cdr(data, scene.TF)
+        assert [(x.header.frame_id, x.child_frame_id) for x in msg.transforms] == pairs
+        for x, row in zip(msg.transforms, v, strict=True):
+            assert (x.header.stamp.sec, x.header.stamp.nanosec) == divmod(int(t), 10**9)
+            tr, rot = x.transform.translation, x.transform.rotation
+            got = [tr.x, tr.y, tr.z, rot.x, rot.y, rot.z, rot.w]
+            np.testing.assert_array_equal(got, row)
+
+
+def test_stamps_split_into_seconds_and_nanoseconds() -> None:
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    t = 1_764_000_000_123_456_789
+    (data,) = scene.TfPacker([("world", "x")]).pack(np.array([t]), np.zeros((1, 1, 7)))
+    stamp = store.deserialize_cdr(data, scene.TF).transforms[0].header.stamp
+    assert (stamp.sec, stamp.nanosec) == (1_764_000_000, 123_456_789)
+
+
+def test_rotation_vectors_become_the_quaternions_pinocchio_makes() -> None:
+    import pinocchio as pin
+
+    rng = np.random.default_rng(5)
+    r = rng.normal(size=(100, 3))
+    r[0] = 0.0
+    q = scene.quat_rotvec(r)
+    for v, quat in zip(r, q, strict=True):
+        want = pin.Quaternion(pin.exp3(v))
+        got = pin.Quaternion(quat[3], *quat[:3])
+        assert got.angularDistance(want) < 1e-9
+
+
+def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
+    """... and in mcap-ros2-support, from the definition the log carries."""
+    from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    meta = {
+        "robots": ROBOTS,
+        "hole_xyz_m": [0.55, -0.35, 0.15],
+        "workcell": {
+            "table_top_m": 0.1,
+            "table_half_xy_m": [0.3, 0.6],
+            "table_x_m": 0.55,
+            "hole": {"xyz_m": [0.55, -0.35, 0.15], "side_m": 0.021, "wall_m": 0.03},
+            "objects": {"bar": {"size_xyz_m": [0.04, 0.4, 0.06], "xy_m": [0.5, 0.0], "yaw_deg": 2}},
+        },
+    }
+    meta["workcell"]["hole"].update(depth_m=0.04, floor_m=0.01)  # type: ignore[union-attr]
+    data = scene.workcell_markers(meta, 5)
+    text = scene.definition(scene.MARKER_ARRAY).encode()
+    schema = Schema(id=1, name=scene.MARKER_ARRAY, encoding="ros2msg", data=text)
+    decode = DecoderFactory().decoder_for("cdr", schema)
+    assert decode is not None
+    msg = decode(data)
+    assert [m.ns for m in msg.markers] == ["table", "fixture", "hole_believed", "bar_believed"]
+    bar = msg.markers[-1]
+    assert bar.header.frame_id == "bar_believed" and bar.type == 1  # a cube in its own frame
+    assert [bar.scale.x, bar.scale.y, bar.scale.z] == [0.04, 0.4, 0.06]
