@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from redistro.log.frames import CDR_HEADER, MESSAGE_ENCODING, SCHEMA_ENCODING
-from redistro.log.ros2 import EVENT, event_json
+from redistro.log.ros2 import EVENT, MESSAGE, event_json, message_doc
 from redistro.log.schema import cdr_dtype, dtype_from_msg
 
 log = logging.getLogger(__name__)
@@ -232,7 +232,7 @@ def read_log(path: Path) -> SessionLog:
                         f"redistro (its channels are ROS 2 CDR)"
                     )
                 name = schema.name if schema is not None else ""
-                event = channel.message_encoding == "json" or name == EVENT
+                event = channel.message_encoding == "json" or name in (EVENT, MESSAGE)
                 if not event and not name.startswith("redistro/msg/"):
                     continue  # a standard ROS 2 message (JointState ...): made from ours
                 if not event:
@@ -245,8 +245,11 @@ def read_log(path: Path) -> SessionLog:
                     times.setdefault(topic, []).append(msg.log_time)
                 else:
                     json_ = channel.message_encoding == "json"
-                    text = msg.data.decode("utf-8") if json_ else event_json(msg.data)
-                    doc = load_json(text)
+                    if name == MESSAGE:
+                        doc = message_doc(msg.data)
+                    else:
+                        text = msg.data.decode("utf-8") if json_ else event_json(msg.data)
+                        doc = load_json(text)
                     if not isinstance(doc, dict):
                         raise ValueError(
                             f"{topic}: an event at {msg.log_time} ns is not a JSON object"

@@ -13,6 +13,7 @@ ones, with their dependencies, as rosbag2 writes them into MCAP.
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 from redistro.log.frames import CDR_HEADER
 
@@ -46,6 +47,17 @@ WRENCH_STAMPED_DEF = _with(
 # an event (a segment's start, a message, a state change): its JSON document
 EVENT = "redistro/msg/Event"
 EVENT_DEF = "string json\n"
+
+# a message-box line (a worker's or the manager's text), its levels those
+# of rcl_interfaces/msg/Log (and of Python's logging)
+MESSAGE = "redistro/msg/Message"
+MESSAGE_DEF = _with(
+    "uint8 DEBUG=10\nuint8 INFO=20\nuint8 WARN=30\nuint8 ERROR=40\nuint8 FATAL=50\n"
+    "builtin_interfaces/Time stamp\nuint64 cycle\nuint8 level\nstring process\nstring text\n",
+    ("builtin_interfaces/Time", _TIME),
+)
+LEVELS = {"DEBUG": 10, "INFO": 20, "WARNING": 30, "ERROR": 40, "CRITICAL": 50}
+LEVEL_NAMES = {v: k for k, v in LEVELS.items()}
 
 _STAMP = struct.Struct("<iI")
 
@@ -132,3 +144,41 @@ def event_json(message: bytes) -> str:
     if n < 1 or 8 + n != len(message) or message[-1] != 0:
         raise ValueError("an event message whose string does not fit it")
     return message[8 : 8 + n - 1].decode("utf-8")
+
+
+def message(doc: dict[str, Any]) -> bytes:
+    """A message-box line's message (``doc``: the recorder's event: stamp_ns,
+    cycle, level name, process, text)."""
+    ns = int(doc.get("stamp_ns") or 0)
+    c = Cdr()
+    c.buf += _STAMP.pack(ns // 1_000_000_000, ns % 1_000_000_000)
+    level = LEVELS.get(str(doc.get("level")), 0)
+    c.buf += struct.pack("<QB", int(doc.get("cycle") or 0), level)
+    c.string(str(doc.get("process", "")))
+    c.string(str(doc.get("text", "")))
+    return CDR_HEADER + bytes(c.buf)
+
+
+def message_doc(data: bytes) -> dict[str, Any]:
+    """A message-box line back as the recorder's event (ValueError: not one)."""
+    if len(data) < 4 + 17 or data[:4] != CDR_HEADER:
+        raise ValueError("a message-box line without its CDR header")
+    sec, nsec = _STAMP.unpack_from(data, 4)
+    cycle, level = struct.unpack_from("<QB", data, 12)
+    strings, at = [], 21
+    for _ in range(2):
+        at += -(at - 4) % 4
+        if at + 4 > len(data):
+            raise ValueError("a message-box line cut short")
+        (n,) = struct.unpack_from("<I", data, at)
+        if n < 1 or at + 4 + n > len(data) or data[at + 4 + n - 1] != 0:
+            raise ValueError("a message-box line whose strings do not fit it")
+        strings.append(data[at + 4 : at + 4 + n - 1].decode("utf-8"))
+        at += 4 + n
+    return {
+        "cycle": cycle,
+        "level": LEVEL_NAMES.get(level, str(level)),
+        "process": strings[0],
+        "text": strings[1],
+        "stamp_ns": sec * 1_000_000_000 + nsec,
+    }

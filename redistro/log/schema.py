@@ -173,3 +173,36 @@ def cdr_struct(dtype: np.dtype[Any]) -> str:
         out += f"{count if shape else ''}{STRUCT_CODES[(base.kind, base.itemsize)]}"
         at += pad + size
     return out
+
+
+LOGGED_BLOCKS = ("feedback", "command", "plan", "setpoint", "control", "guard")
+MSG_FOLDER = "redistro/msg"  # the package's message definitions, beside its code
+
+
+def package_messages() -> dict[str, str]:
+    """Every redistro message a session log holds, as the ``.msg`` files of
+    a ROS 2 package named ``redistro`` (file name -> text): one per logged
+    Local Data block, ``Timing<n>`` for a node of ``n`` processes, the event
+    and the message-box line. ``redistro/msg/`` holds them; a unit test
+    keeps the two equal (``write_package_messages`` writes them anew)."""
+    from redistro.localdata.layout import BLOCKS, MAX_PROCS
+    from redistro.log import ros2
+
+    out = {
+        f"{type_name(b).rsplit('/', 1)[1]}.msg": msg_definition(with_cycle(BLOCKS[b][0]))
+        for b in LOGGED_BLOCKS
+    }
+    for n in range(1, MAX_PROCS + 1):
+        out[f"Timing{n}.msg"] = msg_definition(timing_dtype(n))
+    out["Event.msg"] = ros2.EVENT_DEF
+    out["Message.msg"] = ros2.MESSAGE_DEF.split(ros2.SEPARATOR)[0]
+    return out
+
+
+def write_package_messages(root: str = ".") -> None:
+    from pathlib import Path
+
+    folder = Path(root) / MSG_FOLDER
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, text in package_messages().items():
+        (folder / name).write_text(text)

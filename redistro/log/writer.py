@@ -134,6 +134,7 @@ class _McapSink:
             ros2.EVENT, "ros2msg", ros2.EVENT_DEF.encode()
         )
         self.event_channels: dict[str, int] = {}
+        self.message_schema: int | None = None
         self.node = ""
         self.frames = self.messages = 0
 
@@ -200,10 +201,17 @@ class _McapSink:
             self.event(str(doc.pop("topic")), doc, log_ns)
 
     def event(self, topic: str, doc: dict[str, Any], log_ns: int) -> None:
+        box = topic.endswith("/messages")  # (a message box's line: a message of its own)
         if topic not in self.event_channels:
-            channel = self.writer.register_channel(topic, "cdr", self.event_schema)
+            if box and self.message_schema is None:
+                self.message_schema = self.writer.register_schema(
+                    ros2.MESSAGE, "ros2msg", ros2.MESSAGE_DEF.encode()
+                )
+            schema = self.message_schema if box else self.event_schema
+            channel = self.writer.register_channel(topic, "cdr", schema or 0)
             self.event_channels[topic] = channel
-        data = ros2.event(json.dumps(doc))  # (a ROS 2 string holding the JSON document)
+        # (an event: a ROS 2 string holding its JSON document)
+        data = ros2.message(doc) if box else ros2.event(json.dumps(doc))
         self.writer.add_message(self.event_channels[topic], log_ns, data, log_ns)
         self.messages += 1
 

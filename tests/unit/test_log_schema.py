@@ -131,3 +131,35 @@ def test_an_event_is_a_ros2_string_of_its_json_document() -> None:
     for bad in (b"", messages[0][:-1], b"\x00\x01\x00\x00" + bytes(4), messages[0] + b"x"):
         with pytest.raises(ValueError):
             ros2.event_json(bad)
+
+
+def test_a_message_box_line_is_a_message_of_its_own() -> None:
+    """redistro/msg/Message: decoded by mcap-ros2-support and by our reader
+    to the recorder's event, level as rcl_interfaces' (Python's) number."""
+    from redistro.log import ros2
+
+    docs: list[dict[str, Any]] = [
+        {"cycle": 7, "level": "ERROR", "process": "worker", "text": "stuck é", "stamp_ns": 5},
+        {"cycle": 2**40, "level": "INFO", "process": "", "text": "", "stamp_ns": 18 * 10**17 + 9},
+        {"cycle": 0, "level": "WARNING", "process": "ddm", "text": "x" * 301, "stamp_ns": 1},
+    ]
+    messages = [ros2.message(d) for d in docs]
+    got = _decoded(_mcap(ros2.MESSAGE, ros2.MESSAGE_DEF, messages))
+    assert [(m.level, m.process, m.text, m.cycle) for m in got] == [
+        (ros2.LEVELS[d["level"]], d["process"], d["text"], d["cycle"]) for d in docs
+    ]
+    assert [m.stamp.sec * 10**9 + m.stamp.nanosec for m in got] == [d["stamp_ns"] for d in docs]
+    assert [ros2.message_doc(m) for m in messages] == docs
+    for bad in (b"", messages[0][:-1], messages[0][:25], b"\x00\x01\x00\x00" + bytes(30)):
+        with pytest.raises(ValueError):
+            ros2.message_doc(bad)
+
+
+def test_the_package_message_files_are_the_ones_the_log_writes() -> None:
+    """redistro/msg/*.msg: every message the log's channels define, no other
+    (after a layout change: ``schema.write_package_messages()``)."""
+    from tests.helpers import ROOT
+
+    folder = ROOT / schema.MSG_FOLDER
+    files = {p.name: p.read_text() for p in folder.glob("*.msg")}
+    assert files == schema.package_messages(), "run schema.write_package_messages()"
