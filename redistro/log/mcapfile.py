@@ -6,6 +6,7 @@ import heapq
 import json
 import logging
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,9 @@ def finish_run_log(run_dir: Path, node_cycles: dict[str, int] | None = None) -> 
             rec["cycles"] = cycles
             rec["dropped"] = max(0, cycles - rec["recorded"])
     out = run_dir / SESSION_LOG
+    t0 = time.monotonic()
     scene = _merge(parts, out)
+    merge_s = time.monotonic() - t0
     for p in parts:
         p.unlink()
     return {
@@ -55,6 +58,7 @@ def finish_run_log(run_dir: Path, node_cycles: dict[str, int] | None = None) -> 
         "bytes": out.stat().st_size,
         "messages": sum(int(n.get("messages", 0)) for n in nodes.values()) + scene,
         "scene_messages": scene,
+        "merge_s": round(merge_s, 3),  # the parts merged, the scene made (after the run)
         "dropped": sum(int(n.get("dropped", 0)) for n in nodes.values()),
         "nodes": nodes,
     }

@@ -52,9 +52,14 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_writer(args.fd, args.out, args.ready_fd)
     if args.what == "bridge":
+        from redistro.errors import RedistroError
         from redistro.ros2bridge import run_bridge
 
-        return run_bridge(args.session)
+        try:
+            return run_bridge(args.session)
+        except RedistroError as exc:  # (beside a session: one line, the session goes on)
+            print(f"redistro bridge: {exc}", file=sys.stderr)
+            return 2
     if args.what == "plant":
         from redistro.plant.process import run_plant
 
