@@ -58,22 +58,34 @@ def main() -> int:
             capture_output=True,
         )
         web, grpc = _port(), _port()
+        serve = ["--web-viewer", "--web-viewer-port", str(web), "--port", str(grpc)]
         viewer = subprocess.Popen(
-            [str(RERUN), "--web-viewer", "--web-viewer-port", str(web), "--port", str(grpc)]
-            + ["--bind", "127.0.0.1", "--renderer", "webgl", str(rrd)],
+            [str(RERUN), *serve, "--bind", "127.0.0.1", "--renderer", "webgl", str(rrd)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
         try:
             _up(web, 60)
             url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
+            flags = [
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu-sandbox",
+                "--use-gl=angle",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--hide-scrollbars",
+                f"--user-data-dir={tmp}/chromium",
+                f"--window-size={args.size}",
+                f"--virtual-time-budget={args.wait_ms}",
+                f"--screenshot={args.out}",
+            ]
             subprocess.run(
-                [chromium, "--headless", "--no-sandbox", "--disable-gpu-sandbox"]
-                + ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
-                + ["--no-first-run", "--disable-background-networking"]
-                + ["--disable-component-update", "--disable-sync", "--hide-scrollbars"]
-                + [f"--user-data-dir={tmp}/chromium", f"--window-size={args.size}"]
-                + [f"--virtual-time-budget={args.wait_ms}", f"--screenshot={args.out}", url],
+                [chromium, *flags, url],
                 check=True,
                 capture_output=True,
                 timeout=300,

@@ -49,25 +49,32 @@ def finish_run_log(run_dir: Path, node_cycles: dict[str, int] | None = None) -> 
             rec["dropped"] = max(0, cycles - rec["recorded"])
     out = run_dir / SESSION_LOG
     t0 = time.monotonic()
-    scene = _merge(parts, out)
+    added = 0
+    if len(parts) == 1:
+        os.replace(parts[0], out)
+    else:
+        added = _merge(parts, out)
+        for p in parts:
+            p.unlink()
     merge_s = time.monotonic() - t0
-    for p in parts:
-        p.unlink()
     return {
         "file": SESSION_LOG,
         "bytes": out.stat().st_size,
-        "messages": sum(int(n.get("messages", 0)) for n in nodes.values()) + scene,
-        "scene_messages": scene,
-        "merge_s": round(merge_s, 3),  # the parts merged, the scene made (after the run)
+        "messages": sum(int(n.get("messages", 0)) for n in nodes.values()) + added,
+        "merge_s": round(merge_s, 3),  # the parts merged into one file (after the run)
         "dropped": sum(int(n.get("dropped", 0)) for n in nodes.values()),
         "nodes": nodes,
     }
 
 
+STATIC_SCENE = ("/robot_description", "/tf_static", "/workcell/markers")
+
+
 def _merge(parts: list[Path], out: Path) -> int:
-    """The parts into one rosbag2-profile MCAP file, in time order, with the
-    3D scene made from them (:mod:`redistro.log.scene`); returns how many
-    scene messages it added."""
+    """The parts into one rosbag2-profile MCAP file, in time order. Each
+    part drew its own robots' static scene: those messages give way to one
+    of the whole group (:func:`redistro.log.scene.static_messages`).
+    Returns the messages added less those left out."""
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
@@ -82,13 +89,19 @@ def _merge(parts: list[Path], out: Path) -> int:
             w.start(profile="ros2", library="redistro")
             schemas: dict[tuple[int, int], int] = {}
             channels: dict[tuple[int, int], int] = {}
+            robots: dict[str, Any] = {}
             meta: dict[str, Any] = {}
+            left_out = 0
             for k, r in enumerate(readers):
                 summary = r.get_summary()
                 assert summary is not None
                 for sid, s in summary.schemas.items():
                     schemas[(k, sid)] = w.register_schema(s.name, s.encoding, s.data)
                 for cid, c in summary.channels.items():
+                    if c.topic in STATIC_SCENE:
+                        stats = summary.statistics
+                        left_out += stats.channel_message_counts.get(cid, 0) if stats else 0
+                        continue
                     channels[(k, cid)] = w.register_channel(
                         c.topic, c.message_encoding, schemas.get((k, c.schema_id), 0), c.metadata
                     )
@@ -96,88 +109,44 @@ def _merge(parts: list[Path], out: Path) -> int:
                     w.add_metadata(m.name, m.metadata)
                     if m.name == "redistro.meta":
                         meta.update({key: _loads(v) for key, v in m.metadata.items()})
+                        part_robots = meta.get("robots")
+                        robots.update(part_robots if isinstance(part_robots, dict) else {})
 
             def stream(k: int, r: Any) -> Any:
                 for _, ch, msg in r.iter_messages(log_time_order=True):
-                    yield msg.log_time, k, channels[(k, ch.id)], msg.data, msg.sequence
+                    if (k, ch.id) in channels:
+                        yield msg.log_time, k, channels[(k, ch.id)], msg.data, msg.sequence
 
-            scene = _scene(w, readers, meta)
             merged = heapq.merge(
-                *(stream(k, r) for k, r in enumerate(readers)),
-                iter(scene),
-                key=lambda e: (e[0], e[1]),
+                *(stream(k, r) for k, r in enumerate(readers)), key=lambda e: (e[0], e[1])
             )
+            first = 0
             for t, _, cid, data, seq in merged:
+                first = first or t
                 w.add_message(cid, t, data, t, seq)
+            added = _static_scene(w, {**meta, "robots": robots}, first) if robots else 0
             w.finish()  # type: ignore[no-untyped-call]
         os.replace(tmp, out)
-        return len(scene)
+        return added - left_out
     finally:
         for f in files:
             f.close()
         tmp.unlink(missing_ok=True)
 
 
-def _scene(
-    w: Any, readers: list[Any], meta: dict[str, Any]
-) -> list[tuple[int, int, int, bytes, int]]:
-    """The scene's messages, their channels registered in ``w``, sorted by
-    time (after the parts' messages of the same time)."""
+def _static_scene(w: Any, meta: dict[str, Any], stamp_ns: int) -> int:
+    """The whole group's static scene into ``w``; how many messages."""
     from redistro.log import scene
 
-    robots = meta.get("robots")
-    if not isinstance(robots, dict) or not robots:
-        return []
-    arrays = _robot_arrays(readers, list(robots), ("feedback", "plan"))
-    feedback = {r: arrays[(r, "feedback")] for r in robots if (r, "feedback") in arrays}
-    plans = {r: arrays[(r, "plan")] for r in robots if (r, "plan") in arrays}
-    starts = [int(t[0]) for t, _ in arrays.values() if len(t)]
-    if not starts:
-        return []
-    types = {
-        "/robot_description": scene.STRING,
-        "/tf_static": scene.TF,
-        "/tf": scene.TF,
-        "/workcell/markers": scene.MARKER_ARRAY,
-        "/markers/wrench": scene.MARKER_ARRAY,
-    }
-    ids: dict[str, int] = {}
-    sids: dict[str, int] = {}
-    for topic, msgtype in types.items():
-        if msgtype not in sids:
-            sids[msgtype] = w.register_schema(
-                msgtype, SCHEMA_ENCODING, scene.definition(msgtype).encode()
-            )
-        ids[topic] = w.register_channel(topic, MESSAGE_ENCODING, sids[msgtype], {})
-    made = scene.Scene(meta).messages(feedback, plans, min(starts))
-    out = [(t, len(readers), ids[topic], data, 0) for t, topic, data in made]
-    out.sort(key=lambda e: e[0])
-    return out
-
-
-def _robot_arrays(
-    readers: list[Any], robots: list[str], blocks: tuple[str, ...]
-) -> dict[tuple[str, str], tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]:
-    """Each robot's logged blocks (the first part that has one) as (log
-    times, packed array)."""
-    want = {f"/{r}/{b}": (r, b) for r in robots for b in blocks}
-    out: dict[tuple[str, str], tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]] = {}
-    for r in readers:
-        got: dict[str, tuple[list[int], list[bytes], str]] = {}
-        for schema, ch, msg in r.iter_messages(topics=list(want), log_time_order=True):
-            if want[ch.topic] in out:
-                continue
-            entry = got.setdefault(ch.topic, ([], [], schema.data.decode() if schema else ""))
-            entry[0].append(msg.log_time)
-            entry[1].append(msg.data)
-        for topic, (times, datas, text) in got.items():
-            dt = dtype_from_msg(text)
-            wire = np.frombuffer(b"".join(datas), cdr_dtype(dt))
-            packed = np.empty(len(datas), dt)
-            for name in dt.names or ():
-                packed[name] = wire[name]
-            out[want[topic]] = (np.asarray(times, np.int64), packed)
-    return out
+    if not stamp_ns:
+        return 0
+    arms = {r: scene.Arm(r, v.get("peg")) for r, v in sorted(meta["robots"].items())}
+    made = scene.static_messages(meta, arms, stamp_ns)
+    for t, topic, msgtype, data in made:
+        text = scene.TF_DEF if msgtype == scene.TF else scene.definition(msgtype)
+        sid = w.register_schema(msgtype, SCHEMA_ENCODING, text.encode())
+        w.add_message(w.register_channel(topic, MESSAGE_ENCODING, sid, {}), t, data, t)
+    return len(made)
 
 
 @dataclass

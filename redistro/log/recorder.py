@@ -372,15 +372,18 @@ class CycleRecorder:
 
 def _standard(c: Channel) -> dict[str, Any] | None:
     """What the writer needs to make a feedback channel's standard ROS 2
-    messages (redistro.log.ros2): the robot, its joints, where the fields are."""
-    if c.block != "feedback":
+    messages (redistro.log.ros2) and its transforms (redistro.log.scene),
+    or a plan's goal frame: the robot, its joints, where the fields are."""
+    if c.block not in ("feedback", "plan"):
         return None
     from redistro.robotmodel import JOINT_NAMES
 
     fields = c.dtype.fields
     assert fields is not None
-    want = ("q_rad", "qd_rad_s", "tau_nm", "wrench")
+    plan = c.block == "plan"
+    want = ("goal_xyz_m", "goal_rot_xyz") if plan else ("q_rad", "qd_rad_s", "tau_nm", "wrench")
     return {
+        "kind": c.block,
         "robot": c.topic.strip("/").split("/")[0],
         "joints": list(JOINT_NAMES),
         "fields": {k: int(fields[k][1]) for k in want},

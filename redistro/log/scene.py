@@ -1,37 +1,36 @@
-"""The session log's 3D scene, in standard ROS 2 messages, made when the log is merged.
+"""The session log's 3D scene, in standard ROS 2 messages, made by the log writer.
 
-After the run (off every cycle), from the log's own metadata and its
-feedback and plan channels, ``session.mcap`` gets what a 3D viewer
-(Foxglove, Rerun, RViz from a rosbag2 replay) needs to draw the group:
+From the log's own metadata (the robots' bases and tools, the work-cell as
+the controller believes it) and each cycle's feedback and plan, the
+writer process (off every cycle) adds what a 3D viewer (Foxglove, Rerun,
+RViz from a rosbag2 replay) needs to draw the group:
 
-- ``/robot_description`` (``std_msgs/msg/String``), once: the URDF of the
-  group, a ``world`` link with each arm's links and joints prefixed with
-  its robot (``r1_lbr_iiwa_link_3``, the joints as ``/<robot>/joint_states``
-  names them), every mesh replaced by its bounding box (no ``package://``
-  look-up);
-- ``/tf_static``, once: ``world`` to each base, each flange to its
-  ``<robot>_tool``, and the work-cell as the controller believes it
-  (``hole_believed``, ``<object>_believed``: never the plant's truth);
 - ``/tf`` (``tf2_msgs/msg/TFMessage``), every logged cycle: per robot each
-  joint's parent link to child link from the measured joint positions, and
-  ``<robot>_goal``, the SSC's goal pose of the tool;
-- ``/workcell/markers`` (``visualization_msgs/msg/MarkerArray``), once: the
-  table, the hole's fixture and the objects, as believed; and
-  ``/markers/wrench``, at most ``ARROW_HZ``: each wrist's force as an arrow
-  in its tool frame.
+  joint's parent link to child link from the measured joint positions
+  (:class:`ArmFk`, pure Python: about 15 us a robot), and ``<robot>_goal``,
+  the SSC's goal pose of the tool;
+- at the end of the file, stamped at its first cycle: ``/robot_description``
+  (``std_msgs/msg/String``): the URDF of the group, a ``world`` link with
+  each arm's links and joints prefixed with its robot (``r1_lbr_iiwa_link_3``,
+  the joints as ``/<robot>/joint_states`` names them), every mesh replaced
+  by its bounding box (no ``package://`` look-up); ``/tf_static``: ``world``
+  to each base, each flange to its ``<robot>_tool``, and the work-cell as
+  believed (``hole_believed``, ``<object>_believed``: never the plant's
+  truth); ``/workcell/markers`` (``visualization_msgs/msg/MarkerArray``):
+  the table, the hole's fixture and the objects; and ``/markers/wrench``,
+  at most ``ARROW_HZ``: each wrist's force as an arrow in its tool frame.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import struct
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from functools import cache
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from redistro.log.frames import CDR_HEADER
 from redistro.log.ros2 import Cdr
@@ -41,6 +40,23 @@ ARROW_M_PER_N = 0.01  # an arrow's length per newton
 WORLD = "world"
 
 TF = "tf2_msgs/msg/TFMessage"
+TF_DEF = "geometry_msgs/TransformStamped[] transforms\n" + "".join(
+    f"{'=' * 80}\nMSG: {name}\n{text}"
+    for name, text in (
+        (
+            "geometry_msgs/TransformStamped",
+            "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform\n",
+        ),
+        ("std_msgs/Header", "builtin_interfaces/Time stamp\nstring frame_id\n"),
+        ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec\n"),
+        (
+            "geometry_msgs/Transform",
+            "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n",
+        ),
+        ("geometry_msgs/Vector3", "float64 x\nfloat64 y\nfloat64 z\n"),
+        ("geometry_msgs/Quaternion", "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n"),
+    )
+)
 STRING = "std_msgs/msg/String"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 
@@ -57,40 +73,43 @@ def definition(msgtype: str) -> str:
     return str(_store().generate_msgdef(msgtype, ros_version=2)[0])
 
 
-def quat_rpy(r: float, p: float, y: float) -> np.ndarray[Any, Any]:
+Quat = tuple[float, float, float, float]  # x, y, z, w
+
+
+def quat_rpy(r: float, p: float, y: float) -> Quat:
     """URDF roll-pitch-yaw as a quaternion (x, y, z, w)."""
     cr, sr, cp, sp = math.cos(r / 2), math.sin(r / 2), math.cos(p / 2), math.sin(p / 2)
     cy, sy = math.cos(y / 2), math.sin(y / 2)
-    return np.array(
-        [
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy,
-        ]
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
     )
 
 
-def quat_mul(a: np.ndarray[Any, Any], b: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Hamilton products of quaternions (x, y, z, w), broadcast over the leading axes."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
+def quat_mul(a: Quat, b: Quat) -> Quat:
+    """The Hamilton product a b of quaternions (x, y, z, w)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
     )
 
 
-def quat_rotvec(r: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-    """Rotation vectors (..., 3) as quaternions (..., 4)."""
-    angle = np.linalg.norm(r, axis=-1, keepdims=True)
-    safe = np.where(angle > 1e-12, angle, 1.0)
-    return np.concatenate([r / safe * np.sin(angle / 2), np.cos(angle / 2)], axis=-1)
+def quat_rotvec(x: float, y: float, z: float) -> Quat:
+    """A rotation vector as a quaternion."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-12:
+        return (0.0, 0.0, 0.0, 1.0)
+    k = math.sin(angle / 2) / angle
+    return (x * k, y * k, z * k, math.cos(angle / 2))
+
+
+Pose = tuple[float, float, float, float, float, float, float]  # translation, rotation
 
 
 class Arm:
@@ -102,24 +121,22 @@ class Arm:
 
         self.robot = robot
         self.root = ET.fromstring(arm_urdf(Peg(*peg) if peg else None))
-        self.moving: list[tuple[str, str, np.ndarray[Any, Any], np.ndarray[Any, Any]]] = []
-        self.axes: list[np.ndarray[Any, Any]] = []
-        self.fixed: list[tuple[str, str, np.ndarray[Any, Any]]] = []
+        # revolute joints: parent, child, origin translation, origin rotation, axis
+        self.moving: list[tuple[str, str, tuple[float, ...], Quat, tuple[float, ...]]] = []
+        self.fixed: list[tuple[str, str, Pose]] = []
         for joint in self.root.iter("joint"):
             parent = self.name(_attr(joint, "parent", "link"))
             child = self.name(_attr(joint, "child", "link"))
             xyz, rpy = _origin(joint)
-            pose = np.concatenate([xyz, quat_rpy(*rpy)])
+            rot = quat_rpy(*rpy)
             if joint.get("type") == "fixed":
-                self.fixed.append((parent, child, pose))
+                self.fixed.append((parent, child, _pose(xyz, rot)))
             else:
-                self.moving.append((parent, child, np.asarray(xyz), pose[3:]))
                 axis = joint.find("axis")
-                a = [
-                    float(v)
-                    for v in (axis.get("xyz", "0 0 1") if axis is not None else "0 0 1").split()
-                ]
-                self.axes.append(np.asarray(a) / np.linalg.norm(a))
+                text = axis.get("xyz", "0 0 1") if axis is not None else "0 0 1"
+                a = [float(v) for v in text.split()]
+                n = math.sqrt(sum(v * v for v in a))
+                self.moving.append((parent, child, tuple(xyz), rot, tuple(v / n for v in a)))
         first = self.root.find("link")
         assert first is not None
         self.base = self.name(str(first.get("name")))
@@ -130,17 +147,19 @@ class Arm:
     def links(self) -> list[str]:
         return [self.name(str(link.get("name"))) for link in self.root.iter("link")]
 
-    def transforms(self, q: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """(cycles, joints, 7): each joint's parent-to-child translation and
-        rotation (x, y, z, w) at the joint positions ``q`` (cycles, joints)."""
-        n = len(q)
-        out = np.empty((n, len(self.moving), 7))
-        for k, ((_, _, xyz, rot), axis) in enumerate(zip(self.moving, self.axes, strict=True)):
-            half = q[:, k] / 2
-            turn = np.concatenate([axis * np.sin(half)[:, None], np.cos(half)[:, None]], axis=1)
-            out[:, k, :3] = xyz
-            out[:, k, 3:] = quat_mul(rot, turn)
+    def transforms(self, q: list[float] | tuple[float, ...]) -> list[Pose]:
+        """Each revolute joint's parent-to-child translation and rotation at
+        the joint positions ``q`` (the translation is the joint's origin)."""
+        out: list[Pose] = []
+        for (_, _, (x, y, z), rot, (ax, ay, az)), qi in zip(self.moving, q, strict=True):
+            sh = math.sin(qi / 2)
+            r = quat_mul(rot, (ax * sh, ay * sh, az * sh, math.cos(qi / 2)))
+            out.append((x, y, z, *r))
         return out
+
+
+def _pose(xyz: Any, rot: Quat) -> Pose:
+    return (float(xyz[0]), float(xyz[1]), float(xyz[2]), *rot)
 
 
 def _attr(el: ET.Element, tag: str, key: str) -> str:
@@ -159,40 +178,40 @@ def _origin(el: ET.Element) -> tuple[list[float], list[float]]:
     )
 
 
-class TfPacker:
-    """``tf2_msgs/msg/TFMessage`` of fixed (parent, child) pairs, CDR-encoded
-    for many cycles at once: a template with each transform's stamp and its
-    seven doubles at offsets known from the start."""
+_STAMP = struct.Struct("<iI")
+_POSE = struct.Struct("<7d")
+
+
+class TfTemplate:
+    """``tf2_msgs/msg/TFMessage`` of fixed (parent, child) pairs, CDR-encoded:
+    a template with each transform's stamp and its seven doubles at offsets
+    known from the start (a message: a copy and 2 packs per transform)."""
 
     def __init__(self, pairs: list[tuple[str, str]]) -> None:
         c = Cdr()
         c.u32(len(pairs))
         self.stamps: list[int] = []
         self.values: list[int] = []
+        at = len(CDR_HEADER)
         for parent, child in pairs:
             c._align(4)
-            self.stamps.append(len(c.buf))
+            self.stamps.append(at + len(c.buf))
             c.buf += bytes(8)
             c.string(parent)
             c.string(child)
             c._align(8)
-            self.values.append(len(c.buf))
+            self.values.append(at + len(c.buf))
             c.buf += bytes(56)
-        self.template = np.frombuffer(CDR_HEADER + bytes(c.buf), np.uint8)
+        self.template = CDR_HEADER + bytes(c.buf)
 
-    def pack(self, log_ns: np.ndarray[Any, Any], values: np.ndarray[Any, Any]) -> list[bytes]:
-        """One message per cycle: ``values`` (cycles, pairs, 7), stamped ``log_ns``."""
-        n = len(log_ns)
-        out = np.tile(self.template, (n, 1))
-        stamp = np.empty(n, [("sec", "<i4"), ("nanosec", "<u4")])
-        stamp["sec"], stamp["nanosec"] = np.divmod(np.asarray(log_ns, np.int64), 1_000_000_000)
-        sb = stamp.view(np.uint8).reshape(n, 8)
-        vb = np.ascontiguousarray(values, "<f8").view(np.uint8).reshape(n, len(self.values), 56)
-        for k, (s, v) in enumerate(zip(self.stamps, self.values, strict=True)):
-            at = len(CDR_HEADER)
-            out[:, at + s : at + s + 8] = sb
-            out[:, at + v : at + v + 56] = vb[:, k]
-        return [row.tobytes() for row in out]
+    def pack(self, log_ns: int, poses: list[Pose]) -> bytes:
+        """One message: ``poses`` (translation, rotation x y z w) stamped ``log_ns``."""
+        out = bytearray(self.template)
+        sec, nsec = divmod(log_ns, 1_000_000_000)
+        for s_at, v_at, pose in zip(self.stamps, self.values, poses, strict=True):
+            _STAMP.pack_into(out, s_at, sec, nsec)
+            _POSE.pack_into(out, v_at, *pose)
+        return bytes(out)
 
 
 def group_urdf(arms: dict[str, Arm], bases: dict[str, list[float]]) -> str:
@@ -222,6 +241,8 @@ def group_urdf(arms: dict[str, Arm], bases: dict[str, list[float]]) -> str:
 def _primitive(part: ET.Element) -> None:
     """A visual or collision's mesh as the box that bounds it; a visual
     coloured inline (grey, its tool's colour kept)."""
+    import numpy as np
+
     geom = part.find("geometry")
     mesh = geom.find("mesh") if geom is not None else None
     if geom is not None and mesh is not None:
@@ -244,8 +265,10 @@ def _primitive(part: ET.Element) -> None:
 
 
 @cache
-def _bounds(filename: str) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+def _bounds(filename: str) -> tuple[Any, Any]:
     """The bounding box of a mesh (its .obj beside it, vertex lines)."""
+    import numpy as np
+
     obj = Path(filename).with_suffix(".obj")
     pts = [
         [float(v) for v in line.split()[1:4]]
@@ -256,21 +279,22 @@ def _bounds(filename: str) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
     return a.min(axis=0), a.max(axis=0)
 
 
-def static_transforms(meta: dict[str, Any], arms: dict[str, Arm]) -> list[tuple[str, str, Any]]:
-    """(parent, child, pose xyz + quaternion): the bases, the tools, the
-    work-cell as believed."""
-    out: list[tuple[str, str, Any]] = []
+def static_transforms(meta: dict[str, Any], arms: dict[str, Arm]) -> list[tuple[str, str, Pose]]:
+    """(parent, child, pose): the bases, the tools, the work-cell as believed."""
+    out: list[tuple[str, str, Pose]] = []
     for r, arm in arms.items():
-        base = meta["robots"][r]["base_xyz_m"]
-        out.append((WORLD, arm.base, np.array([*base, 0, 0, 0, 1.0])))
+        x, y, z = meta["robots"][r]["base_xyz_m"]
+        out.append((WORLD, arm.base, (x, y, z, 0.0, 0.0, 0.0, 1.0)))
         out += arm.fixed
     cell = meta.get("workcell") or {}
     if meta.get("hole_xyz_m") is not None:
-        out.append((WORLD, "hole_believed", np.array([*meta["hole_xyz_m"], 0, 0, 0, 1.0])))
+        x, y, z = meta["hole_xyz_m"]
+        out.append((WORLD, "hole_believed", (x, y, z, 0.0, 0.0, 0.0, 1.0)))
     for name, obj in (cell.get("objects") or {}).items():
         rot = quat_rpy(0, 0, math.radians(obj["yaw_deg"]))
-        xyz = [*obj["xy_m"], cell["table_top_m"] + obj["size_xyz_m"][2] / 2]
-        out.append((WORLD, f"{name}_believed", np.array([*xyz, *rot])))
+        x, y = obj["xy_m"]
+        z = cell["table_top_m"] + obj["size_xyz_m"][2] / 2
+        out.append((WORLD, f"{name}_believed", (x, y, z, *rot)))
     return out
 
 
@@ -320,8 +344,8 @@ def _box(
     }
 
 
-def _arrow(robot: str, force: np.ndarray[Any, Any]) -> dict[str, Any]:
-    tip = [float(v) * ARROW_M_PER_N for v in force]
+def _arrow(robot: str, force: tuple[float, float, float]) -> dict[str, Any]:
+    tip = [v * ARROW_M_PER_N for v in force]
     return {
         "ns": f"{robot}_wrench",
         "type": 0,
@@ -334,6 +358,8 @@ def _arrow(robot: str, force: np.ndarray[Any, Any]) -> dict[str, Any]:
 
 
 def _marker_array(items: list[dict[str, Any]], stamp_ns: int) -> bytes:
+    import numpy as np
+
     ts = _store()
     t = ts.types
     stamp = t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
@@ -383,68 +409,57 @@ def string_message(text: str) -> bytes:
     return CDR_HEADER + bytes(c.buf)
 
 
-class Scene:
-    """What the merge adds to the session log, from the log's metadata
-    (``redistro.meta``: the robots' bases and tools, the believed work-cell)
-    and each robot's feedback and plan arrays."""
+class Online:
+    """The scene as the log writer makes it. Per cycle (no numpy): each
+    robot's ``/tf`` from its feedback's joint positions, each goal's from
+    its plan, a wrist force kept for the arrows at most ``ARROW_HZ``. At
+    the end: the static scene and the arrows (:meth:`closing`)."""
 
     def __init__(self, meta: dict[str, Any]) -> None:
         self.meta = meta
         self.arms = {r: Arm(r, v.get("peg")) for r, v in sorted(meta["robots"].items())}
+        self.tf = {r: TfTemplate([(p, c) for p, c, *_ in a.moving]) for r, a in self.arms.items()}
+        self.goals = {r: TfTemplate([(WORLD, f"{r}_goal")]) for r in self.arms}
+        self.first_ns = 0
+        self.period_ns = int(1e9 / ARROW_HZ)
+        self.next_arrow: dict[str, int] = {}
+        self.forces: list[tuple[int, str, tuple[float, float, float]]] = []
 
-    def messages(
-        self,
-        feedback: dict[str, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]],
-        plans: dict[str, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]],
-        start_ns: int,
-    ) -> Iterator[tuple[int, str, bytes]]:
-        """(log time, topic, CDR message), in time order per topic:
-        ``feedback``/``plans`` per robot: (log times, packed array)."""
-        bases = {r: v["base_xyz_m"] for r, v in self.meta["robots"].items()}
-        yield start_ns, "/robot_description", string_message(group_urdf(self.arms, bases))
-        static = static_transforms(self.meta, self.arms)
-        pack = TfPacker([(p, c) for p, c, _ in static])
-        yield (
-            start_ns,
-            "/tf_static",
-            pack.pack(np.array([start_ns]), np.stack([v for *_, v in static])[None])[0],
-        )
-        yield start_ns, "/workcell/markers", workcell_markers(self.meta, start_ns)
-        for r, arm in self.arms.items():
-            if r not in feedback:
-                continue
-            times, fb = feedback[r]
-            values = arm.transforms(np.asarray(fb["q_rad"], float))
-            tf = TfPacker([(p, c) for p, c, *_ in arm.moving])
-            for t, data in zip(times.tolist(), tf.pack(times, values), strict=True):
-                yield t, "/tf", data
-        for r, (times, plan) in plans.items():
-            xyz, rot = (
-                np.asarray(plan["goal_xyz_m"], float),
-                np.asarray(plan["goal_rot_xyz"], float),
-            )
-            values = np.concatenate([xyz, quat_rotvec(rot)], axis=1)[:, None, :]
-            goal = TfPacker([(WORLD, f"{r}_goal")])
-            for t, data in zip(times.tolist(), goal.pack(times, values), strict=True):
-                yield t, "/tf", data
-        yield from self._arrows(feedback)
+    def joints(self, robot: str, q: tuple[float, ...], force: tuple[float, ...], ns: int) -> bytes:
+        """The robot's ``/tf`` message for this cycle (and its force kept)."""
+        self.first_ns = self.first_ns or ns
+        if ns >= self.next_arrow.get(robot, 0):
+            self.next_arrow[robot] = ns + self.period_ns
+            self.forces.append((ns, robot, (force[0], force[1], force[2])))
+        return self.tf[robot].pack(ns, self.arms[robot].transforms(q))
 
-    def _arrows(
-        self, feedback: dict[str, tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]]
-    ) -> Iterator[tuple[int, str, bytes]]:
-        next_ns = 0
-        period = int(1e9 / ARROW_HZ)
-        robots = [r for r in self.arms if r in feedback]
-        if not robots:
+    def goal(self, robot: str, xyz: tuple[float, ...], rot: tuple[float, ...], ns: int) -> bytes:
+        self.first_ns = self.first_ns or ns
+        return self.goals[robot].pack(ns, [_pose(xyz, quat_rotvec(*rot))])
+
+    def closing(self) -> Iterator[tuple[int, str, str, bytes]]:
+        """(log time, topic, type, message): the static scene at the first
+        cycle's time, then the wrench arrows, one array per sample time."""
+        if not self.first_ns:
             return
-        times = feedback[robots[0]][0]
-        for t in times.tolist():
-            if t < next_ns:
-                continue
-            next_ns = t + period
-            items = []
-            for r in robots:
-                rt, fb = feedback[r]
-                j = min(int(np.searchsorted(rt, t)), len(rt) - 1)
-                items.append(_arrow(r, np.asarray(fb["wrench"][j][:3])))
-            yield t, "/markers/wrench", _marker_array(items, t)
+        yield from static_messages(self.meta, self.arms, self.first_ns)
+        by_time: dict[int, list[dict[str, Any]]] = {}
+        for ns, robot, force in self.forces:
+            by_time.setdefault(ns, []).append(_arrow(robot, force))
+        for ns, items in by_time.items():
+            yield ns, "/markers/wrench", MARKER_ARRAY, _marker_array(items, ns)
+
+
+def static_messages(
+    meta: dict[str, Any], arms: dict[str, Arm], stamp_ns: int
+) -> list[tuple[int, str, str, bytes]]:
+    """(log time, topic, type, message): the group's URDF, its static
+    transforms and the work-cell's markers."""
+    bases = {r: meta["robots"][r]["base_xyz_m"] for r in arms}
+    static = static_transforms(meta, arms)
+    tf = TfTemplate([(p, c) for p, c, _ in static]).pack(stamp_ns, [v for *_, v in static])
+    return [
+        (stamp_ns, "/robot_description", STRING, string_message(group_urdf(arms, bases))),
+        (stamp_ns, "/tf_static", TF, tf),
+        (stamp_ns, "/workcell/markers", MARKER_ARRAY, workcell_markers(meta, stamp_ns)),
+    ]

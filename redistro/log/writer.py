@@ -126,8 +126,12 @@ class _McapSink:
         self.writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self.writer.start(profile="ros2", library="redistro")
         # channel id, offset, size, the CDR body's runs (from, to, padding
-        # before), and a feedback channel's standard messages (or None)
-        self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]], Any]] = []
+        # before), a feedback channel's standard messages (or None), and
+        # its part of the 3D scene (or None)
+        self.cuts: list[tuple[int, int, int, list[tuple[int, int, bytes]], Any, Any]] = []
+        self.scene: Any = None  # (redistro.log.scene.Online, once the header names robots)
+        self.tf_channel = 0
+        self.scene_channels: dict[str, int] = {}
         self.std_schemas: tuple[int, int] | None = None
         self.timing: Timing | None = None
         self.event_schema = self.writer.register_schema(
@@ -145,6 +149,13 @@ class _McapSink:
 
         w = self.writer
         self.node = header.get("node", "")
+        meta = header.get("meta", {})
+        if meta.get("robots"):
+            from redistro.log import scene
+
+            self.scene = scene.Online(meta)
+            sid = w.register_schema(scene.TF, SCHEMA_ENCODING, scene.TF_DEF.encode())
+            self.tf_channel = w.register_channel("/tf", MESSAGE_ENCODING, sid, {})
         for ch in [*header["channels"], header["timing"]]:
             sid = w.register_schema(ch["schema"], SCHEMA_ENCODING, ch["definition"].encode())
             cid = w.register_channel(ch["topic"], MESSAGE_ENCODING, sid, {"node": header["node"]})
@@ -152,17 +163,18 @@ class _McapSink:
                 self.timing = Timing(header, cid)
             else:
                 runs = [(int(a), int(a) + int(n), bytes(int(p))) for a, n, p in ch["runs"]]
-                std = self._standard(ch.get("ros2"), header["node"])
-                self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs, std))
+                spec = ch.get("ros2")
+                std = self._standard(spec, header["node"])
+                part = _scene_part(spec) if self.scene is not None else None
+                self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs, std, part))
         skip = ("channels", "meta", "timing", "frame")
         node = {k: v for k, v in header.items() if k not in skip}
         w.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
-        meta = header.get("meta", {})
         w.add_metadata("redistro.meta", {k: json.dumps(v) for k, v in meta.items()})
 
     def _standard(self, spec: dict[str, Any] | None, node: str) -> Any:
         """A feedback channel's standard messages: JointState and WrenchStamped."""
-        if spec is None:
+        if spec is None or spec.get("kind", "feedback") != "feedback":
             return None
         w, robot = self.writer, str(spec["robot"])
         if not self.std_schemas:
@@ -186,7 +198,7 @@ class _McapSink:
         w = self.writer
         cycle_bytes = body[0:8]
         seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
-        for cid, off, n, runs, std in self.cuts:
+        for cid, off, n, runs, std, part in self.cuts:
             packed = cycle_bytes + body[off : off + n]
             w.add_message(cid, log_ns, cdr_message(packed, runs), log_ns, seq)
             if std is not None:  # (a robot's feedback: its JointState and WrenchStamped too)
@@ -194,11 +206,42 @@ class _McapSink:
                 w.add_message(js, log_ns, fb.joint_state(packed, log_ns), log_ns, seq)
                 w.add_message(ws, log_ns, fb.wrench(packed, log_ns), log_ns, seq)
                 self.messages += 2
+            if part is not None:  # (its transforms: the joints', or the goal's)
+                tf = self._transforms(part, packed, log_ns)
+                w.add_message(self.tf_channel, log_ns, tf, log_ns, seq)
+                self.messages += 1
         w.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
         self.messages += len(self.cuts) + 1
         self.frames += 1
         for doc in timing.events(body):
             self.event(str(doc.pop("topic")), doc, log_ns)
+
+    def _transforms(self, part: tuple[str, str, int, int], packed: bytes, log_ns: int) -> bytes:
+        kind, robot, a, b = part
+        if kind == "feedback":  # (a: the joint positions, b: the wrench)
+            return self.scene.joints(  # type: ignore[no-any-return]
+                robot, _Q.unpack_from(packed, a), _V3.unpack_from(packed, b), log_ns
+            )
+        # a plan (a: the goal's position, b: its rotation vector)
+        return self.scene.goal(  # type: ignore[no-any-return]
+            robot, _V3.unpack_from(packed, a), _V3.unpack_from(packed, b), log_ns
+        )
+
+    def _closing_scene(self) -> None:
+        """The static scene and the wrench arrows, at the end of the file."""
+        from redistro.log import scene
+
+        definitions = {scene.TF: scene.TF_DEF, scene.STRING: "string data\n"}
+        schemas: dict[str, int] = {}
+        for log_ns, topic, msgtype, data in self.scene.closing():
+            if msgtype not in schemas:
+                text = definitions.get(msgtype) or scene.definition(msgtype)
+                schemas[msgtype] = self.writer.register_schema(msgtype, "ros2msg", text.encode())
+            if topic not in self.scene_channels:
+                cid = self.writer.register_channel(topic, "cdr", schemas[msgtype], {})
+                self.scene_channels[topic] = cid
+            self.writer.add_message(self.scene_channels[topic], log_ns, data, log_ns)
+            self.messages += 1
 
     def event(self, topic: str, doc: dict[str, Any], log_ns: int) -> None:
         box = topic.endswith("/messages")  # (a message box's line: a message of its own)
@@ -216,6 +259,9 @@ class _McapSink:
         self.messages += 1
 
     def finish(self, stats: dict[str, Any]) -> None:
+        if self.scene is not None:
+            self._closing_scene()
+            stats["messages"] = self.messages
         self.writer.add_metadata("redistro.recording", {k: json.dumps(v) for k, v in stats.items()})
         self.writer.finish()  # type: ignore[no-untyped-call]
         self.out.close()
@@ -292,6 +338,21 @@ class Timing:
                     }
                 )
         return out
+
+
+_Q = struct.Struct("<7d")  # an arm's joint positions
+_V3 = struct.Struct("<3d")
+
+
+def _scene_part(spec: dict[str, Any] | None) -> tuple[str, str, int, int] | None:
+    """What a channel gives the scene: a feedback its joints and wrench, a
+    plan its goal (kind, robot, two field offsets in the packed message)."""
+    if spec is None:
+        return None
+    f = spec["fields"]
+    if spec.get("kind", "feedback") == "feedback":
+        return ("feedback", str(spec["robot"]), int(f["q_rad"]), int(f["wrench"]))
+    return ("plan", str(spec["robot"]), int(f["goal_xyz_m"]), int(f["goal_rot_xyz"]))
 
 
 def cdr_message(packed: bytes, runs: list[tuple[int, int, bytes]]) -> bytes:

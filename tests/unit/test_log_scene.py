@@ -34,21 +34,21 @@ def test_the_group_urdf_is_one_robot_with_both_arms_at_their_bases(
     q = rng.uniform(-2.0, 2.0, (200, 14))
     for r, arm in arms.items():
         i = list(ROBOTS).index(r)
-        values = arm.transforms(q[:, 7 * i : 7 * i + 7])
         tool = model.getFrameId(f"{r}_tool")
         for n in range(0, 200, 7):
+            values = arm.transforms(tuple(q[n, 7 * i : 7 * i + 7]))
             pin.framesForwardKinematics(model, data, q[n])
             pose = np.eye(4)
             pose[:3, 3] = ROBOTS[r]["base_xyz_m"]
             for k in range(7):
-                pose = pose @ _matrix(values[n, k])
+                pose = pose @ _matrix(np.asarray(values[k]))
             flange = data.oMf[model.getFrameId(f"{r}_lbr_iiwa_link_7")]
             np.testing.assert_allclose(pose[:3, 3], flange.translation, atol=1e-12)
             np.testing.assert_allclose(pose[:3, :3], flange.rotation, atol=1e-12)
             assert np.linalg.norm(data.oMf[tool].translation - flange.translation) > 0.04
 
 
-def _matrix(v: np.ndarray) -> np.ndarray:
+def _matrix(v: np.ndarray) -> np.ndarray:  # (translation, rotation x y z w)
     import pinocchio as pin
 
     m = np.eye(4)
@@ -66,7 +66,9 @@ def test_packed_transforms_decode_in_rosbags_to_the_same_values() -> None:
     rng = np.random.default_rng(3)
     values = rng.normal(size=(50, 3, 7))
     stamps = rng.integers(0, 2**31 * 10**9, 50)
-    for data, v, t in zip(scene.TfPacker(pairs).pack(stamps, values), values, stamps, strict=True):
+    template = scene.TfTemplate(pairs)
+    for v, t in zip(values, stamps, strict=True):
+        data = template.pack(int(t), [tuple(row) for row in v])  # type: ignore[misc]
         msg = store.deserialize_cdr(data, scene.TF)
         assert [(x.header.frame_id, x.child_frame_id) for x in msg.transforms] == pairs
         for x, row in zip(msg.transforms, v, strict=True):
@@ -81,7 +83,7 @@ def test_stamps_split_into_seconds_and_nanoseconds() -> None:
 
     store = get_typestore(Stores.ROS2_JAZZY)
     t = 1_764_000_000_123_456_789
-    (data,) = scene.TfPacker([("world", "x")]).pack(np.array([t]), np.zeros((1, 1, 7)))
+    data = scene.TfTemplate([("world", "x")]).pack(t, [(0.0,) * 7])  # type: ignore[list-item]
     stamp = store.deserialize_cdr(data, scene.TF).transforms[0].header.stamp
     assert (stamp.sec, stamp.nanosec) == (1_764_000_000, 123_456_789)
 
@@ -92,7 +94,7 @@ def test_rotation_vectors_become_the_quaternions_pinocchio_makes() -> None:
     rng = np.random.default_rng(5)
     r = rng.normal(size=(100, 3))
     r[0] = 0.0
-    q = scene.quat_rotvec(r)
+    q = [scene.quat_rotvec(*v) for v in r]
     for v, quat in zip(r, q, strict=True):
         want = pin.Quaternion(pin.exp3(v))
         got = pin.Quaternion(quat[3], *quat[:3])
@@ -126,3 +128,9 @@ def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
     bar = msg.markers[-1]
     assert bar.header.frame_id == "bar_believed" and bar.type == 1  # a cube in its own frame
     assert [bar.scale.x, bar.scale.y, bar.scale.z] == [0.04, 0.4, 0.06]
+
+
+def test_the_tf_definition_is_the_standard_one() -> None:
+    """The writer registers /tf without rosbags: its text is the one rosbags'
+    store generates for tf2_msgs/msg/TFMessage."""
+    assert scene.definition(scene.TF) == scene.TF_DEF
