@@ -232,6 +232,22 @@ CASES = [
         "a robot name is 1-32 letters, digits, _ or -, got 'r1/x'",
     ),
     ("top --interval nan", ["top", "--interval", "nan"], "--interval: expected a number"),
+    ("bridge to no session", ["bridge", "20990101T000000-000000"], "no running session"),
+    (
+        "bridge --listen not an endpoint",
+        ["bridge", "--listen", "http://x:1"],
+        "bridge: --listen[0]: ",
+    ),
+    (
+        "ros2.listen not an endpoint",
+        ["--set", "ros2.listen=[tcp/127.0.0.1:0]", "check", "tasks/park.yaml"],
+        "ros2.listen[0]",
+    ),
+    (
+        "ros2.rate_hz over 100",
+        ["--set", "ros2.rate_hz=500", "check", "tasks/park.yaml"],
+        "ros2.rate_hz",
+    ),
     (
         "log export --csv into a file",
         ["log", "export", "--csv", "{a_file}", "{list_event}"],
