@@ -141,7 +141,7 @@ def check_tf_tree(
         elif topic in ("/tf", "/tf_static"):
             for ts in msg.transforms:
                 tree[ts.child_frame_id] = (ts.header.frame_id, _matrix(ts.transform))
-            if topic == "/tf" and msg.transforms[-1].child_frame_id.endswith("lbr_iiwa_link_7"):
+            if topic == "/tf":  # (one a cycle: every robot's joints and goal)
                 pending = t
     if pending is not None:
         check_cycle()

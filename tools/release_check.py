@@ -25,7 +25,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
-SUBCOMMANDS = ("session", "node", "check", "plant", "bench", "log", "faults", "top")
+SUBCOMMANDS = ("session", "node", "check", "plant", "bench", "log", "faults", "top", "bridge")
 
 
 def _run(*cmd: str) -> subprocess.CompletedProcess[str]:

@@ -151,9 +151,13 @@ class Arm:
         """Each revolute joint's parent-to-child translation and rotation at
         the joint positions ``q`` (the translation is the joint's origin)."""
         out: list[Pose] = []
-        for (_, _, (x, y, z), rot, (ax, ay, az)), qi in zip(self.moving, q, strict=True):
-            sh = math.sin(qi / 2)
-            r = quat_mul(rot, (ax * sh, ay * sh, az * sh, math.cos(qi / 2)))
+        sin, cos = math.sin, math.cos
+        for (_, _, (x, y, z), (rx, ry, rz, rw), axis), qi in zip(self.moving, q, strict=True):
+            s, c = sin(qi / 2), cos(qi / 2)
+            if axis == (0.0, 0.0, 1.0):  # (the iiwa's every joint: rot times (0, 0, s, c))
+                r = (rx * c + ry * s, ry * c - rx * s, rw * s + rz * c, rw * c - rz * s)
+            else:
+                r = quat_mul((rx, ry, rz, rw), (axis[0] * s, axis[1] * s, axis[2] * s, c))
             out.append((x, y, z, *r))
         return out
 
@@ -410,32 +414,45 @@ def string_message(text: str) -> bytes:
 
 
 class Online:
-    """The scene as the log writer makes it. Per cycle (no numpy): each
-    robot's ``/tf`` from its feedback's joint positions, each goal's from
-    its plan, a wrist force kept for the arrows at most ``ARROW_HZ``. At
-    the end: the static scene and the arrows (:meth:`closing`)."""
+    """The scene as the log writer makes it. Per cycle (no numpy): one
+    ``/tf`` message with every joint of every robot whose feedback the
+    node logs (``parts``, in the order the writer meets them: ``("feedback",
+    robot)``) and the goal of every plan (``("plan", robot)``), a wrist force
+    kept for the arrows at most ``ARROW_HZ``. At the end: the static scene
+    and the arrows (:meth:`closing`)."""
 
-    def __init__(self, meta: dict[str, Any]) -> None:
+    def __init__(self, meta: dict[str, Any], parts: list[tuple[str, str]]) -> None:
         self.meta = meta
         self.arms = {r: Arm(r, v.get("peg")) for r, v in sorted(meta["robots"].items())}
-        self.tf = {r: TfTemplate([(p, c) for p, c, *_ in a.moving]) for r, a in self.arms.items()}
-        self.goals = {r: TfTemplate([(WORLD, f"{r}_goal")]) for r in self.arms}
+        pairs: list[tuple[str, str]] = []
+        for kind, robot in parts:
+            if kind == "feedback":
+                pairs += [(p, c) for p, c, *_ in self.arms[robot].moving]
+            else:
+                pairs.append((WORLD, f"{robot}_goal"))
+        self.tf = TfTemplate(pairs)
         self.first_ns = 0
         self.period_ns = int(1e9 / ARROW_HZ)
         self.next_arrow: dict[str, int] = {}
         self.forces: list[tuple[int, str, tuple[float, float, float]]] = []
 
-    def joints(self, robot: str, q: tuple[float, ...], force: tuple[float, ...], ns: int) -> bytes:
-        """The robot's ``/tf`` message for this cycle (and its force kept)."""
-        self.first_ns = self.first_ns or ns
+    def joints(
+        self, robot: str, q: tuple[float, ...], force: tuple[float, ...], ns: int
+    ) -> list[Pose]:
+        """The robot's joint transforms for this cycle (its force kept)."""
         if ns >= self.next_arrow.get(robot, 0):
             self.next_arrow[robot] = ns + self.period_ns
             self.forces.append((ns, robot, (force[0], force[1], force[2])))
-        return self.tf[robot].pack(ns, self.arms[robot].transforms(q))
+        return self.arms[robot].transforms(q)
 
-    def goal(self, robot: str, xyz: tuple[float, ...], rot: tuple[float, ...], ns: int) -> bytes:
+    @staticmethod
+    def goal(xyz: tuple[float, ...], rot: tuple[float, ...]) -> Pose:
+        return _pose(xyz, quat_rotvec(*rot))
+
+    def message(self, ns: int, poses: list[Pose]) -> bytes:
+        """The cycle's ``/tf`` message (``poses`` in the order of ``parts``)."""
         self.first_ns = self.first_ns or ns
-        return self.goals[robot].pack(ns, [_pose(xyz, quat_rotvec(*rot))])
+        return self.tf.pack(ns, poses)
 
     def closing(self) -> Iterator[tuple[int, str, str, bytes]]:
         """(log time, topic, type, message): the static scene at the first

@@ -150,12 +150,7 @@ class _McapSink:
         w = self.writer
         self.node = header.get("node", "")
         meta = header.get("meta", {})
-        if meta.get("robots"):
-            from redistro.log import scene
-
-            self.scene = scene.Online(meta)
-            sid = w.register_schema(scene.TF, SCHEMA_ENCODING, scene.TF_DEF.encode())
-            self.tf_channel = w.register_channel("/tf", MESSAGE_ENCODING, sid, {})
+        drawn = bool(meta.get("robots"))  # (the robots known: the scene is drawn)
         for ch in [*header["channels"], header["timing"]]:
             sid = w.register_schema(ch["schema"], SCHEMA_ENCODING, ch["definition"].encode())
             cid = w.register_channel(ch["topic"], MESSAGE_ENCODING, sid, {"node": header["node"]})
@@ -165,8 +160,15 @@ class _McapSink:
                 runs = [(int(a), int(a) + int(n), bytes(int(p))) for a, n, p in ch["runs"]]
                 spec = ch.get("ros2")
                 std = self._standard(spec, header["node"])
-                part = _scene_part(spec) if self.scene is not None else None
+                part = _scene_part(spec) if drawn else None
                 self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs, std, part))
+        parts = [(c[5][0], c[5][1]) for c in self.cuts if c[5] is not None]
+        if parts:
+            from redistro.log import scene
+
+            self.scene = scene.Online(meta, parts)
+            sid = w.register_schema(scene.TF, SCHEMA_ENCODING, scene.TF_DEF.encode())
+            self.tf_channel = w.register_channel("/tf", MESSAGE_ENCODING, sid, {})
         skip = ("channels", "meta", "timing", "frame")
         node = {k: v for k, v in header.items() if k not in skip}
         w.add_metadata("redistro.node", {k: json.dumps(v) for k, v in node.items()})
@@ -198,6 +200,7 @@ class _McapSink:
         w = self.writer
         cycle_bytes = body[0:8]
         seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
+        poses: list[Any] = []  # (the cycle's transforms, in the scene's order)
         for cid, off, n, runs, std, part in self.cuts:
             packed = cycle_bytes + body[off : off + n]
             w.add_message(cid, log_ns, cdr_message(packed, runs), log_ns, seq)
@@ -207,25 +210,25 @@ class _McapSink:
                 w.add_message(ws, log_ns, fb.wrench(packed, log_ns), log_ns, seq)
                 self.messages += 2
             if part is not None:  # (its transforms: the joints', or the goal's)
-                tf = self._transforms(part, packed, log_ns)
-                w.add_message(self.tf_channel, log_ns, tf, log_ns, seq)
-                self.messages += 1
+                self._transforms(part, packed, log_ns, poses)
+        if poses:  # one /tf message a cycle
+            w.add_message(self.tf_channel, log_ns, self.scene.message(log_ns, poses), log_ns, seq)
+            self.messages += 1
         w.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
         self.messages += len(self.cuts) + 1
         self.frames += 1
         for doc in timing.events(body):
             self.event(str(doc.pop("topic")), doc, log_ns)
 
-    def _transforms(self, part: tuple[str, str, int, int], packed: bytes, log_ns: int) -> bytes:
+    def _transforms(
+        self, part: tuple[str, str, int, int], packed: bytes, log_ns: int, poses: list[Any]
+    ) -> None:
         kind, robot, a, b = part
         if kind == "feedback":  # (a: the joint positions, b: the wrench)
-            return self.scene.joints(  # type: ignore[no-any-return]
-                robot, _Q.unpack_from(packed, a), _V3.unpack_from(packed, b), log_ns
-            )
-        # a plan (a: the goal's position, b: its rotation vector)
-        return self.scene.goal(  # type: ignore[no-any-return]
-            robot, _V3.unpack_from(packed, a), _V3.unpack_from(packed, b), log_ns
-        )
+            q, force = _Q.unpack_from(packed, a), _V3.unpack_from(packed, b)
+            poses += self.scene.joints(robot, q, force, log_ns)
+        else:  # a plan (a: the goal's position, b: its rotation vector)
+            poses.append(self.scene.goal(_V3.unpack_from(packed, a), _V3.unpack_from(packed, b)))
 
     def _closing_scene(self) -> None:
         """The static scene and the wrench arrows, at the end of the file."""

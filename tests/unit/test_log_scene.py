@@ -134,3 +134,37 @@ def test_the_tf_definition_is_the_standard_one() -> None:
     """The writer registers /tf without rosbags: its text is the one rosbags'
     store generates for tf2_msgs/msg/TFMessage."""
     assert scene.definition(scene.TF) == scene.TF_DEF
+
+
+def test_the_z_axis_shortcut_is_the_general_product(arms: dict[str, scene.Arm]) -> None:
+    """Every iiwa joint turns about z, computed by a shortcut: the same as
+    the general axis-angle product (an axis given as a list takes that path)."""
+    import copy
+
+    arm = arms["r2"]
+    general = copy.copy(arm)
+    general.moving = [(p, c, xyz, rot, list(axis)) for p, c, xyz, rot, axis in arm.moving]  # type: ignore[misc]
+    rng = np.random.default_rng(11)
+    for q in rng.uniform(-3.0, 3.0, (100, 7)):
+        np.testing.assert_allclose(
+            arm.transforms(tuple(q)), general.transforms(tuple(q)), atol=1e-15
+        )
+
+
+def test_one_tf_message_a_cycle_holds_every_part_in_order() -> None:
+    meta = {"robots": ROBOTS}
+    parts = [("feedback", "r1"), ("plan", "r1"), ("feedback", "r2"), ("plan", "r2")]
+    online = scene.Online(meta, parts)
+    q = (0.1, -0.2, 0.3, -1.2, 0.2, 0.9, 0.0)
+    poses = online.joints("r1", q, (1.0, 2.0, 3.0), 7)
+    poses.append(online.goal((0.5, 0.1, 0.3), (0.0, 0.0, 0.0)))
+    poses += online.joints("r2", q, (0.0, 0.0, -5.0), 7)
+    poses.append(online.goal((0.5, -0.1, 0.3), (0.0, 0.0, 0.1)))
+    from rosbags.typesys import Stores, get_typestore
+
+    msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(online.message(7, poses), scene.TF)
+    children = [t.child_frame_id for t in msg.transforms]
+    assert children == [f"r1_lbr_iiwa_link_{k}" for k in range(1, 8)] + ["r1_goal"] + [
+        f"r2_lbr_iiwa_link_{k}" for k in range(1, 8)
+    ] + ["r2_goal"]
+    assert [f[1] for f in online.forces] == ["r1", "r2"]  # (the arrows' samples)
