@@ -1,11 +1,12 @@
 """A picture of a session log as Rerun shows it, for the README.
 
-    python tools/rerun_screenshot.py RUN_DIR OUT.png [--at-s SECONDS]
+    python tools/rerun_screenshot.py RUN_DIR OUT.png [--wait-ms MS] [--click X,Y ...]
 
 Converts ``RUN_DIR/session.mcap`` with Rerun's own MCAP importer (``rerun
 mcap convert``), serves it with Rerun's web viewer (``rerun --web-viewer``,
 WebGL) on loopback and takes a screenshot with headless Chromium (Debian's
-``chromium``, software GL). Nothing here is drawn by redistro: what shows
+``chromium``, driven by Playwright: ``pip install playwright``, no browser
+download; software GL). Nothing here is drawn by redistro: what shows
 is what Rerun made of the file.
 """
 
@@ -40,12 +41,57 @@ def _up(port: int, timeout_s: float) -> None:
     raise SystemExit(f"rerun's web viewer did not come up on port {port}")
 
 
+def _picture(url: str, out: Path, size: str, wait_s: float, clicks: list[str]) -> None:
+    """The page in headless Chromium (Debian's, driven by Playwright; software
+    WebGL), photographed once it has drawn for ``wait_s``."""
+    from playwright.sync_api import sync_playwright
+
+    w, h = (int(v) for v in size.split(","))
+    flags = [
+        "--no-sandbox",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+    ]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=shutil.which("chromium"), args=flags)
+        page = browser.new_page(viewport={"width": w, "height": h})
+        page.goto(url)
+        page.wait_for_timeout(wait_s * 1000)  # (the viewer loads and draws; nothing to wait on)
+        for act in clicks:  # (the viewer is one canvas: a button is a place)
+            x, y, *more = (float(v) for v in act.split(","))
+            page.mouse.move(x, y)
+            if len(more) == 2:  # a drag by (DX, DY) (the 3D view turns)
+                page.mouse.down()
+                page.mouse.move(x + more[0], y + more[1], steps=20)
+                page.mouse.up()
+            elif more:  # a turn of the wheel there (the 3D view zooms)
+                page.mouse.wheel(0, more[0])
+            else:
+                page.mouse.click(x, y)
+            page.wait_for_timeout(3000)
+        page.mouse.move(w - 60, h // 2)  # (no tooltip in the picture)
+        page.wait_for_timeout(1000)
+        page.screenshot(path=str(out))
+        browser.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("run", type=Path)
     ap.add_argument("out", type=Path)
-    ap.add_argument("--wait-ms", type=int, default=30000, help="Chromium's virtual time budget")
+    ap.add_argument("--wait-ms", type=int, default=25000, help="how long the page draws first")
     ap.add_argument("--size", default="1600,1000")
+    ap.add_argument(
+        "--click",
+        action="append",
+        default=[],
+        metavar="X,Y",
+        help="click there first (a view's button)",
+    )
     args = ap.parse_args()
     chromium = shutil.which("chromium")
     if chromium is None:
@@ -66,30 +112,11 @@ def main() -> int:
         )
         try:
             _up(web, 60)
-            url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
-            flags = [
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu-sandbox",
-                "--use-gl=angle",
-                "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--hide-scrollbars",
-                f"--user-data-dir={tmp}/chromium",
-                f"--window-size={args.size}",
-                f"--virtual-time-budget={args.wait_ms}",
-                f"--screenshot={args.out}",
-            ]
-            subprocess.run(
-                [chromium, *flags, url],
-                check=True,
-                capture_output=True,
-                timeout=300,
+            url = (
+                f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}"
+                "%2Fproxy&renderer=webgl"
             )
+            _picture(url, args.out, args.size, args.wait_ms / 1000, args.click)
         finally:
             viewer.terminate()
             viewer.wait(10)

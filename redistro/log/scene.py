@@ -231,7 +231,9 @@ def group_urdf(arms: dict[str, Arm], bases: dict[str, list[float]]) -> str:
             el.set("name", arm.name(str(el.get("name"))))
             for ref in (*el.findall("parent"), *el.findall("child")):
                 ref.set("link", arm.name(str(ref.get("link"))))
-            for part in (*el.findall("visual"), *el.findall("collision")):
+            for part in el.findall("collision"):
+                el.remove(part)  # (a picture: what the viewers draw)
+            for part in el.findall("visual"):
                 _primitive(part)
             robot.append(el)
         fix = ET.SubElement(robot, "joint", name=f"{r}_base", type="fixed")
