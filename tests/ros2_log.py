@@ -131,18 +131,26 @@ def check_tf_tree(
             np.testing.assert_allclose(pose[:3, :3], k.R, atol=1e-9)
             checked["poses"] += 1
 
-    pending = None  # the log time of the cycle whose transforms are being read
-    for t, topic, msg in kept:
-        if pending is not None and t != pending:
-            check_cycle()  # (every message of that cycle read: the tree is its own)
-            pending = None
+    # a /tf message is one cycle, whole (every robot's joints and goal):
+    # checked as it comes, with the joint states logged just before it. The
+    # static scene, written at the file's end, is stamped at its first cycle
+    # and comes after that cycle's messages: the first /tf waits for it.
+    static_seen = pending = False
+    for _t, topic, msg in kept:
         if topic.endswith("/joint_states"):
             joints[topic.split("/")[1]] = np.asarray(msg.position, float)
         elif topic in ("/tf", "/tf_static"):
             for ts in msg.transforms:
                 tree[ts.child_frame_id] = (ts.header.frame_id, _matrix(ts.transform))
-            if topic == "/tf":  # (one a cycle: every robot's joints and goal)
-                pending = t
-    if pending is not None:
-        check_cycle()
+            if topic == "/tf_static":
+                static_seen = True
+                if pending:
+                    check_cycle()
+                    pending = False
+            elif static_seen:
+                check_cycle()
+            else:
+                pending = True
+    if pending:
+        check_cycle()  # (fails: no static scene, no path to world)
     return checked
