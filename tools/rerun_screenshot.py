@@ -13,7 +13,9 @@ is what Rerun made of the file.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -109,6 +111,7 @@ def main() -> int:
             [str(RERUN), *serve, "--bind", "127.0.0.1", "--renderer", "webgl", str(rrd)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            start_new_session=True,  # (the script starts the viewer binary as its child)
         )
         try:
             _up(web, 60)
@@ -118,7 +121,7 @@ def main() -> int:
             )
             _picture(url, args.out, args.size, args.wait_ms / 1000, args.click)
         finally:
-            viewer.terminate()
+            os.killpg(viewer.pid, signal.SIGTERM)  # the wrapper and the viewer it started
             viewer.wait(10)
     print(f"wrote {args.out}")
     return 0
