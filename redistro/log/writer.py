@@ -263,7 +263,10 @@ class _McapSink:
 
     def finish(self, stats: dict[str, Any]) -> None:
         if self.scene is not None:
-            self._closing_scene()
+            try:
+                self._closing_scene()
+            except Exception as exc:  # (a picture never costs the log its end)
+                stats["scene_error"] = str(exc)[:200]
             stats["messages"] = self.messages
         self.writer.add_metadata("redistro.recording", {k: json.dumps(v) for k, v in stats.items()})
         self.writer.finish()  # type: ignore[no-untyped-call]
