@@ -195,6 +195,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     se.add_argument("task", help="task file, e.g. tasks/self_calibration.yaml")
     se.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
+    se.add_argument(
+        "--clock",
+        choices=("realtime", "lockstep"),
+        default=None,
+        help="what paces the nodes (session.clock): their timers, or the plant, "
+        "as fast as the CPUs allow",
+    )
 
     no = sub.add_parser(
         "node", help="one node of a strategy task, alone (nodes may run on different hosts)"
@@ -297,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
         args = _parser().parse_args(argv)
         config = getattr(args, "config_sub", None) or args.config
         overrides = [*args.set, *getattr(args, "set_sub", [])]
+        if getattr(args, "clock", None):
+            overrides.append(f"session.clock={args.clock}")
         verbose = args.verbose or getattr(args, "verbose_sub", False)
         import logging
 

@@ -42,7 +42,8 @@ PAPER_PRIORITIES: dict[str, int] = {
 
 @dataclass(frozen=True)
 class SessionConfig:
-    """Where runs go and how long the session owner waits for its nodes."""
+    """Where runs go, how long the session owner waits for its nodes, and
+    what paces them."""
 
     runs_dir: str = "runs"
     # Kept between sessions, under runs_dir: the final joint positions (one
@@ -51,6 +52,9 @@ class SessionConfig:
     plant_pose_file: str = "plant-pose.json"
     startup_timeout_s: float = field(default=10.0, metadata={"gt": 0, "le": 600})
     shutdown_timeout_s: float = field(default=3.0, metadata={"gt": 0, "le": 60})
+    # realtime: every node ticks on its interval timer and the plant on the
+    # wall clock; lockstep: the plant paces the nodes (redistro.plant.lockstep)
+    clock: Literal["realtime", "lockstep"] = "realtime"
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,10 @@ class Greeting:
         if reply.run_key:
             self.take_run_key(reply.run_key)
         d.shaken = d.handshake.done
+        for ex, proven in zip(d.ex, d.handshake.proven, strict=True):
+            if proven and not ex["linked"]:
+                ex["linked"] = 1
+                d.dirty = d.urgent = True
 
     def authentic(self, raw: bytes) -> bool:
         """Whether a record is sound and signed (a hello with the link's key,

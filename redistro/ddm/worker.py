@@ -203,7 +203,10 @@ class Ddm(Worker):
         self.links = self.transport.links  # (what the links do beside carrying records)
         self.accel: Accelerator = self.transport.accelerator or NO_ACCELERATOR
         self.links.verify_with(self.greeting.authentic)
-        self.replying = self.kind == "esc" and self.transport.replies
+        # (in lockstep an ESC sends each sample as it comes, replying or not:
+        # the plant waits for it before the SSC's tick)
+        lockstep = self.spec.clock == "lockstep"
+        self.replying = self.kind == "esc" and self.transport.replies and not lockstep
         self.answer_gid = self.gid[self.robots[0]]
         # encrypted payloads take the Python path (the kernels copy payloads
         # into Local Data as they come)

@@ -95,6 +95,7 @@ def esc_spec(
         workers=workers,
         robots=[robot],
         startup_timeout_s=cfg.session.startup_timeout_s,
+        clock=cfg.session.clock,
         shutdown_timeout_s=cfg.session.shutdown_timeout_s,
         sched_policy=cfg.scheduling.policy,
         lock_memory=cfg.scheduling.lock_memory,

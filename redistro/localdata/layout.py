@@ -184,6 +184,7 @@ EXCHANGE = np.dtype(  # data exchange status, per robot: the data from the other
         ("feedback_wanted", "u1"),
         ("forged", "<u8"),  # well-formed, but not signed with the link's key (auth)
         ("foreign", "<u8"),  # connections refused: the link already had its peer
+        ("linked", "u1"),  # the link's handshake is done: records flow both ways
     ]
 )
 COUNTER = np.dtype([("count", "<u8"), ("stamp_ns", "<i8")])

@@ -63,8 +63,20 @@ def finish_run_log(run_dir: Path, node_cycles: dict[str, int] | None = None) -> 
         "messages": sum(int(n.get("messages", 0)) for n in nodes.values()) + added,
         "merge_s": round(merge_s, 3),  # the parts merged into one file (after the run)
         "dropped": sum(int(n.get("dropped", 0)) for n in nodes.values()),
+        "digest": run_digest(nodes),
         "nodes": nodes,
     }
+
+
+def run_digest(nodes: dict[str, Any]) -> str:
+    """The whole log's digest: its parts' (each node's logged cycles but
+    their wall-clock stamps), in node order."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for node in sorted(nodes):
+        h.update(f"{node}:{nodes[node].get('digest', '')}\n".encode())
+    return h.hexdigest()
 
 
 STATIC_SCENE = ("/robot_description", "/tf_static", "/workcell/markers")

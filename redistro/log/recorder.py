@@ -75,6 +75,26 @@ def log_topics(spec: NodeSpec) -> list[tuple[str, str, int | None]]:
     return []
 
 
+def digest_runs(dtype: np.dtype[Any]) -> list[tuple[int, int]]:
+    """The byte runs of a logged message (log_cycle, then the block's fields)
+    that a run's digest covers: all but the wall-clock stamps (``*_ns``)."""
+    fields: dict[str, Any] = dict(dtype.fields or {})
+    skips = sorted(
+        (int(off), int(off) + ft.itemsize)
+        for name, (ft, off, *_) in fields.items()
+        if name.endswith("_ns")
+    )
+    runs: list[tuple[int, int]] = []
+    at = 0
+    for a, b in skips:
+        if a > at:
+            runs.append((at, a))
+        at = max(at, b)
+    if at < dtype.itemsize:
+        runs.append((at, int(dtype.itemsize)))
+    return runs
+
+
 @dataclass
 class Channel:
     topic: str
@@ -196,6 +216,7 @@ class CycleRecorder:
                     "ros2": _standard(c),
                     "offset": c.offset,
                     "size": c.size,
+                    "digest": digest_runs(c.dtype),
                 }
                 for c in self.channels
             ],

@@ -11,6 +11,7 @@ the file is finished: summary, indexes, the counters as metadata, and a
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -101,6 +102,7 @@ def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
             stats = json.loads(body)
     stats.setdefault("node", sink.node)
     stats["frames_written"] = sink.frames
+    stats["digest"] = sink.digest.hexdigest()
     stats["messages"] = sink.messages
     stats["complete"] = "recorded" in stats
     wall = time.monotonic() - wall0
@@ -141,6 +143,10 @@ class _McapSink:
         self.message_schema: int | None = None
         self.node = ""
         self.frames = self.messages = 0
+        # the run's digest: each cycle's logged data but its wall-clock
+        # stamps, chained (two lockstep runs of one task give the same)
+        self.digest = hashlib.blake2b(digest_size=16)
+        self.digest_runs: list[list[tuple[int, int]]] = []
 
     def header(self, header: dict[str, Any]) -> None:
         """The node's channels (one per logged block, and its timing), and
@@ -162,6 +168,7 @@ class _McapSink:
                 std = self._standard(spec, header["node"])
                 part = _scene_part(spec) if drawn else None
                 self.cuts.append((cid, int(ch["offset"]), int(ch["size"]), runs, std, part))
+                self.digest_runs.append([(int(a), int(b)) for a, b in ch.get("digest", [])])
         parts = [(c[5][0], c[5][1]) for c in self.cuts if c[5] is not None]
         if parts:
             from redistro.log import scene
@@ -201,8 +208,11 @@ class _McapSink:
         cycle_bytes = body[0:8]
         seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
         poses: list[Any] = []  # (the cycle's transforms, in the scene's order)
-        for cid, off, n, runs, std, part in self.cuts:
+        digest = self.digest.update
+        for (cid, off, n, runs, std, part), keep in zip(self.cuts, self.digest_runs, strict=True):
             packed = cycle_bytes + body[off : off + n]
+            for a, b in keep:
+                digest(packed[a:b])
             w.add_message(cid, log_ns, cdr_message(packed, runs), log_ns, seq)
             if std is not None:  # (a robot's feedback: its JointState and WrenchStamped too)
                 fb, js, ws = std

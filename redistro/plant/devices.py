@@ -122,12 +122,19 @@ class WristSensors:
         self.inverse = np.ascontiguousarray(np.linalg.inv(self.calibration))
         self.bias = np.asarray(bias, dtype=np.float64).reshape(self.k, 6)
         self.sigma = np.array([noise_n] * 3 + [noise_nm] * 3)
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.noise = np.zeros((self.NOISE_BLOCK, self.k, 6))
         self.noise_at = np.zeros((), chassis_layout.NOISE_AT)
         self._row = self.noise_at["row"]
         self.refill()
         self._counts = np.zeros((self.k, 6, 1))
+
+    def reseed(self, offset: int) -> None:
+        """The noise drawn afresh from ``seed + offset`` (a lockstep group's
+        first tick: the same noise whatever the plant served before it)."""
+        self.rng = np.random.default_rng(self.seed + offset)
+        self.refill()
 
     def refill(self) -> None:
         """The next block of noise (in gauge counts); start at its first row."""

@@ -94,16 +94,16 @@ def run_plant(
         )
         port = ShmPort(bank) if shm else _can_port(cfg, session_id, chassis)
         result["scheduling"] = _take_priority(cfg)
-        result.update(
-            _loop(
-                cfg.plant.physics_hz,
-                seconds,
-                chassis,
-                bank,
-                port,
-                cfg.plant.real_time_factor,
-            )
-        )
+        result["clock"] = cfg.session.clock
+        if cfg.session.clock == "lockstep":
+            from redistro.plant.lockstep import Conductor
+
+            where = folder if folder.is_dir() else None
+            conductor = Conductor(session_id, where, cfg.plant.physics_hz)
+            result.update(_loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor))
+        else:
+            pace = cfg.plant.real_time_factor
+            result.update(_loop(cfg.plant.physics_hz, seconds, chassis, bank, port, pace))
         result["state"] = "stopped"
         return 0
     except Exception as exc:
@@ -274,12 +274,66 @@ def _loop(
     )
 
 
+def _loop_lockstep(
+    physics_hz: float, chassis: Any, bank: RegisterBank, port: BoardPort, conductor: Any
+) -> dict[str, Any]:
+    """Step the physics when the nodes have done their tick, then tick
+    them (``redistro.plant.lockstep``); as fast as the CPUs allow. Until a
+    group of nodes is up, the boards are served (the managers' freezes and
+    presets) without a physics step. The amplifiers' watchdog runs on the
+    simulated clock."""
+    from redistro.process.stats import Samples
+
+    dt_ns = round(1e9 / physics_hz)
+    status = Record(bank.status.data.dtype)
+    status["state"] = PlantState.RUNNING
+    read_outputs = port.outputs_reader(chassis.outputs_wanted, chassis.image)
+    publish_boards = port.publisher(chassis.inp, chassis.image)
+    publish_truth = _truth_publisher(bank, chassis)
+    physics, whole = Samples(), Samples()
+    cpu0, t0 = time.process_time(), time.monotonic_ns()
+    stop_set = set(signals.STOP_SIGNALS)
+    io = (read_outputs, publish_truth, publish_boards)
+    truth = (ArmsTruth(chassis.world), PegTruth(chassis.world), ObjectsInHoles(chassis.world))
+    groups = 0
+    _publish_status(bank, status, 0, dt_ns, t0 + 1, t0, 0, 0)
+    gc.collect()
+    gc.freeze()
+    try:
+        while not signal.sigpending() & stop_set:
+            sim_ns = t0 + chassis.step_count * dt_ns
+            if not conductor.ready():
+                read_outputs()  # served, not stepped
+                chassis.apply_outputs(None, sim_ns)
+                publish_boards()
+                port.service(time.monotonic_ns())
+                time.sleep(0.001)
+                continue
+            if conductor.groups != groups:  # a group's first tick
+                groups = conductor.groups
+                chassis.wrists.reseed(groups)
+            for _ in range(conductor.steps_per_tick):
+                _step(chassis, io, whole, physics, truth, t0 + chassis.step_count * dt_ns)
+            steps = chassis.step_count
+            _publish_status(bank, status, steps, dt_ns, t0 + steps * dt_ns, t0, 0, 0)
+            conductor.tick()
+    finally:
+        conductor.close()
+    counts: dict[str, Any] = {"late_steps": 0, "skipped_steps": 0, "lockstep": conductor.report()}
+    counts.update(arms=truth[0].report(), pegs=truth[1].report(), in_holes=truth[2].report())
+    gap = (0, 0)
+    return _result(
+        chassis, port, "signal", t0, cpu0, dt_ns, physics_hz, counts, gap, whole, physics, None
+    )
+
+
 def _step(
     chassis: Any,
     io: tuple[Any, Any, Any],
     whole: Any,
     physics: Any,
     truth: tuple[ArmsTruth, PegTruth, ObjectsInHoles],
+    now_ns: int = 0,
 ) -> None:
     """One step: the controller's outputs applied, PyBullet's step, the
     joints sampled into the boards, the truth then the boards published
@@ -290,7 +344,7 @@ def _step(
     cpu_ns = time.thread_time_ns
     c0 = cpu_ns()
     read_outputs()
-    chassis.apply_outputs(None, time.monotonic_ns())
+    chassis.apply_outputs(None, now_ns or time.monotonic_ns())
     ph0 = cpu_ns()
     chassis.step_physics()
     ph1 = cpu_ns()

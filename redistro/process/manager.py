@@ -32,7 +32,7 @@ from redistro.errors import NodeFault, TornReadTimeout
 from redistro.ipc import names, sched, signals
 from redistro.ipc.sem import Semaphore
 from redistro.ipc.session import LOCK_FD_ENV, Manifest
-from redistro.ipc.timer import IntervalTimer
+from redistro.ipc.timer import tick_source
 from redistro.localdata import Block, LocalData, ProcState
 from redistro.localdata.block import Record
 from redistro.localdata.layout import MANAGER, MSG_TEXT
@@ -96,7 +96,7 @@ class Manager:
     def __init__(self, spec: NodeSpec, spec_path: str) -> None:
         self.spec = spec
         self.spec_path = spec_path
-        self.timer = IntervalTimer(spec.rate_hz)
+        self.timer = tick_source(spec.rate_hz, spec.clock)
         self.cycle = 0
         from redistro import kernels
 
@@ -258,6 +258,8 @@ class Manager:
         """Routine and Idle, cycle after cycle, until the node's work is
         done (returns) or a fault (raises NodeFault)."""
         tick_timeout = max(0.5, 100 * self.timer.period_s)
+        if self.spec.clock == "lockstep":  # (the plant's first tick waits for every link)
+            tick_timeout = max(tick_timeout, self.spec.startup_timeout_s)
         import gc
 
         gc.collect()

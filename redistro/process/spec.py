@@ -86,6 +86,7 @@ class NodeSpec:
     robots: list[str] = field(default_factory=list)
     cycles: int = 0  # run this many cycles, then end ok; 0 = until told to stop
     startup_timeout_s: float = 10.0
+    clock: str = "realtime"  # session.clock: the ticks' source (process/ticks.py)
     shutdown_timeout_s: float = 3.0
     sched_policy: str = "auto"
     lock_memory: bool = False

@@ -39,6 +39,7 @@ WAIT_SET = frozenset({signals.SIG_SYNC, signals.SIG_END, signals.SIG_ORPHAN}) | 
 # Idle work ends this long before the next tick is due: the slice that runs
 # when the deadline passes still ends before the sync comes
 IDLE_GUARD_NS = 200_000
+LOCKSTEP_STAGE_NS = 400_000_000  # a collecting point's wait in lockstep (below the plant's)
 
 
 class Worker:
@@ -243,6 +244,9 @@ class _Runner:
         self.cpu_start_s = time.process_time()
         my_go = go[self.index]
         watch_s = max(0.05, 4 * self.period_ns / 1e9)
+        # a collecting point gives up at the end of the period; in lockstep
+        # the plant waits for the cycle, and so does a later stage
+        stage_ns = self.period_ns if self.spec.clock != "lockstep" else LOCKSTEP_STAGE_NS
         # Hot path on local records: snapshot into them, publish from them.
         mine = Record(PROC_STATUS)
         row.read_into(mine.bytes)  # this process is the row's one writer
@@ -274,7 +278,7 @@ class _Runner:
             cycle = tick["cycle"]
             due_ns = tick["tick_due_ns"]
             self.lateness.add(wake_ns - due_ns)
-            if pred_recs and not self._wait_stage(cycle, pred_recs, my_go, due_ns + self.period_ns):
+            if pred_recs and not self._wait_stage(cycle, pred_recs, my_go, due_ns + stage_ns):
                 self.stage_timeouts += 1
             else:
                 self._step(worker, cycle, due_ns)

@@ -175,6 +175,27 @@ def check_zenoh_users(cfg: Config, nodes: list[str], link: str | None) -> None:
         raise ConfigError(f"{where}: no password for {', '.join(missing)}")
 
 
+def check_clock(cfg: Config) -> None:
+    """A lockstep session ticks every node on the same plant step: one rate
+    for all, a whole number of physics steps per tick, the shared-memory
+    backplane."""
+    if cfg.session.clock != "lockstep":
+        return
+    if cfg.esc.rate_hz != cfg.ssc.rate_hz:
+        raise ConfigError(
+            f"session.clock lockstep: esc.rate_hz ({cfg.esc.rate_hz:g}) and ssc.rate_hz "
+            f"({cfg.ssc.rate_hz:g}) must be equal"
+        )
+    steps = cfg.plant.physics_hz / cfg.esc.rate_hz
+    if abs(steps - round(steps)) > 1e-9:
+        raise ConfigError(
+            f"session.clock lockstep: plant.physics_hz ({cfg.plant.physics_hz:g}) must be a "
+            f"whole multiple of esc.rate_hz ({cfg.esc.rate_hz:g})"
+        )
+    if cfg.plant.backplane != "shm":
+        raise ConfigError("session.clock lockstep: needs plant.backplane shm")
+
+
 def preflight(cfg: Config, task_path: str) -> Task:
     """Every check a session makes before it reaps, creates or starts anything:
     the task against the config, the hardware files and their ratings, the
@@ -183,6 +204,7 @@ def preflight(cfg: Config, task_path: str) -> Task:
     task = load_task(task_path, cfg)
     load_hardware(cfg)
     check_runs_dir(cfg)
+    check_clock(cfg)
     check_workcell(cfg)
     check_key(cfg)
     check_zenoh_users(cfg, ["ssc", *(f"esc.{r}" for r in task.robots)], None)

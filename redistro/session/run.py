@@ -199,6 +199,10 @@ def _run_group(
         return up
 
     progress.ssc_segments = [(g.name, g.duration_s) for g in task.segments]
+    if cfg.session.clock == "lockstep":  # the plant ticks this group's nodes
+        from redistro.plant.lockstep import write_nodes
+
+        write_nodes(s.directory, [sp.node for sp in specs], cfg.esc.rate_hz)
     try:
         results = run_nodes(
             specs,

@@ -1,0 +1,273 @@
+"""Lockstep: the plant paces the nodes (``session.clock: lockstep``).
+
+In a real-time session every manager ticks on its interval timer and the
+plant steps on the wall clock. In lockstep the plant is the clock: it
+steps ``physics_hz / rate_hz`` physics steps, then ticks every node of the
+running group (a SIGALRM to its manager, the signal its interval timer
+would send) and waits until that tick's work is over before it steps
+again. A tick goes in two phases, in a fixed order:
+
+1. the ESCs: each manager took the tick, its on-cycle workers signed it
+   (acquisition: the sample of this step; sender: the command of the
+   SSC's last cycle to the boards), and the sample reached the SSC's
+   Local Data (``feedback[r].step``);
+2. the SSC: its worker signed the tick, and its command reached each
+   ESC's Local Data (``command[0].seq_src``).
+
+Nothing else changes: every process, semaphore, Local Data segment and
+DDM is the one a real-time session runs. The session owner names the
+group's nodes in ``lockstep.json`` in the session's runtime folder; until
+every one of them is in its Routine and every DDM link has shaken hands,
+the plant serves the boards (brakes, encoder presets) without stepping
+the physics, so the first tick comes after the same state in every run.
+A node that ends (its work done, a fault) leaves the group; a wait that
+is not met within ``WAIT_S`` (a hung or stopped process) lets the tick
+go on, and the node's own heartbeat check finds the culprit.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from redistro.localdata.layout import ProcState
+from redistro.localdata.view import NodeView
+
+NODES_FILE = "lockstep.json"  # in the session's runtime folder: the group's nodes
+WAIT_S = 0.5  # the longest a phase waits for a node (a hung one: its heartbeat check)
+LIVE = (int(ProcState.ROUTINE), int(ProcState.IDLE))
+
+
+def write_nodes(folder: Path, nodes: list[str], rate_hz: float) -> None:
+    """The session owner's word to the plant: the group now starting."""
+    from redistro import files
+
+    doc = {"nodes": nodes, "rate_hz": rate_hz}
+    files.replace(folder / NODES_FILE, json.dumps(doc) + "\n")
+
+
+@dataclass
+class _Node:
+    name: str
+    view: NodeView
+    pid: int
+    on_cycle: list[int]  # proc rows of the workers on the cycle
+    ddm: bool  # the node has a ddm (its robots' data cross to another node)
+    live: bool = True
+
+    def state(self) -> int:
+        return int(self.view.manager()["state"])
+
+    def signed(self, cycle: int) -> bool:
+        """The manager took tick ``cycle`` and every on-cycle worker signed it."""
+        v = self.view
+        if int(v.manager()["cycle"]) < cycle:
+            return False
+        return all(int(v.read("proc", j)["heartbeat_cycle"]) >= cycle for j in self.on_cycle)
+
+
+@dataclass
+class Group:
+    """The nodes the plant ticks, and what each phase waits for."""
+
+    session_id: str
+    escs: list[_Node] = field(default_factory=list)
+    ssc: _Node | None = None
+    robots: list[str] = field(default_factory=list)
+    cycle: int = 0
+    waits_missed: int = 0  # phases that gave up (a node hung or ended)
+
+    def nodes(self) -> list[_Node]:
+        return [*self.escs, *([self.ssc] if self.ssc is not None else [])]
+
+    def close(self) -> None:
+        for n in self.nodes():
+            n.view.close()
+
+    @classmethod
+    def open(cls, session_id: str, names: list[str]) -> Group | None:
+        """The group once every node is in its Routine (None: not yet)."""
+        g = cls(session_id)
+        for name in names:
+            view = NodeView.open(session_id, name)
+            if view is None:
+                g.close()
+                return None
+            node = _node(name, view)
+            if node is None:
+                view.close()
+                g.close()
+                return None
+            if name == "ssc":
+                g.ssc = node
+            else:
+                g.escs.append(node)
+                g.robots.append(name.removeprefix("esc."))
+        return g
+
+    def linked(self) -> bool:
+        """Every DDM link has shaken hands (records may flow both ways)."""
+        if self.ssc is None:
+            return True
+        for i, esc in enumerate(self.escs):
+            if not esc.ddm or not int(esc.view.read("exchange", 0)["linked"]):
+                return False
+            if not int(self.ssc.view.read("exchange", i)["linked"]):
+                return False
+        return True
+
+    def tick(self) -> None:
+        """One tick of every node, phase by phase; returns once it is over."""
+        self.cycle += 1
+        k = self.cycle
+        _send(self.escs)
+        self._wait(lambda: all(n.signed(k) for n in self._live(self.escs)))
+        if self.ssc is not None and self.ssc.live:
+            self._wait(self._feedback_in)
+            _send([self.ssc])
+            self._wait(lambda: self.ssc is None or not self.ssc.live or self.ssc.signed(k))
+            self._wait(self._commands_in)
+
+    def _live(self, nodes: list[_Node]) -> list[_Node]:
+        for n in nodes:
+            if n.live and n.state() not in LIVE:
+                n.live = False
+        return [n for n in nodes if n.live]
+
+    def _feedback_in(self) -> bool:
+        assert self.ssc is not None
+        for i, esc in enumerate(self.escs):
+            if not esc.live:
+                continue
+            step = int(esc.view.read("feedback", 0)["step"])
+            if int(self.ssc.view.read("feedback", i)["step"]) != step:
+                return False
+        return True
+
+    def _commands_in(self) -> bool:
+        assert self.ssc is not None
+        for i, esc in enumerate(self.escs):
+            if not esc.live:
+                continue
+            seq = int(self.ssc.view.read("command", i)["seq_src"])
+            if int(esc.view.read("command", 0)["seq_src"]) != seq:
+                return False
+        return True
+
+    def _wait(self, done: Any) -> None:
+        deadline = time.monotonic() + WAIT_S
+        while not done():
+            if time.monotonic() > deadline:
+                self.waits_missed += 1
+                return
+            if not self._live(self.nodes()):
+                return
+            time.sleep(20e-6)  # the nodes run above the plant: let them
+
+    def over(self) -> bool:
+        """Every node of the group has ended (or left its Routine)."""
+        return not self._live(self.nodes())
+
+
+def _node(name: str, view: NodeView) -> _Node | None:
+    """A node's handle, once its manager waits for its first tick."""
+    try:
+        m = view.manager()
+        if int(m["state"]) not in LIVE or int(m["cycle"]) != 0:
+            return None
+        static = view.static
+        stages = [int(s) for s in static["proc_stage"]]
+        roles = view.ld.proc_roles()
+    except Exception:
+        return None
+    on_cycle = [j for j, s in enumerate(stages[: len(roles)]) if s >= 0]
+    return _Node(name, view, int(m["pid"]), on_cycle, "ddm" in roles)
+
+
+def _send(nodes: list[_Node]) -> None:
+    for n in nodes:
+        if n.live:
+            try:
+                os.kill(n.pid, signal.SIGALRM)
+            except ProcessLookupError:
+                n.live = False
+
+
+class Conductor:
+    """The plant's side of lockstep: which group runs, and when it ticks."""
+
+    def __init__(self, session_id: str, folder: Path | None, physics_hz: float) -> None:
+        self.session_id = session_id
+        self.path = folder / NODES_FILE if folder is not None else None
+        self.physics_hz = physics_hz
+        self.seen_ns = 0
+        self.names: list[str] = []
+        self.rate_hz = 0.0
+        self.group: Group | None = None
+        self.groups = 0  # groups run so far (each starts the plant's noise afresh)
+        self.ticks = 0
+        self.waits_missed = 0
+
+    @property
+    def steps_per_tick(self) -> int:
+        return max(1, round(self.physics_hz / self.rate_hz)) if self.rate_hz else 1
+
+    def ready(self) -> bool:
+        """A group is running, or has just come up (every node in its
+        Routine, every link shaken hands)."""
+        if self.group is not None:
+            if not self.group.over():
+                return True
+            self._end_group()
+        self._read_names()
+        if not self.names:
+            return False
+        g = Group.open(self.session_id, self.names)
+        if g is None:
+            return False
+        if not g.linked():
+            g.close()
+            return False
+        self.group = g
+        self.groups += 1
+        self.names = []  # (a group runs once)
+        return True
+
+    def tick(self) -> None:
+        assert self.group is not None
+        self.group.tick()
+        self.ticks += 1
+
+    def _end_group(self) -> None:
+        if self.group is not None:
+            self.waits_missed += self.group.waits_missed
+            self.group.close()
+            self.group = None
+
+    def _read_names(self) -> None:
+        if self.path is None:
+            return
+        try:
+            st = self.path.stat()
+        except OSError:
+            return
+        if st.st_mtime_ns == self.seen_ns:
+            return
+        self.seen_ns = st.st_mtime_ns
+        try:
+            doc = json.loads(self.path.read_text())
+            self.names = [str(n) for n in doc["nodes"]]
+            self.rate_hz = float(doc["rate_hz"])
+        except (OSError, ValueError, KeyError, TypeError):
+            self.names = []
+
+    def close(self) -> None:
+        self._end_group()
+
+    def report(self) -> dict[str, Any]:
+        return {"groups": self.groups, "ticks": self.ticks, "waits_missed": self.waits_missed}
