@@ -45,6 +45,16 @@ def _common(dest_suffix: str) -> _Parser:
     return p
 
 
+def _clock_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--clock",
+        choices=("realtime", "lockstep"),
+        default=None,
+        help="what paces the nodes (session.clock): their timers, or the plant, "
+        "as fast as the CPUs allow",
+    )
+
+
 def _campaign_args(
     p: argparse.ArgumentParser, what: str, *, trials: int, radius_mm: float, yaw_deg: float
 ) -> None:
@@ -64,6 +74,7 @@ def _campaign_args(
         help=f"the {what}'s yaw, uniform within +- this [deg]",
     )
     p.add_argument("--seed", type=int, default=0, help="trial k draws with seed + k")
+    _clock_arg(p)
     p.add_argument("--json", dest="json_path", default=None, help="write the figures here")
     p.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
 
@@ -121,6 +132,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     gr.add_argument("task", help="task file, e.g. tasks/peg_insertion.yaml")
     gr.add_argument("--json", dest="json_path", default=None, help="write the figures here")
+    _clock_arg(gr)
 
     pg = bsub.add_parser(
         "peg",
@@ -195,13 +207,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     se.add_argument("task", help="task file, e.g. tasks/self_calibration.yaml")
     se.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
-    se.add_argument(
-        "--clock",
-        choices=("realtime", "lockstep"),
-        default=None,
-        help="what paces the nodes (session.clock): their timers, or the plant, "
-        "as fast as the CPUs allow",
-    )
+    _clock_arg(se)
 
     no = sub.add_parser(
         "node", help="one node of a strategy task, alone (nodes may run on different hosts)"
@@ -227,6 +233,7 @@ def _parser() -> argparse.ArgumentParser:
         "faults", help="break a running session on purpose, scenario by scenario", parents=[common]
     )
     fa.add_argument("--only", action="append", default=[], metavar="NAME", help="run only NAME")
+    _clock_arg(fa)
     fa.add_argument("--list", action="store_true", help="list the scenarios and stop")
     fa.add_argument("--json", dest="json_path", default=None, help="write the table as JSON")
     fa.add_argument("--seed", type=int, default=0, help="seed of the injection moments")
@@ -302,10 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         os.environ.setdefault(var, "1")
     try:
         args = _parser().parse_args(argv)
-        config = getattr(args, "config_sub", None) or args.config
-        overrides = [*args.set, *getattr(args, "set_sub", [])]
-        if getattr(args, "clock", None):
-            overrides.append(f"session.clock={args.clock}")
+        config, overrides = _config_args(args)
         verbose = args.verbose or getattr(args, "verbose_sub", False)
         import logging
 
@@ -490,7 +494,8 @@ def _positive_int(text: str) -> int:
 
 def _config_args(args: argparse.Namespace) -> tuple[str | None, list[str]]:
     config = getattr(args, "config_sub", None) or args.config
-    return config, [*args.set, *getattr(args, "set_sub", [])]
+    clock = [f"session.clock={args.clock}"] if getattr(args, "clock", None) else []
+    return config, [*args.set, *getattr(args, "set_sub", []), *clock]
 
 
 def _plant(args: argparse.Namespace, cfg: Any) -> int:

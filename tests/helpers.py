@@ -41,6 +41,12 @@ def bench_cycle(rate: str, workers: str, seconds: str, out: Path | str) -> list[
     ]
 
 
+# the tests whose verdicts come from the plant's truth, not from timing,
+# run their sessions in lockstep: the plant paces the nodes, as fast as the
+# CPUs allow (the real-time promise has tests of its own)
+LOCKSTEP = ("--set", "session.clock=lockstep")
+
+
 def run_cli(
     *args: str, timeout: float = 120, cwd: Path = ROOT, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess[str]:

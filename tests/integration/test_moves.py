@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers import ROOT, copy_runs, load_json, run_cli
+from tests.helpers import LOCKSTEP, ROOT, copy_runs, load_json, run_cli
 
 TASK = str(ROOT / "tests/data/moves_and_skills.yaml")
 CONTACT_N = 2.0  # the task's guarded move ends at this wrist force
@@ -22,8 +22,8 @@ def _session(calibrated: Path, tmp_path: Path, task: str, *options: str) -> Path
     runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     done = run_cli(
-        *options, "--set", f"session.runs_dir={runs}", "session", task, "--out", str(out),
-        timeout=180,
+        *LOCKSTEP, *options, "--set", f"session.runs_dir={runs}",
+        "session", task, "--out", str(out), timeout=180,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     return out

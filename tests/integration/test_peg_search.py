@@ -10,7 +10,7 @@ import pytest
 
 from redistro.config import load_config
 from redistro.control.search import Phase
-from tests.helpers import ROOT, copy_runs, load_json, run_cli
+from tests.helpers import LOCKSTEP, ROOT, copy_runs, load_json, run_cli
 
 pytestmark = pytest.mark.peg
 
@@ -27,6 +27,7 @@ def test_a_campaign_finds_holes_2_to_3_mm_off(calibrated: Path, tmp_path: Path) 
     runs = copy_runs(calibrated, tmp_path)
     figures, plot = tmp_path / "peg.json", tmp_path / "peg.png"
     done = run_cli(
+        *LOCKSTEP,
         "--set",
         f"session.runs_dir={runs}",
         "bench",
@@ -84,6 +85,7 @@ def test_a_hole_beyond_the_search_radius_ends_failed_and_lifted(
     runs = copy_runs(calibrated, tmp_path)
     out = tmp_path / "run"
     done = run_cli(
+        *LOCKSTEP,
         "--set",
         f"session.runs_dir={runs}",
         "--set",
