@@ -229,6 +229,14 @@ def _parser() -> argparse.ArgumentParser:
         )
         q.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
 
+    rp = sub.add_parser(
+        "replay",
+        help="run a recorded lockstep session again and compare its log, cycle by cycle",
+        parents=[common],
+    )
+    rp.add_argument("run", help="the run folder of a lockstep session")
+    rp.add_argument("--json", dest="json_path", default=None, help="write the comparison here")
+
     fa = sub.add_parser(
         "faults", help="break a running session on purpose, scenario by scenario", parents=[common]
     )
@@ -387,6 +395,10 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         from redistro.session.run import run_session
 
         return run_session(cfg, args.task, out_dir=args.out)
+    if args.command == "replay":
+        from redistro.session.replay import run_replay
+
+        return run_replay(args.run, _config_args(args)[1], cfg.session.runs_dir, args.json_path)
     if args.command == "node":
         from redistro.session.node import run_node
 

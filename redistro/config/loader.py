@@ -89,8 +89,36 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
         if "extends" in data:
             data, origin = _extended(path, data, in_file)
     data = copy.deepcopy(data)
+    origins.update(_apply_overrides(data, overrides or [], origin))
+    cfg = build(Config, data, origin=origin, origins={**in_file, **origins})
+    source = str(path) if path is not None else str(DEFAULT_CONFIG_PATH)
+    cfg = dataclasses.replace(cfg, source=source, overridden=tuple(origins))
+    from redistro.config.checks import check_config
+
+    check_config(cfg)
+    return cfg
+
+
+def reload_config(data: dict[str, Any], overrides: list[str], origin: str) -> Config:
+    """A config :func:`resolved` gave (a run folder's), ``overrides`` on top,
+    checked as a loaded one (``redistro replay``)."""
+    internal = {f.name for f in dataclasses.fields(Config) if f.metadata.get("internal")}
+    base = copy.deepcopy({k: v for k, v in data.items() if k not in internal})
+    origins = _apply_overrides(base, overrides, origin)
+    cfg = build(Config, base, origin=origin, origins=origins)
+    kept = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in internal}
+    cfg = dataclasses.replace(cfg, **kept)  # type: ignore[arg-type]
+    from redistro.config.checks import check_config
+
+    check_config(cfg)
+    return cfg
+
+
+def _apply_overrides(data: dict[str, Any], overrides: list[str], origin: str) -> dict[str, str]:
+    """``--set`` values into ``data`` (in place); their origins."""
+    origins: dict[str, str] = {}
     defaults = dataclasses.asdict(Config())
-    for text in overrides or []:
+    for text in overrides:
         parts, value = parse_override(text)
         dotted = ".".join(parts)
         if not _known_path(Config, parts):
@@ -109,13 +137,7 @@ def load_config(path: Path | str | None = None, overrides: list[str] | None = No
             node = child
         node[parts[-1]] = value
         origins[dotted] = "--set"
-    cfg = build(Config, data, origin=origin, origins={**in_file, **origins})
-    source = str(path) if path is not None else str(DEFAULT_CONFIG_PATH)
-    cfg = dataclasses.replace(cfg, source=source, overridden=tuple(origins))
-    from redistro.config.checks import check_config
-
-    check_config(cfg)
-    return cfg
+    return origins
 
 
 def _extended(path: Path, data: dict[str, Any], origins: dict[str, str]) -> tuple[Any, str]:

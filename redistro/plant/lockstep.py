@@ -81,6 +81,9 @@ class Group:
     robots: list[str] = field(default_factory=list)
     cycle: int = 0
     waits_missed: int = 0  # phases that gave up (a node hung or ended)
+    # what the plant does while it waits: the CAN backplane's frames
+    # answered (the drivers read and write during their tick); else a nap
+    pause: Any = None
 
     def nodes(self) -> list[_Node]:
         return [*self.escs, *([self.ssc] if self.ssc is not None else [])]
@@ -167,7 +170,10 @@ class Group:
                 return
             if not self._live(self.nodes()):
                 return
-            time.sleep(20e-6)  # the nodes run above the plant: let them
+            if self.pause is not None:
+                self.pause()
+            else:
+                time.sleep(20e-6)  # the nodes run above the plant: let them
 
     def over(self) -> bool:
         """Every node of the group has ended (or left its Routine)."""
@@ -212,6 +218,7 @@ class Conductor:
         self.groups = 0  # groups run so far (each starts the plant's noise afresh)
         self.ticks = 0
         self.waits_missed = 0
+        self.pause: Any = None  # (Group.pause)
 
     @property
     def steps_per_tick(self) -> int:
@@ -233,6 +240,7 @@ class Conductor:
         if not g.linked():
             g.close()
             return False
+        g.pause = self.pause
         self.group = g
         self.groups += 1
         self.names = []  # (a group runs once)

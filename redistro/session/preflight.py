@@ -177,8 +177,7 @@ def check_zenoh_users(cfg: Config, nodes: list[str], link: str | None) -> None:
 
 def check_clock(cfg: Config) -> None:
     """A lockstep session ticks every node on the same plant step: one rate
-    for all, a whole number of physics steps per tick, the shared-memory
-    backplane."""
+    for all, a whole number of physics steps per tick."""
     if cfg.session.clock != "lockstep":
         return
     if cfg.esc.rate_hz != cfg.ssc.rate_hz:
@@ -192,8 +191,6 @@ def check_clock(cfg: Config) -> None:
             f"session.clock lockstep: plant.physics_hz ({cfg.plant.physics_hz:g}) must be a "
             f"whole multiple of esc.rate_hz ({cfg.esc.rate_hz:g})"
         )
-    if cfg.plant.backplane != "shm":
-        raise ConfigError("session.clock lockstep: needs plant.backplane shm")
 
 
 def preflight(cfg: Config, task_path: str) -> Task:

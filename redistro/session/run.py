@@ -58,6 +58,11 @@ def run_session(
     run first): what ``redistro bench group`` measures."""
     say = say or (lambda text: print(text, flush=True))
     task = preflight(cfg, task_path)
+    start = None
+    if cfg.session.clock == "lockstep":  # what a replay starts from (redistro replay)
+        from redistro.session.replay import start_state
+
+        start = start_state(cfg, task_path, list(task.robots))
     for name in ipc_session.reap():
         print(f"reaped {name} (left by a dead session)", file=sys.stderr)
     if task.kind == "strategy" and task.calibrate_if_needed:
@@ -73,7 +78,7 @@ def run_session(
                 say(f"{task.task} not started: the self-calibration did not end ok")
                 return rc
     with around_task() if around_task is not None else contextlib.nullcontext():
-        return _run_task(cfg, task, out_dir=out_dir, say=say)
+        return _run_task(cfg, task, out_dir=out_dir, say=say, start=start)
 
 
 def calibration_first(task: Task, robots: list[str]) -> Task:
@@ -94,7 +99,9 @@ def _run_task(
     *,
     out_dir: str | None,
     say: Callable[[str], None],
+    start: dict[str, Any] | None = None,
 ) -> int:
+    """start: a lockstep session's start state, into the run folder."""
     from redistro.plant.launch import PlantProcess
 
     hardware = load_hardware(cfg)
@@ -106,6 +113,10 @@ def _run_task(
         _session_secrets(cfg, task, s)
         run_dir = Path(out_dir) if out_dir else runs / s.id
         files.make_folder(run_dir, "run folder")
+        if start is not None:
+            from redistro.session.replay import write_start
+
+            write_start(run_dir, start)
         messages = str(run_dir / "messages.log")
         os.close(files.create(messages))  # (new: the managers only append to it)
         say(f"session {s.id}")

@@ -183,6 +183,15 @@ def _inputs(tmp: Path) -> dict[str, Path]:
     out["short_base"] = _run_with_summary(
         tmp, "short_base", "{}", {"robots": '{"r1": {"base_xyz_m": [0, 1]}}'}
     )
+    logged = '{"result": "ok", "log": {"digest": "00"}}'
+    for name, replay in (("realtime_run", None), ("corrupt_replay", "{not json"),
+                         ("replay_no_config", '{"clock": "lockstep"}')):  # fmt: skip
+        run = tmp / name
+        run.mkdir()
+        (run / "summary.json").write_text(logged)
+        if replay is not None:
+            (run / "replay.json").write_text(replay)
+        out[name] = run
     return out
 
 
@@ -459,6 +468,32 @@ CASES = [
         "runs folder under /proc",
         ["--set", "session.runs_dir=/proc/redistro-runs", "check", "tasks/park.yaml"],
         "session.runs_dir /proc/redistro-runs: /proc is on a proc pseudo-filesystem",
+    ),
+    ("replay of no folder", ["replay", "{realtime_run}/none"], ": no such run folder"),
+    ("replay of a file", ["replay", "{a_file}"], ": no such run folder"),
+    (
+        "replay of a real-time run",
+        ["replay", "{realtime_run}"],
+        ": not a lockstep run (no replay.json)",
+    ),
+    ("replay of a corrupt replay file", ["replay", "{corrupt_replay}"], "not readable JSON"),
+    ("replay of a replay file without config", ["replay", "{replay_no_config}"], "no config"),
+    (
+        "a lockstep session at two rates",
+        [
+            "--set",
+            "esc.rate_hz=500",
+            "session",
+            "tasks/peg_insertion_short.yaml",
+            "--clock",
+            "lockstep",
+        ],
+        "session.clock lockstep: esc.rate_hz (500) and ssc.rate_hz (200) must be equal",
+    ),
+    (
+        "an unknown clock",
+        ["session", "tasks/park.yaml", "--clock", "fast"],
+        "argument --clock: invalid choice: 'fast'",
     ),
     (
         "absurd sensor noise",

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from redistro.drivers import positions
-from tests.helpers import load_json, run_cli
+from tests.helpers import LOCKSTEP, load_json, run_cli
 
 SHORT = "tasks/self_calibration_short.yaml"
 PARK = [0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0]
@@ -151,7 +151,7 @@ def test_a_robot_left_at_or_past_its_limit_is_brought_back_by_park(
     edge = model_limits().lower[3] + 0.05
     goal = [0.0, 0.5, 0.0, edge, 0.0, 1.0, 0.0]
     task = _joint_task(tmp_path, goal, 5.0)
-    common = ["--set", f"session.runs_dir={runs}"]
+    common = [*LOCKSTEP, "--set", f"session.runs_dir={runs}"]
     narrowed = edge + 0.03  # the joint rests 0.03 rad past this limit
     lows = ", ".join(repr(v) for v in (*model_limits().lower[:3], narrowed,
                                           *model_limits().lower[4:]))  # fmt: skip

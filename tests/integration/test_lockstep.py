@@ -5,7 +5,8 @@ The short main job runs once over each transport. Each run starts from the
 same calibrated runs folder, ends ``ok`` with the peg in the hole by the
 plant's truth, and every run's log has the same digest: the transports
 carry the same records in the same order, so the logged data are the same
-to the last bit. A run with one gain changed has another digest.
+to the last bit. ``redistro replay`` runs a run again from its folder and
+finds it identical; with one gain changed it names the first difference.
 """
 
 from __future__ import annotations
@@ -37,13 +38,40 @@ def _lockstep(calibrated: Path, tmp: Path, name: str, *sets: str) -> dict[str, A
     return summary
 
 
-def test_every_transport_gives_the_same_log_to_the_byte(calibrated: Path, tmp_path: Path) -> None:
+def _replay(run: Path, runs: Path, tmp: Path, *sets: str) -> tuple[int, dict[str, Any]]:
+    """``redistro replay`` of ``run`` (into ``runs``): exit code, report."""
+    report = tmp / "replay.json"
+    options = [a for kv in sets for a in ("--set", kv)]
+    done = run_cli(
+        "--set", f"session.runs_dir={runs}", *options, "replay", str(run), "--json", str(report),
+        timeout=300,
+    )  # fmt: skip
+    assert done.returncode in (0, 1), done.stdout[-3000:] + done.stderr[-3000:]
+    out: dict[str, Any] = load_json(report)
+    assert (done.returncode == 0) is out["identical"], out
+    return done.returncode, out
+
+
+def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
+    calibrated: Path, tmp_path: Path
+) -> None:
     digests = {}
     for transport in ("socket", "reflective", "zenoh"):
         s = _lockstep(calibrated, tmp_path, transport, f"ddm.transport={transport}")
         assert s["result"] == "ok" and s["inserted"] is True, (transport, s["reason"])
         digests[transport] = s["log"]["digest"]
     assert len(set(digests.values())) == 1, digests
-    # a gain changed: another run, another log
-    other = _lockstep(calibrated, tmp_path, "gain", "ssc.force.k_adm=0.0021")
-    assert other["log"]["digest"] != digests["socket"]
+    # each run again from its folder alone (its config, task and start)
+    for transport in ("socket", "zenoh"):
+        run = tmp_path / transport / "run"
+        rc, out = _replay(run, tmp_path / transport / "runs", tmp_path)
+        assert rc == 0 and out["replay_digest"] == digests[transport], out
+        assert out["result"] == "ok"
+    # one gain changed: the replay names the first cycle, channel and field
+    # that differ (the admittance acts from the first contact on)
+    run = tmp_path / "reflective" / "run"
+    rc, out = _replay(run, tmp_path / "reflective" / "runs", tmp_path, "ssc.force.k_adm=0.0021")
+    first = out["first_difference"]
+    assert rc == 1 and first is not None, out
+    assert first["cycle"] > 100 and first["topic"].startswith("/r2/"), first
+    assert first["field"] in ("tau_nm", "q_cmd_rad", "ref_xyz_m", "wrench_task"), first

@@ -14,6 +14,7 @@ import pytest
 from redistro.config import load_config
 from tests import ros2_log
 from tests.helpers import (
+    LOCKSTEP,
     ROOT,
     attach_running,
     copy_runs,
@@ -89,7 +90,7 @@ def test_peg_insertion_over_each_transport(
     calibrated: Path, tmp_path: Path, transport: str
 ) -> None:
     """Over sockets through ``redistro bench group`` (the session, measured);
-    over the reflective memory with the compiled kernels off
+    over the reflective memory in lockstep with the compiled kernels off
     (``REDISTRO_KERNELS=0``): every node and the plant on the Python path,
     the same session, the same result."""
     runs = copy_runs(calibrated, tmp_path)
@@ -98,9 +99,11 @@ def test_peg_insertion_over_each_transport(
     common = ("--set", f"session.runs_dir={runs}", "--set", f"ddm.transport={transport}")
     if transport == "socket":
         done = run_cli(*common, "bench", "group", SHORT, "--json", str(figures), timeout=600)
-    else:
+    else:  # (in lockstep: the verdicts are the plant's truth and the log)
         off = {"REDISTRO_KERNELS": "0"}
-        done = run_cli(*common, "session", SHORT, "--out", str(out), timeout=600, env=off)
+        done = run_cli(
+            *LOCKSTEP, *common, "session", SHORT, "--out", str(out), timeout=600, env=off
+        )
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-3000:]
     if transport == "socket":
         bench = load_json(figures)

@@ -1,0 +1,219 @@
+"""``redistro replay RUN``: run a recorded lockstep session again and compare.
+
+A lockstep session (``--clock lockstep``) writes ``replay.json`` into its
+run folder before anything starts: its config (resolved), its task file's
+text, and the state it started from (the joint positions files and the
+arms' pose kept between sessions). The plant's truth (the hole's offset,
+the noise's seed) is in the config. ``replay`` restores that state into a
+folder of its own under the runs folder, runs the same task in lockstep
+(``--set`` values go on top: one gain changed, say), and compares the
+logs: ``identical`` when the digests agree, else the first cycle, channel
+and field that differ. Exit 0 when identical, 1 when not, 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from redistro import files
+from redistro.config.model import Config
+from redistro.errors import ConfigError, clipped
+
+REPLAY_FILE = "replay.json"
+KEYS = ("clock", "config", "task_name", "task_text", "start")
+
+
+def start_state(cfg: Config, task_path: str, robots: list[str]) -> dict[str, Any]:
+    """What a lockstep session starts from, for its ``replay.json``."""
+    from redistro.config.loader import resolved
+    from redistro.session.preflight import positions_file
+    from redistro.session.run import plant_config
+
+    def text(path: Path) -> str | None:
+        try:
+            return path.read_text()
+        except OSError:
+            return None
+
+    pose = Path(plant_config(cfg).plant.pose_file)
+    return {
+        "clock": cfg.session.clock,
+        "config": resolved(cfg),
+        "task_name": Path(task_path).name,
+        "task_text": Path(task_path).read_text(),
+        "start": {
+            "positions": {r: text(positions_file(cfg, r)) for r in robots},
+            "plant_pose": text(pose),
+        },
+    }
+
+
+def write_start(run_dir: Path, state: dict[str, Any]) -> None:
+    files.replace(run_dir / REPLAY_FILE, json.dumps(state, indent=1) + "\n")
+
+
+def load_run(arg: str) -> tuple[Path, dict[str, Any], dict[str, Any]]:
+    """The run folder, its replay.json and its summary; ConfigError (one
+    line) when it is not a recorded lockstep run that can be replayed."""
+    run = Path(arg)
+    where = clipped(arg)
+    if not run.is_dir():
+        raise ConfigError(f"replay: {where}: no such run folder")
+    summary_path = run / "summary.json"
+    if not summary_path.is_file():
+        raise ConfigError(f"replay: {where}: not a run folder (no summary.json)")
+    if not (run / REPLAY_FILE).is_file():
+        raise ConfigError(f"replay: {where}: not a lockstep run (no {REPLAY_FILE})")
+    doc = _json(run / REPLAY_FILE)
+    summary = _json(summary_path)
+    missing = [k for k in KEYS if k not in doc]
+    if missing or doc.get("clock") != "lockstep" or not isinstance(doc.get("start"), dict):
+        why = f"no {missing[0]}" if missing else "not a lockstep run"
+        raise ConfigError(f"replay: {where}/{REPLAY_FILE}: {why}")
+    digest = summary.get("log", {}).get("digest") if isinstance(summary.get("log"), dict) else None
+    if not isinstance(digest, str) or not (run / "session.mcap").is_file():
+        raise ConfigError(f"replay: {where}: the run has no session log to compare with")
+    return run, doc, summary
+
+
+def _json(path: Path) -> dict[str, Any]:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"replay: {clipped(str(path))}: not readable JSON: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"replay: {clipped(str(path))}: not a JSON object")
+    return doc
+
+
+def replay_config(doc: dict[str, Any], overrides: list[str], folder: Path) -> Config:
+    """The run's config, ``overrides`` on top, its runs folder and the
+    arms' pose file in ``folder``, in lockstep."""
+    from redistro.config.loader import reload_config
+
+    if not isinstance(doc["config"], dict):
+        raise ConfigError(f"replay: {REPLAY_FILE}: config: not a mapping")
+    cfg = reload_config(doc["config"], overrides, REPLAY_FILE)
+    session = dataclasses.replace(cfg.session, runs_dir=str(folder), clock="lockstep")
+    plant = dataclasses.replace(cfg.plant, pose_file=str(folder / cfg.session.plant_pose_file))
+    return dataclasses.replace(cfg, session=session, plant=plant)
+
+
+def restore(cfg: Config, doc: dict[str, Any], folder: Path) -> Path:
+    """The run's start state and task into ``folder``; the task's path."""
+    from redistro.session.preflight import positions_file
+
+    start = doc["start"]
+    for robot, text in dict(start.get("positions") or {}).items():
+        if isinstance(text, str):
+            path = positions_file(cfg, str(robot))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+    if isinstance(start.get("plant_pose"), str):
+        Path(cfg.plant.pose_file).write_text(start["plant_pose"])
+    task = folder / Path(str(doc["task_name"])).name
+    task.write_text(str(doc["task_text"]))
+    return task
+
+
+def run_replay(arg: str, overrides: list[str], runs_dir: str, json_path: str | None) -> int:
+    from redistro.session.run import run_session
+
+    run, doc, summary = load_run(arg)
+    folder = Path(runs_dir) / f"replay-{time.strftime('%Y%m%dT%H%M%S')}-{run.name}"[:120]
+    cfg = replay_config(doc, overrides, folder)  # (bad --set: refused before anything)
+    folder.mkdir(parents=True, exist_ok=False)
+    task = restore(cfg, doc, folder)
+    out = folder / "run"
+    run_session(cfg, str(task), out_dir=str(out), say=lambda line: print(f"  {line}"))
+    try:
+        again = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        again = {}
+    report = compare(run, out, summary, again)
+    print(report_line(report))
+    if json_path:
+        files.replace(Path(json_path), json.dumps(report, indent=1) + "\n")
+    return 0 if report["identical"] else 1
+
+
+def compare(run: Path, again: Path, summary: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """The recorded run against its replay: the digests, and when they
+    differ the first cycle, channel and field that do."""
+    a = summary.get("log", {}).get("digest")
+    b = (new.get("log") or {}).get("digest")
+    report: dict[str, Any] = {
+        "run": str(run),
+        "replay": str(again),
+        "identical": bool(a) and a == b,
+        "digest": a,
+        "replay_digest": b,
+        "result": new.get("result", "none"),
+    }
+    if not report["identical"] and (again / "session.mcap").is_file():
+        report["first_difference"] = first_difference(run / "session.mcap", again / "session.mcap")
+    return report
+
+
+def report_line(report: dict[str, Any]) -> str:
+    if report["identical"]:
+        return f"identical: true (log.digest {report['digest']})"
+    d = report.get("first_difference")
+    if not d:
+        return f"identical: false (the replay ended {report['result']}, no log to compare)"
+    return (
+        f"identical: false: first difference at cycle {d['cycle']}, {d['topic']} "
+        f"{d['field']} (recorded {d['recorded']}, replayed {d['replayed']})"
+    )
+
+
+def first_difference(a: Path, b: Path) -> dict[str, Any] | None:
+    """The earliest cycle at which two session logs' cycle channels differ
+    (wall-clock stamps and timing channels aside): its topic and field."""
+    from redistro.log.mcapfile import read_log
+
+    la, lb = read_log(a), read_log(b)
+    best: dict[str, Any] | None = None
+    for topic in sorted(set(la.arrays) | set(lb.arrays)):
+        if topic.endswith("/timing"):
+            continue
+        x, y = la.arrays.get(topic), lb.arrays.get(topic)
+        found = _first_in(topic, x, y)
+        if found is not None and (best is None or found["cycle"] < best["cycle"]):
+            best = found
+    return best
+
+
+def _first_in(topic: str, x: Any, y: Any) -> dict[str, Any] | None:
+    if x is None or y is None:
+        return {"cycle": 0, "topic": topic, "field": "(channel)", "recorded": x is not None,
+                "replayed": y is not None}  # fmt: skip
+    n = min(len(x), len(y))
+    first: dict[str, Any] | None = None
+    for name in x.dtype.names or ():
+        if name.endswith("_ns") or name == "log_cycle":
+            continue
+        differ = np.asarray(x[name][:n] != y[name][:n]).reshape(n, -1).any(axis=1)
+        if differ.any():
+            i = int(np.argmax(differ))
+            if first is None or i < first["row"]:
+                first = {"row": i, "field": name, "recorded": _plain(x[name][i]),
+                         "replayed": _plain(y[name][i])}  # fmt: skip
+    if first is None and len(x) != len(y):
+        first = {"row": n, "field": "(cycles)", "recorded": len(x), "replayed": len(y)}
+    if first is None:
+        return None
+    row = int(first.pop("row"))
+    cycles = x["log_cycle"] if row < len(x) else y["log_cycle"]
+    cycle = int(cycles[min(row, len(cycles) - 1)]) if len(cycles) else 0
+    return {"cycle": cycle, "topic": topic, **first}
+
+
+def _plain(v: Any) -> Any:
+    return v.tolist() if hasattr(v, "tolist") else v
