@@ -121,9 +121,8 @@ def no_leaks() -> Iterator[None]:
         pytest.fail("; ".join(problems))
 
 
-# the session tests that open the run, beside the unit tests: their verdicts
-# come from the plant's truth, not from timing
-FIRST = ("test_peg_search.py", "test_moves.py")
+# the longest lockstep tests first (the second worker's run ends sooner)
+FIRST = ("test_lockstep.py", "test_peg_search.py", "test_moves.py")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -135,15 +134,22 @@ def _rank(item: pytest.Item) -> int:
     return FIRST.index(name) if name in FIRST else len(FIRST)
 
 
+# the session tests run in lockstep at the default scheduling (their
+# verdicts are the plant's truth and the log, which no schedule changes):
+# beside the unit tests, below the real-time sessions of the first worker
+LOCKSTEP_MODULES = ("test_lockstep.py", "test_peg_search.py", "test_moves.py")
+
+
 def _apart(nodeid: str) -> bool:
-    """Runs in the second worker: the unit tests, and the front door's (its
-    refusals start no session); not the transports' contract tests, whose
-    zenoh drops records on a loaded host (congestion control DROP), as a
-    session's ddm would."""
+    """Runs in the second worker: the unit tests, the front door's (its
+    refusals start no session) and the lockstep sessions; not the
+    transports' contract tests, whose zenoh drops records on a loaded host
+    (congestion control DROP), as a session's ddm would."""
     path = nodeid.split("::")[0]
     if path.endswith("/test_transports.py"):
         return False
-    return "integration/" not in path or path.endswith("/test_front_door.py")
+    name = path.rsplit("/", 1)[-1]
+    return "integration/" not in path or name == "test_front_door.py" or name in LOCKSTEP_MODULES
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -6,15 +6,17 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import run_cli
+from tests.helpers import LOCKSTEP, run_cli
 
 
 @pytest.fixture(scope="session")
 def calibrated(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A runs folder whose positions files are known (a short self-calibration);
-    tests copy it (positions and the arms' pose) before they move the arms."""
+    """A runs folder whose positions files are known (a short self-calibration,
+    in lockstep); tests copy it (positions and the arms' pose) before they
+    move the arms."""
     runs = tmp_path_factory.mktemp("calibrated") / "runs"
     done = run_cli(
+        *LOCKSTEP,
         "--set",
         f"session.runs_dir={runs}",
         "session",

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from tests.helpers import copy_runs, load_json, run_cli
+from tests.helpers import LOCKSTEP, copy_runs, load_json, run_cli
 
 SHORT = "tasks/peg_insertion_short.yaml"
 pytestmark = pytest.mark.peg
@@ -27,7 +27,7 @@ def _lockstep(calibrated: Path, tmp: Path, name: str, *sets: str) -> dict[str, A
     out = tmp / name / "run"
     options = [a for kv in sets for a in ("--set", kv)]
     done = run_cli(
-        "--set", f"session.runs_dir={runs}", *options,
+        *LOCKSTEP, "--set", f"session.runs_dir={runs}", *options,
         "session", SHORT, "--out", str(out), "--clock", "lockstep", timeout=300,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
@@ -43,8 +43,8 @@ def _replay(run: Path, runs: Path, tmp: Path, *sets: str) -> tuple[int, dict[str
     report = tmp / "replay.json"
     options = [a for kv in sets for a in ("--set", kv)]
     done = run_cli(
-        "--set", f"session.runs_dir={runs}", *options, "replay", str(run), "--json", str(report),
-        timeout=300,
+        "--set", "scheduling.policy=none", "--set", f"session.runs_dir={runs}", *options,
+        "replay", str(run), "--json", str(report), timeout=300,
     )  # fmt: skip
     assert done.returncode in (0, 1), done.stdout[-3000:] + done.stderr[-3000:]
     out: dict[str, Any] = load_json(report)
@@ -75,3 +75,15 @@ def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
     assert rc == 1 and first is not None, out
     assert first["cycle"] > 100 and first["topic"].startswith("/r2/"), first
     assert first["field"] in ("tau_nm", "q_cmd_rad", "ref_xyz_m", "wrench_task"), first
+
+
+def test_a_session_over_the_can_backplane_runs_to_its_end_in_lockstep(
+    calibrated: Path, tmp_path: Path
+) -> None:
+    """Every board read and write a CAN FD frame (python-can's udp_multicast,
+    authenticated), every node unchanged: too slow for real time on two
+    vCPUs, whole in lockstep."""
+    s = _lockstep(calibrated, tmp_path, "can", "plant.backplane=can")
+    assert s["result"] == "ok" and s["inserted"] is True, s["reason"]
+    plant = load_json(tmp_path / "can" / "run" / "plant.json")
+    assert plant["backplane"] == "can" and plant["bad_frames"] == 0, plant
