@@ -9,6 +9,7 @@ absolute so the generated file can live anywhere.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,3 +92,16 @@ def write_arm_urdf(directory: Path | str, name: str, peg: Peg | None) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(arm_urdf(peg))
     return path
+
+
+def quat_rpy(r: float, p: float, y: float) -> tuple[float, float, float, float]:
+    """Roll-pitch-yaw (URDF's: R = Rz(y) Ry(p) Rx(r)) as a quaternion (x, y,
+    z, w: PyBullet's and ROS's order)."""
+    cr, sr, cp, sp = math.cos(r / 2), math.sin(r / 2), math.cos(p / 2), math.sin(p / 2)
+    cy, sy = math.cos(y / 2), math.sin(y / 2)
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
+    )

@@ -34,6 +34,7 @@ from typing import Any
 
 from redistro.log.frames import CDR_HEADER
 from redistro.log.ros2 import Cdr
+from redistro.robotmodel import quat_rpy
 
 ARROW_HZ = 30.0  # the wrench arrows' rate at most
 ARROW_M_PER_N = 0.01  # an arrow's length per newton
@@ -74,18 +75,6 @@ def definition(msgtype: str) -> str:
 
 
 Quat = tuple[float, float, float, float]  # x, y, z, w
-
-
-def quat_rpy(r: float, p: float, y: float) -> Quat:
-    """URDF roll-pitch-yaw as a quaternion (x, y, z, w)."""
-    cr, sr, cp, sp = math.cos(r / 2), math.sin(r / 2), math.cos(p / 2), math.sin(p / 2)
-    cy, sy = math.cos(y / 2), math.sin(y / 2)
-    return (
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-        cr * cp * cy + sr * sp * sy,
-    )
 
 
 def quat_mul(a: Quat, b: Quat) -> Quat:

@@ -35,16 +35,10 @@ class HolePose:
 
     def quaternion(self) -> tuple[float, float, float, float]:
         """x, y, z, w (PyBullet's order) of R = Rz(yaw) Ry(tilt y) Rx(tilt x)."""
+        from redistro.robotmodel import quat_rpy
+
         rx, ry, rz = (math.radians(v) for v in (*self.tilt_xy_deg, self.yaw_deg))
-        cx, sx = math.cos(rx / 2), math.sin(rx / 2)
-        cy, sy = math.cos(ry / 2), math.sin(ry / 2)
-        cz, sz = math.cos(rz / 2), math.sin(rz / 2)
-        return (
-            sx * cy * cz - cx * sy * sz,
-            cx * sy * cz + sx * cy * sz,
-            cx * cy * sz - sx * sy * cz,
-            cx * cy * cz + sx * sy * sz,
-        )
+        return quat_rpy(rx, ry, rz)
 
     def rotation(self) -> np.ndarray[Any, Any]:
         x, y, z, w = self.quaternion()
