@@ -180,10 +180,25 @@ def run(cfg: Config, task_path: str, overrides: list[str]) -> dict[str, Any]:
         rate, 3.0, cfg.scheduling.priorities.get("ddm", 19), cfg.scheduling.cpu_latency_us
     )
     out["exit_code"] = rc
+    out.update(pace(out_dir / "plant.json", cfg.session.clock, host.get("seconds")))
     out["transport"] = cfg.ddm.transport
     out["rates_hz"] = {"esc": cfg.esc.rate_hz, "ssc": cfg.ssc.rate_hz, "ddm": cfg.ddm.rate_hz}
     out["overrides"] = overrides
     return out
+
+
+def pace(plant_json: Path, clock: str, seconds: float | None) -> dict[str, Any]:
+    """The clock, the plant's simulated time, and how many times real time
+    the task ran (simulated s over wall s, the start and the end included)."""
+    import json
+
+    try:
+        plant = json.loads(plant_json.read_text())
+        sim_s = float(plant["steps"]) / float(plant["physics_hz"])
+    except (OSError, ValueError, KeyError, TypeError, ZeroDivisionError):
+        return {"clock": clock}
+    speed = round(sim_s / seconds, 2) if seconds else None
+    return {"clock": clock, "sim_s": round(sim_s, 2), "speed_up": speed}
 
 
 def print_figures(f: dict[str, Any], out: Any = sys.stdout) -> None:
@@ -218,6 +233,8 @@ def print_figures(f: dict[str, Any], out: Any = sys.stdout) -> None:
         c = d["command_latency_us"]
         p(f"  ddm {robot}  command latency p50/p99/max {c['p50']}/{c['p99']}/{c['max']} us")
     p(f"  log dropped {f['log']['dropped']} cycles")
+    if f.get("speed_up") is not None:
+        p(f"  {f['clock']}: {f['sim_s']} s simulated in {f['seconds']} s ({f['speed_up']}x)")
     p(f"  whole group CPU {f['group_cpu_percent']}% of one vCPU")
     ct = f.get("cyclictest_us") or {}
     if "p50" in ct:
