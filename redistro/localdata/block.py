@@ -130,6 +130,34 @@ class Block:
         self._words.append(word)
         return word
 
+    def counter(self, name: str) -> Any:
+        """A one-element memoryview onto an 8-byte unsigned field of the
+        payload, in place, for a watcher that reads that one counter alone
+        (a cycle, a step, a sequence number: a value only the field's
+        writer moves forward). None when the field straddles a cache line:
+        a load could then be torn, and the watcher takes a snapshot."""
+        fields = self._payload.fields
+        assert fields is not None
+        ftype, off = fields[name][0], int(fields[name][1])
+        if ftype.itemsize != 8 or ftype.shape or ftype.kind != "u":
+            raise ValueError(f"{self.name}.{name}: not an 8-byte counter")
+        view: Any = self._raw[off : off + 8]
+        address = np.frombuffer(view, dtype=np.uint8).ctypes.data
+        if address % 64 > 56:
+            return None
+        word = view.cast("Q")
+        self._words.append(word)
+        return word
+
+    def load(self, word: Any) -> int | None:
+        """One word of the payload (from :meth:`counter`) under the block's
+        seqlock: its value, or None while a write is in progress."""
+        seq = self._seq[0]
+        if seq & 1:
+            return None
+        value = int(word[0])
+        return value if self._seq[0] == seq else None
+
     def spin_until_changed(self, last: int, deadline_ns: int) -> int:
         """Busy-wait until the sequence counter differs from ``last`` and is
         even (a finished write); return it, or ``last`` when the monotonic

@@ -51,6 +51,37 @@ def write_nodes(folder: Path, nodes: list[str], rate_hz: float) -> None:
     files.replace(folder / NODES_FILE, json.dumps(doc) + "\n")
 
 
+class Counter:
+    """One counter of a node's Local Data as a watcher polls it: a single
+    load of the word first (cheap, and false nearly always), then, when it
+    seems there, the word again under the block's seqlock (a bare load may
+    see it half written)."""
+
+    def __init__(self, view: NodeView, block: str, index: int | None, name: str) -> None:
+        self.block = view.block(block, index)
+        self.name = name
+        self.word = self.block.counter(name)
+
+    def value(self) -> int:
+        """The counter, consistent (under its block's seqlock)."""
+        if self.word is not None:
+            for _ in range(8):
+                v = self.block.load(self.word)
+                if v is not None:
+                    return v
+        return int(self.block.read()[self.name])
+
+    def at_least(self, target: int) -> bool:
+        if self.word is not None and self.word[0] < target:
+            return False
+        return self.value() >= target
+
+    def equals(self, other: Counter) -> bool:
+        if self.word is not None and other.word is not None and self.word[0] != other.word[0]:
+            return False
+        return self.value() == other.value()
+
+
 @dataclass
 class _Node:
     name: str
@@ -59,16 +90,19 @@ class _Node:
     on_cycle: list[int]  # proc rows of the workers on the cycle
     ddm: bool  # the node has a ddm (its robots' data cross to another node)
     live: bool = True
+    counters: list[Counter] = field(default_factory=list)  # its cycle, its workers' heartbeats
+
+    def __post_init__(self) -> None:
+        self.state_word = self.view.block("manager").word("state")
+        self.counters = [Counter(self.view, "manager", None, "cycle")]
+        self.counters += [Counter(self.view, "proc", j, "heartbeat_cycle") for j in self.on_cycle]
 
     def state(self) -> int:
-        return int(self.view.manager()["state"])
+        return int(self.state_word[0])
 
     def signed(self, cycle: int) -> bool:
         """The manager took tick ``cycle`` and every on-cycle worker signed it."""
-        v = self.view
-        if int(v.manager()["cycle"]) < cycle:
-            return False
-        return all(int(v.read("proc", j)["heartbeat_cycle"]) >= cycle for j in self.on_cycle)
+        return all(c.at_least(cycle) for c in self.counters)
 
 
 @dataclass
@@ -81,6 +115,8 @@ class Group:
     robots: list[str] = field(default_factory=list)
     cycle: int = 0
     waits_missed: int = 0  # phases that gave up (a node hung or ended)
+    samples: list[tuple[_Node, Counter, Counter]] = field(default_factory=list)
+    commands: list[tuple[_Node, Counter, Counter]] = field(default_factory=list)
     # what the plant does while it waits: the CAN backplane's frames
     # answered (the drivers read and write during their tick); else a nap
     pause: Any = None
@@ -117,6 +153,8 @@ class Group:
         """Every DDM link has shaken hands (records may flow both ways)."""
         if self.ssc is None:
             return True
+        if not self.samples:
+            self._crossings()
         for i, esc in enumerate(self.escs):
             if not esc.ddm or not int(esc.view.read("exchange", 0)["linked"]):
                 return False
@@ -142,25 +180,25 @@ class Group:
                 n.live = False
         return [n for n in nodes if n.live]
 
-    def _feedback_in(self) -> bool:
+    def _crossings(self) -> None:
+        """Each robot's sample at its ESC and at the SSC; its command at the
+        SSC and at its ESC."""
         assert self.ssc is not None
-        for i, esc in enumerate(self.escs):
-            if not esc.live:
-                continue
-            step = int(esc.view.read("feedback", 0)["step"])
-            if int(self.ssc.view.read("feedback", i)["step"]) != step:
-                return False
-        return True
+        ssc = self.ssc.view
+        self.samples = [
+            (e, Counter(e.view, "feedback", 0, "step"), Counter(ssc, "feedback", i, "step"))
+            for i, e in enumerate(self.escs)
+        ]
+        self.commands = [
+            (e, Counter(ssc, "command", i, "seq_src"), Counter(e.view, "command", 0, "seq_src"))
+            for i, e in enumerate(self.escs)
+        ]
+
+    def _feedback_in(self) -> bool:
+        return all(a.equals(b) for e, a, b in self.samples if e.live)
 
     def _commands_in(self) -> bool:
-        assert self.ssc is not None
-        for i, esc in enumerate(self.escs):
-            if not esc.live:
-                continue
-            seq = int(self.ssc.view.read("command", i)["seq_src"])
-            if int(esc.view.read("command", 0)["seq_src"]) != seq:
-                return False
-        return True
+        return all(a.equals(b) for e, a, b in self.commands if e.live)
 
     def _wait(self, done: Any) -> None:
         deadline = time.monotonic() + WAIT_S

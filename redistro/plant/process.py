@@ -95,15 +95,8 @@ def run_plant(
         port = ShmPort(bank) if shm else _can_port(cfg, session_id, chassis)
         result["scheduling"] = _take_priority(cfg)
         result["clock"] = cfg.session.clock
-        if cfg.session.clock == "lockstep":
-            from redistro.plant.lockstep import Conductor
-
-            where = folder if folder.is_dir() else None
-            conductor = Conductor(session_id, where, cfg.plant.physics_hz)
-            result.update(_loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor))
-        else:
-            pace = cfg.plant.real_time_factor
-            result.update(_loop(cfg.plant.physics_hz, seconds, chassis, bank, port, pace))
+        where = folder if folder.is_dir() else None
+        result.update(_run_loop(cfg, session_id, where, seconds, chassis, bank, port))
         result["state"] = "stopped"
         return 0
     except Exception as exc:
@@ -129,6 +122,28 @@ def run_plant(
             from redistro import files
 
             files.replace(result_path, json.dumps(result, indent=2) + "\n")
+
+
+def _run_loop(
+    cfg: Config,
+    session_id: str,
+    folder: Path | None,
+    seconds: float,
+    chassis: Any,
+    bank: RegisterBank,
+    port: BoardPort,
+) -> dict[str, Any]:
+    """The plant's loop for ``session.clock``, to its end; what it did."""
+    # a developer's profile of the plant (tools/profile.py TASK plant/loop)
+    profiled = hooks.profile("plant/loop")
+    with profiled if profiled is not None else contextlib.nullcontext():
+        if cfg.session.clock == "lockstep":
+            from redistro.plant.lockstep import Conductor
+
+            conductor = Conductor(session_id, folder, cfg.plant.physics_hz)
+            return _loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor)
+        pace = cfg.plant.real_time_factor
+        return _loop(cfg.plant.physics_hz, seconds, chassis, bank, port, pace)
 
 
 def _can_port(cfg: Config, session_id: str, chassis: Any) -> BoardPort:

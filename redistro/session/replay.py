@@ -1,14 +1,15 @@
 """``redistro replay RUN``: run a recorded lockstep session again and compare.
 
 A lockstep session (``--clock lockstep``) writes ``replay.json`` into its
-run folder before anything starts: its config (resolved), its task file's
-text, and the state it started from (the joint positions files and the
-arms' pose kept between sessions). The plant's truth (the hole's offset,
-the noise's seed) is in the config. ``replay`` restores that state into a
-folder of its own under the runs folder, runs the same task in lockstep
-(``--set`` values go on top: one gain changed, say), and compares the
-logs: ``identical`` when the digests agree, else the first cycle, channel
-and field that differ. Exit 0 when identical, 1 when not, 2 on bad input.
+run folder before anything starts (:mod:`redistro.session.start`): its
+config (resolved), its task file's text, and the state it started from
+(the joint positions files and the arms' pose kept between sessions).
+The plant's truth (the hole's offset, the noise's seed) is in the
+config. ``replay`` restores that state into a folder of its own under the
+runs folder, runs the same task in lockstep (``--set`` values go on top:
+one gain changed, say), and compares the logs: ``identical`` when the
+digests agree, else the first cycle, channel and field that differ. Exit
+0 when identical, 1 when not, 2 on bad input.
 """
 
 from __future__ import annotations
@@ -24,38 +25,9 @@ import numpy as np
 from redistro import files
 from redistro.config.model import Config
 from redistro.errors import ConfigError, clipped
+from redistro.session.start import REPLAY_FILE
 
-REPLAY_FILE = "replay.json"
 KEYS = ("clock", "config", "task_name", "task_text", "start")
-
-
-def start_state(cfg: Config, task_path: str, robots: list[str]) -> dict[str, Any]:
-    """What a lockstep session starts from, for its ``replay.json``."""
-    from redistro.config.loader import resolved
-    from redistro.session.preflight import positions_file
-    from redistro.session.run import plant_config
-
-    def text(path: Path) -> str | None:
-        try:
-            return path.read_text()
-        except OSError:
-            return None
-
-    pose = Path(plant_config(cfg).plant.pose_file)
-    return {
-        "clock": cfg.session.clock,
-        "config": resolved(cfg),
-        "task_name": Path(task_path).name,
-        "task_text": Path(task_path).read_text(),
-        "start": {
-            "positions": {r: text(positions_file(cfg, r)) for r in robots},
-            "plant_pose": text(pose),
-        },
-    }
-
-
-def write_start(run_dir: Path, state: dict[str, Any]) -> None:
-    files.replace(run_dir / REPLAY_FILE, json.dumps(state, indent=1) + "\n")
 
 
 def load_run(arg: str) -> tuple[Path, dict[str, Any], dict[str, Any]]:

@@ -60,7 +60,7 @@ def run_session(
     task = preflight(cfg, task_path)
     start = None
     if cfg.session.clock == "lockstep":  # what a replay starts from (redistro replay)
-        from redistro.session.replay import start_state
+        from redistro.session.start import start_state
 
         start = start_state(cfg, task_path, list(task.robots))
     for name in ipc_session.reap():
@@ -114,7 +114,7 @@ def _run_task(
         run_dir = Path(out_dir) if out_dir else runs / s.id
         files.make_folder(run_dir, "run folder")
         if start is not None:
-            from redistro.session.replay import write_start
+            from redistro.session.start import write_start
 
             write_start(run_dir, start)
         messages = str(run_dir / "messages.log")
