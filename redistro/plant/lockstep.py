@@ -2,16 +2,17 @@
 
 In a real-time session every manager ticks on its interval timer and the
 plant steps on the wall clock. In lockstep the plant is the clock: it
-steps ``physics_hz / rate_hz`` physics steps, then ticks every node of the
-running group (a SIGALRM to its manager, the signal its interval timer
-would send) and waits until that tick's work is over before it steps
-again. A tick goes in two phases, in a fixed order:
+ticks every node of the running group (a SIGALRM to its manager, the
+signal its interval timer would send), steps ``physics_hz / rate_hz``
+physics steps, and waits until the tick's work is over before the next.
+A tick goes in two phases, in a fixed order:
 
 1. the ESCs: each manager took the tick, its on-cycle workers signed it
    (acquisition: the sample of this step; sender: the command of the
    SSC's last cycle to the boards), and the sample reached the SSC's
    Local Data (``feedback[r].step``);
-2. the SSC: its worker signed the tick, and its command reached each
+2. the SSC, while the physics steps to the next tick (it reads no
+   board): its worker signed the tick, and its command reached each
    ESC's Local Data (``command[0].seq_src``).
 
 Nothing else changes: every process, semaphore, Local Data segment and
@@ -162,17 +163,23 @@ class Group:
                 return False
         return True
 
-    def tick(self) -> None:
-        """One tick of every node, phase by phase; returns once it is over."""
+    def tick(self, step: Any) -> None:
+        """One tick of every node, phase by phase, and ``step()``, the
+        physics to the next tick; returns once all is over. The physics
+        steps while the SSC runs: they need only the senders' outputs of
+        this tick, and the SSC reads nothing of the boards."""
         self.cycle += 1
         k = self.cycle
         _send(self.escs)
         self._wait(lambda: all(n.signed(k) for n in self._live(self.escs)))
-        if self.ssc is not None and self.ssc.live:
-            self._wait(self._feedback_in)
-            _send([self.ssc])
-            self._wait(lambda: self.ssc is None or not self.ssc.live or self.ssc.signed(k))
-            self._wait(self._commands_in)
+        if self.ssc is None or not self.ssc.live:
+            step()
+            return
+        self._wait(self._feedback_in)
+        _send([self.ssc])
+        step()
+        self._wait(lambda: self.ssc is None or not self.ssc.live or self.ssc.signed(k))
+        self._wait(self._commands_in)
 
     def _live(self, nodes: list[_Node]) -> list[_Node]:
         for n in nodes:
@@ -284,9 +291,10 @@ class Conductor:
         self.names = []  # (a group runs once)
         return True
 
-    def tick(self) -> None:
+    def tick(self, step: Any) -> None:
+        """A tick of the group, ``step()`` stepping the physics to the next."""
         assert self.group is not None
-        self.group.tick()
+        self.group.tick(step)
         self.ticks += 1
 
     def _end_group(self) -> None:

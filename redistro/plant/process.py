@@ -311,6 +311,13 @@ def _loop_lockstep(
     io = (read_outputs, publish_truth, publish_boards)
     truth = (ArmsTruth(chassis.world), PegTruth(chassis.world), ObjectsInHoles(chassis.world))
     groups = 0
+
+    def step() -> None:  # one tick's physics
+        for _ in range(conductor.steps_per_tick):
+            _step(chassis, io, whole, physics, truth, t0 + chassis.step_count * dt_ns)
+        steps = chassis.step_count
+        _publish_status(bank, status, steps, dt_ns, t0 + steps * dt_ns, t0, 0, 0)
+
     if not isinstance(port, ShmPort):  # (CAN: the drivers' frames answered while waiting)
         conductor.pause = lambda: port.service(time.monotonic_ns() + 200_000)
     _publish_status(bank, status, 0, dt_ns, t0 + 1, t0, 0, 0)
@@ -326,14 +333,11 @@ def _loop_lockstep(
                 port.service(time.monotonic_ns())
                 time.sleep(0.001)
                 continue
-            if conductor.groups != groups:  # a group's first tick
+            if conductor.groups != groups:  # a group's first tick, one tick's steps in
                 groups = conductor.groups
                 chassis.wrists.reseed(groups)
-            for _ in range(conductor.steps_per_tick):
-                _step(chassis, io, whole, physics, truth, t0 + chassis.step_count * dt_ns)
-            steps = chassis.step_count
-            _publish_status(bank, status, steps, dt_ns, t0 + steps * dt_ns, t0, 0, 0)
-            conductor.tick()
+                step()
+            conductor.tick(step)
     finally:
         conductor.close()
     counts: dict[str, Any] = {"late_steps": 0, "skipped_steps": 0, "lockstep": conductor.report()}
