@@ -54,13 +54,15 @@ install-test: $(VENV)/.installed-test
 # Debian packages the tests need: rt-tests gives cyclictest, the timer
 # baseline; iproute2 gives ip, for the two-namespace node test (run as root);
 # openssl makes the tests' own certificate authority (zenoh over TLS);
-# util-linux gives unshare (tests/apart-python).
+# util-linux gives unshare (tests/apart-python); chromium is the browser the
+# page tests drive (Debian's, headless).
 system-deps:
 	@PKGS=; \
 	command -v cyclictest >/dev/null 2>&1 || PKGS="$$PKGS rt-tests"; \
 	command -v ip >/dev/null 2>&1 || PKGS="$$PKGS iproute2"; \
 	command -v openssl >/dev/null 2>&1 || PKGS="$$PKGS openssl"; \
 	command -v unshare >/dev/null 2>&1 || PKGS="$$PKGS util-linux"; \
+	command -v chromium >/dev/null 2>&1 || PKGS="$$PKGS chromium"; \
 	if [ -n "$$PKGS" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	  echo "installing$$PKGS with apt-get"; \

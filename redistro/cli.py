@@ -229,6 +229,13 @@ def _parser() -> argparse.ArgumentParser:
         )
         q.add_argument("--out", default=None, help="run folder (default: runs/<session-id>/)")
 
+    vw = sub.add_parser(
+        "view", help="a recorded run in the browser, in 3D, with a timeline", parents=[common]
+    )
+    vw.add_argument("run", help="the run folder (with its session.mcap)")
+    vw.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
+    vw.add_argument("--bind", default="127.0.0.1", help="the address served (loopback only)")
+
     rp = sub.add_parser(
         "replay",
         help="run a recorded lockstep session again and compare its log, cycle by cycle",
@@ -395,6 +402,10 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         from redistro.session.run import run_session
 
         return run_session(cfg, args.task, out_dir=args.out)
+    if args.command == "view":
+        from redistro.view import run_view
+
+        return run_view(args.run, args.port, args.bind)
     if args.command == "replay":
         from redistro.session.replay import run_replay
 

@@ -469,6 +469,14 @@ CASES = [
         ["--set", "session.runs_dir=/proc/redistro-runs", "check", "tasks/park.yaml"],
         "session.runs_dir /proc/redistro-runs: /proc is on a proc pseudo-filesystem",
     ),
+    ("view of no folder", ["view", "{realtime_run}/none"], ": no such run folder"),
+    ("view of a run without its log", ["view", "{realtime_run}"], "no session log"),
+    ("view on port 0", ["view", "{realtime_run}", "--port", "0"], "--port 0: expected 1-65535"),
+    (
+        "view served beyond loopback",
+        ["view", "{realtime_run}", "--bind", "0.0.0.0"],
+        "--bind 0.0.0.0: only a loopback address",
+    ),
     ("replay of no folder", ["replay", "{realtime_run}/none"], ": no such run folder"),
     ("replay of a file", ["replay", "{a_file}"], ": no such run folder"),
     (

@@ -52,15 +52,25 @@ def _replay(run: Path, runs: Path, tmp: Path, *sets: str) -> tuple[int, dict[str
     return done.returncode, out
 
 
-def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
-    calibrated: Path, tmp_path: Path
-) -> None:
-    digests = {}
+@pytest.fixture(scope="module")
+def runs(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The short main job in lockstep over each transport, from one start."""
+    tmp = tmp_path_factory.mktemp("lockstep")
     for transport in ("socket", "reflective", "zenoh"):
-        s = _lockstep(calibrated, tmp_path, transport, f"ddm.transport={transport}")
+        s = _lockstep(calibrated, tmp, transport, f"ddm.transport={transport}")
         assert s["result"] == "ok" and s["inserted"] is True, (transport, s["reason"])
-        digests[transport] = s["log"]["digest"]
+    return tmp
+
+
+def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
+    runs: Path, tmp_path: Path
+) -> None:
+    digests = {
+        t: load_json(runs / t / "run" / "summary.json")["log"]["digest"]
+        for t in ("socket", "reflective", "zenoh")
+    }
     assert len(set(digests.values())) == 1, digests
+    tmp_path = runs
     # each run again from its folder alone (its config, task and start)
     for transport in ("socket", "zenoh"):
         run = tmp_path / transport / "run"
@@ -87,3 +97,25 @@ def test_a_session_over_the_can_backplane_runs_to_its_end_in_lockstep(
     assert s["result"] == "ok" and s["inserted"] is True, s["reason"]
     plant = load_json(tmp_path / "can" / "run" / "plant.json")
     assert plant["backplane"] == "can" and plant["bad_frames"] == 0, plant
+
+
+def test_the_view_of_a_recorded_run_draws_the_arms_and_its_segments(
+    runs: Path, tmp_path: Path
+) -> None:
+    """``redistro view`` of the socket run, opened in headless Chromium: the
+    arms are drawn (their blue-grey in the middle of the picture, where the
+    background is white or grey), the panel names every segment, and the
+    page's picture goes to the README."""
+    from tests import browser
+
+    run = runs / "socket" / "run"
+    port = browser.free_port()
+    shot = tmp_path / "view.png"
+    with browser.served(["view", str(run), "--port", str(port)], port):
+        text = browser.screenshot(f"http://127.0.0.1:{port}/", shot)
+    for name in ("approach", "insertion", "pullback", "home"):
+        assert name in text, text[:2000]
+    assert "result: ok" in text
+    armed = browser.bluish_pixels(shot, (0.2, 0.15, 0.7, 0.85))
+    assert armed > 2000, armed
+    browser.keep_for_readme(shot, "docs/figures/view-peg.png")
