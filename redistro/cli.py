@@ -232,7 +232,15 @@ def _parser() -> argparse.ArgumentParser:
     vw = sub.add_parser(
         "view", help="a recorded run in the browser, in 3D, with a timeline", parents=[common]
     )
-    vw.add_argument("run", help="the run folder (with its session.mcap)")
+    vw.add_argument("run", nargs="?", default=None, help="the run folder (with its session.mcap)")
+    vw.add_argument(
+        "--live",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="SESSION",
+        help="a running session instead (its id; default: the only one)",
+    )
     vw.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
     vw.add_argument("--bind", default="127.0.0.1", help="the address served (loopback only)")
 
@@ -405,7 +413,7 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
     if args.command == "view":
         from redistro.view import run_view
 
-        return run_view(args.run, args.port, args.bind)
+        return run_view(args.run, args.port, args.bind, args.live)
     if args.command == "replay":
         from redistro.session.replay import run_replay
 

@@ -253,7 +253,7 @@ def run_bridge(session: str | None, listen: list[str] | None = None, wait_s: flo
         session = live[0]
     if session not in live:
         raise ConfigError(f"bridge: no running session {session}")
-    specs = _specs(names.runtime_dir() / session, wait_s)
+    specs = node_specs(names.runtime_dir() / session, wait_s)
     first = specs.get("ssc") or next(iter(specs.values()))
     cfg = first.cfg()
     if listen:
@@ -272,7 +272,7 @@ def run_bridge(session: str | None, listen: list[str] | None = None, wait_s: flo
     return Bridge(session, cfg, task, robots).run(stop)
 
 
-def _specs(directory: os.PathLike[str], wait_s: float) -> dict[str, Any]:
+def node_specs(directory: os.PathLike[str], wait_s: float, who: str = "bridge") -> dict[str, Any]:
     """The session's node specs by node (waited for while its nodes start)."""
     from pathlib import Path
 
@@ -290,5 +290,5 @@ def _specs(directory: os.PathLike[str], wait_s: float) -> dict[str, Any]:
             break
         time.sleep(0.1)
     if not out:
-        raise ConfigError(f"bridge: the session's nodes are not up ({directory})")
+        raise ConfigError(f"{who}: the session's nodes are not up ({directory})")
     return out

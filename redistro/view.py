@@ -121,6 +121,87 @@ class Recorded:
         )
 
 
+class Live:
+    """A running session's data for the view: each ESC's feedback and the
+    SSC's plan, read from their Local Data (a read-only attach, as ``top``
+    and the ROS 2 bridge do; nothing written, no cycle waits) at most 30
+    times a second, into one frame the view draws."""
+
+    def __init__(self, session_id: str, cfg: Any, task: Any, robots: list[str]) -> None:
+        from redistro.log.recorder import robots_meta
+
+        self.sid, self.robots = session_id, robots
+        self.meta = robots_meta(cfg, robots)
+        self.meta["hole_xyz_m"] = list(cfg.workcell.hole.xyz_m)
+        self.meta["segments"] = [{"name": g.name} for g in getattr(task, "segments", [])]
+        self.true_hole: list[float] | None = None  # (the controller's side never sees it)
+        self.summary: dict[str, Any] = {"task": getattr(task, "task", "?"), "result": "running"}
+        self.rate_hz = float(cfg.ssc.rate_hz)
+        self.q = {r: np.zeros((1, 7)) for r in robots}
+        self.force = {r: np.zeros((1, 3)) for r in robots}
+        self.goal = {r: np.zeros((1, 6)) for r in robots}
+        self.segment = np.zeros(1, dtype=np.uint8)
+        self.cycles = np.zeros(1, dtype=np.int64)
+        self.views: dict[str, Any] = {}
+
+    def _view(self, node: str) -> Any:
+        from redistro.localdata.view import NodeView
+
+        if node not in self.views:
+            view = NodeView.open(self.sid, node)
+            if view is None:
+                return None
+            self.views[node] = view
+        return self.views[node]
+
+    def poll(self) -> None:
+        """The nodes' latest data into the frame (a node not up yet: as it was)."""
+        for r in self.robots:
+            esc = self._view(f"esc.{r}")
+            if esc is not None:
+                fb = esc.read("feedback", 0)
+                self.q[r][0] = fb["q_rad"]
+                self.force[r][0] = fb["wrench"][:3]
+        ssc = self._view("ssc")
+        if ssc is not None:
+            for i, r in enumerate(self.robots):
+                plan = ssc.read("plan", i)
+                self.goal[r][0, :3], self.goal[r][0, 3:] = plan["goal_xyz_m"], plan["goal_rot_xyz"]
+                if i == 0:
+                    self.segment[0] = int(plan["segment"])
+            self.cycles[0] = ssc.cycle()
+
+    def alive(self) -> bool:
+        from redistro.ipc.session import live_sessions
+
+        return self.sid in live_sessions()
+
+    def close(self) -> None:
+        for v in self.views.values():
+            v.close()
+        self.views.clear()
+
+
+def live_session(session: str | None) -> Live:
+    """The running session named (or the only one); ConfigError when none."""
+    from redistro.ipc import names
+    from redistro.ipc.session import live_sessions
+    from redistro.ros2bridge import node_specs
+
+    live = live_sessions()
+    if session is None:
+        if len(live) != 1:
+            names_ = ", ".join(live) or "none"
+            raise ConfigError(f"view --live: {len(live)} sessions running; name one ({names_})")
+        session = live[0]
+    if session not in live:
+        raise ConfigError(f"view --live: no running session {clipped(session)}")
+    specs = node_specs(names.runtime_dir() / session, 30.0, "view --live")
+    first = specs.get("ssc") or next(iter(specs.values()))
+    robots = sorted({r for sp in specs.values() if sp.kind == "esc" for r in sp.robots})
+    return Live(session, first.cfg(), first.task() if first.task_data else None, robots)
+
+
 def check_address(bind: str, port: int) -> None:
     """The address the page is served on, decided before anything starts."""
     if bind not in LOOPBACK:
@@ -138,20 +219,26 @@ def check_address(bind: str, port: int) -> None:
             raise ConfigError(f"view: --port {port}: {exc.strerror or exc}") from None
 
 
-def run_view(arg: str, port: int, bind: str) -> int:
-    """Serve the page until interrupted (Ctrl-C, SIGTERM)."""
+def run_view(arg: str | None, port: int, bind: str, live: str | None = None) -> int:
+    """Serve the page until interrupted (Ctrl-C, SIGTERM), or, live, until
+    the session ends."""
+    if (arg is None) == (live is None):
+        raise ConfigError("view: give a run folder, or --live [SESSION] (not both)")
     check_address(bind, port)
-    rec = Recorded.load(arg)
+    rec: Any = Recorded.load(arg) if arg is not None else live_session(live or None)
     import viser
 
     server = viser.ViserServer(host=bind, port=port, verbose=False)
     view = View(server, rec)
-    print(f"view of {rec.run} on http://{bind}:{port}/ (Ctrl-C ends it)", flush=True)
+    what = f"session {rec.sid}" if isinstance(rec, Live) else str(rec.run)
+    print(f"view of {what} on http://{bind}:{port}/ (Ctrl-C ends it)", flush=True)
     try:
         view.wait()
     finally:
         view.stop()
         server.stop()
+        if isinstance(rec, Live):
+            rec.close()
     return 0
 
 
@@ -176,7 +263,7 @@ def _wxyz(p: Pose) -> tuple[float, float, float, float]:
 class Kinematics:
     """Every link's pose in the world at joint positions q, per robot."""
 
-    def __init__(self, rec: Recorded) -> None:
+    def __init__(self, rec: Recorded | Live) -> None:
         from redistro.log.scene import Arm
 
         robots = rec.meta.get("robots", {})
@@ -204,7 +291,7 @@ class Kinematics:
         return poses
 
 
-def visuals(kin: Kinematics, rec: Recorded) -> list[Visual]:
+def visuals(kin: Kinematics, rec: Recorded | Live) -> list[Visual]:
     """Each link's boxes (the group URDF's, meshes as bounding boxes)."""
     import xml.etree.ElementTree as ET
 
@@ -234,15 +321,17 @@ def visuals(kin: Kinematics, rec: Recorded) -> list[Visual]:
 
 
 class View:
-    """The page of one recorded run: the scene, the panel, the timeline."""
+    """The page of one recorded run (the scene, the panel, the timeline) or
+    of a running session (the scene and the panel, followed live)."""
 
-    def __init__(self, server: Any, rec: Recorded) -> None:
+    def __init__(self, server: Any, rec: Recorded | Live) -> None:
         self.server, self.rec = server, rec
         self.kin = Kinematics(rec)
         self.frame = 0
         self.playing = False
         self.speed = 1.0
         self.stopping = threading.Event()
+        self.ended = threading.Event()  # (live: the session ended)
         self._scene()
         self._panel()
         self.show(0)
@@ -287,6 +376,9 @@ class View:
     def _panel(self) -> None:
         gui, rec = self.server.gui, self.rec
         gui.add_markdown(run_text(rec))
+        if isinstance(rec, Live):  # (no timeline: the session's now)
+            self.status = gui.add_markdown(self._status(0))
+            return
         n = len(rec.cycles)
         self.slider = gui.add_slider("cycle", min=0, max=max(1, n - 1), step=1, initial_value=0)
         self.play_button = gui.add_button("Play")
@@ -348,11 +440,14 @@ class View:
                     self.goals[r].position = tuple(float(v) for v in g[:3])
                     self.goals[r].wxyz = (rot[3], rot[0], rot[1], rot[2])
             self.status.content = self._status(k)
-        if int(self.slider.value) != k:
+        if not isinstance(rec, Live) and int(self.slider.value) != k:
             self.slider.value = k
 
     def _play(self) -> None:
         period = 1.0 / 30  # at most 30 pictures a second
+        if isinstance(self.rec, Live):
+            self._follow(self.rec, period)
+            return
         while not self.stopping.wait(period):
             if not self.playing:
                 continue
@@ -364,12 +459,27 @@ class View:
                 self.play_button.label = "Play"
             self.show(nxt)
 
+    def _follow(self, live: Live, period: float) -> None:
+        """The running session, drawn at most 30 times a second, until it ends."""
+        alive_at = 0.0
+        while not self.stopping.wait(period):
+            now = time.monotonic()
+            if now >= alive_at:
+                if not live.alive():
+                    self.status.content = "the session has ended"
+                    self.ended.set()
+                    return
+                alive_at = now + 1.0
+            live.poll()
+            self.show(0)
+
     def wait(self) -> None:
         import signal
 
         from redistro.ipc import signals
 
-        while signals.wait(frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP}), 1.0) is None:
+        stops = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+        while not self.ended.is_set() and signals.wait(stops, 0.2) is None:
             pass
 
     def stop(self) -> None:
@@ -377,7 +487,7 @@ class View:
         self.player.join(timeout=2.0)
 
 
-def run_text(rec: Recorded) -> str:
+def run_text(rec: Recorded | Live) -> str:
     """The panel's text: the task, the result, the segments, the nodes' health."""
     s = rec.summary
     lines = [f"### {s.get('task', '?')}", f"result: **{s.get('result', '?')}**"]

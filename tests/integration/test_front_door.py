@@ -470,6 +470,8 @@ CASES = [
         "session.runs_dir /proc/redistro-runs: /proc is on a proc pseudo-filesystem",
     ),
     ("view of no folder", ["view", "{realtime_run}/none"], ": no such run folder"),
+    ("view of nothing", ["view"], "view: give a run folder, or --live [SESSION]"),
+    ("live view of no session", ["view", "--live", "nosuch"], "no running session nosuch"),
     ("view of a run without its log", ["view", "{realtime_run}"], "no session log"),
     ("view on port 0", ["view", "{realtime_run}", "--port", "0"], "--port 0: expected 1-65535"),
     (

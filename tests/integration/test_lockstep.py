@@ -119,3 +119,47 @@ def test_the_view_of_a_recorded_run_draws_the_arms_and_its_segments(
     armed = browser.bluish_pixels(shot, (0.2, 0.15, 0.7, 0.85))
     assert armed > 2000, armed
     browser.keep_for_readme(shot, "docs/figures/view-peg.png")
+
+
+def test_the_live_view_follows_a_running_session_and_ends_with_it(
+    calibrated: Path, tmp_path: Path
+) -> None:
+    """``redistro view --live`` beside a running main job (lockstep): the
+    page draws the arms and names the task's segments; the session ended
+    (Ctrl-C), the view ends by itself, exit 0, nothing left behind."""
+    import signal
+    import subprocess
+
+    from tests import browser
+    from tests.helpers import REDISTRO, ROOT, read_session_id
+
+    runs = copy_runs(calibrated, tmp_path)
+    session = subprocess.Popen(
+        [*REDISTRO, *LOCKSTEP, "--set", f"session.runs_dir={runs}", "session",
+         "tasks/peg_insertion.yaml", "--out", str(tmp_path / "run")],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )  # fmt: skip
+    port = browser.free_port()
+    view = None
+    try:
+        sid = read_session_id(session)
+        view = subprocess.Popen(
+            [*REDISTRO, "view", "--live", sid, "--port", str(port)],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        from redistro.view import wait_served
+
+        assert wait_served(port, 60.0), "the live view never served its page"
+        text = browser.screenshot(f"http://127.0.0.1:{port}/", tmp_path / "live.png")
+        assert "peg_insertion" in text and "running" in text, text[:2000]
+        assert "segment:" in text, text[:2000]
+        assert browser.bluish_pixels(tmp_path / "live.png", (0.2, 0.15, 0.7, 0.85)) > 2000
+        session.send_signal(signal.SIGINT)  # the session's ordered end ...
+        session.communicate(timeout=120)
+        _, err = view.communicate(timeout=30)  # ... ends the view
+        assert view.returncode == 0, err[-2000:]
+    finally:
+        for p in (session, view):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.communicate()
