@@ -428,10 +428,13 @@ class View:
                 fx, fy, fz = (float(v) * FORCE_M_PER_N for v in f)
                 tip = _mul(tool, (fx, fy, fz, 0.0, 0.0, 0.0, 1.0))
                 pts = np.array([[tool[:3], tip[:3]]], dtype=np.float32)
-                self.arrows[r] = sc.add_arrows(
-                    f"/forces/{r}", points=pts, colors=(250, 160, 20), shaft_radius=0.004,
-                    head_radius=0.01, head_length=0.02,
-                )  # fmt: skip
+                drawn = self.arrows.get(r)
+                # (an arrow is drawn anew: only when it moved by 2 mm or more)
+                if drawn is None or float(np.abs(drawn - pts).max()) >= 0.002:
+                    self.arrows[r] = pts
+                    sc.add_arrows(f"/forces/{r}", points=pts, colors=(250, 160, 20),
+                                  shaft_radius=0.004, head_radius=0.01,
+                                  head_length=0.02)  # fmt: skip
                 if r in self.goals:
                     from redistro.log.scene import quat_rotvec
 
