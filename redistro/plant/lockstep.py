@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from redistro.errors import TornReadTimeout
 from redistro.localdata.layout import ProcState
 from redistro.localdata.view import NodeView
 
@@ -64,13 +65,17 @@ class Counter:
         self.word = self.block.counter(name)
 
     def value(self) -> int:
-        """The counter, consistent (under its block's seqlock)."""
+        """The counter, consistent (under its block's seqlock); -1 when its
+        writer stayed inside a write (held off by the host): look again."""
         if self.word is not None:
             for _ in range(8):
                 v = self.block.load(self.word)
                 if v is not None:
                     return v
-        return int(self.block.read()[self.name])
+        try:
+            return int(self.block.read()[self.name])
+        except TornReadTimeout:
+            return -1
 
     def at_least(self, target: int) -> bool:
         if self.word is not None and self.word[0] < target:
@@ -80,7 +85,8 @@ class Counter:
     def equals(self, other: Counter) -> bool:
         if self.word is not None and other.word is not None and self.word[0] != other.word[0]:
             return False
-        return self.value() == other.value()
+        a = self.value()
+        return a >= 0 and a == other.value()
 
 
 @dataclass
@@ -156,11 +162,14 @@ class Group:
             return True
         if not self.samples:
             self._crossings()
-        for i, esc in enumerate(self.escs):
-            if not esc.ddm or not int(esc.view.read("exchange", 0)["linked"]):
-                return False
-            if not int(self.ssc.view.read("exchange", i)["linked"]):
-                return False
+        try:
+            for i, esc in enumerate(self.escs):
+                if not esc.ddm or not int(esc.view.read("exchange", 0)["linked"]):
+                    return False
+                if not int(self.ssc.view.read("exchange", i)["linked"]):
+                    return False
+        except TornReadTimeout:
+            return False  # (a writer held off: look again)
         return True
 
     def tick(self, step: Any) -> None:

@@ -95,12 +95,16 @@ def restore(cfg: Config, doc: dict[str, Any], folder: Path) -> Path:
 
 
 def run_replay(arg: str, overrides: list[str], runs_dir: str, json_path: str | None) -> int:
+    import tempfile
+
     from redistro.session.run import run_session
 
     run, doc, summary = load_run(arg)
-    folder = Path(runs_dir) / f"replay-{time.strftime('%Y%m%dT%H%M%S')}-{run.name}"[:120]
-    cfg = replay_config(doc, overrides, folder)  # (bad --set: refused before anything)
-    folder.mkdir(parents=True, exist_ok=False)
+    replay_config(doc, overrides, Path(runs_dir))  # (a bad --set: refused before anything)
+    Path(runs_dir).mkdir(parents=True, exist_ok=True)
+    prefix = f"replay-{time.strftime('%Y%m%dT%H%M%S')}-"
+    folder = Path(tempfile.mkdtemp(prefix=prefix, dir=runs_dir))  # (a new one, whatever ran)
+    cfg = replay_config(doc, overrides, folder)
     task = restore(cfg, doc, folder)
     out = folder / "run"
     run_session(cfg, str(task), out_dir=str(out), say=lambda line: print(f"  {line}"))
