@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from redistro.errors import ConfigError
+from redistro.localdata.view import SessionViews
 from redistro.log import ros2
 
 NODE_NAME = "redistro_bridge"
@@ -151,25 +152,15 @@ class Bridge:
         assert fields is not None
         offsets = {k: 8 + int(fields[k][1]) for k in ("q_rad", "qd_rad_s", "tau_nm", "wrench")}
         self.packers = {r: ros2.Feedback(r, list(JOINT_NAMES), offsets) for r in robots}
-        self.views: dict[str, Any] = {}
+        self.views = SessionViews(session_id)
         self.last: dict[str, int] = {}
         self.segment = ("", 0)
         self.published = 0
 
-    def _view(self, node: str) -> Any:
-        from redistro.localdata.view import NodeView
-
-        if node not in self.views:
-            view = NodeView.open(self.sid, node)
-            if view is None:
-                return None
-            self.views[node] = view
-        return self.views[node]
-
     def tick(self, now_ns: int) -> None:
         """One look at the nodes: what changed goes out."""
         for r in self.robots:
-            view = self._view(f"esc.{r}")
+            view = self.views.get(f"esc.{r}")
             if view is None:
                 continue
             fb = view.read("feedback", 0)
@@ -182,7 +173,7 @@ class Bridge:
             self.topics[f"/{r}/joint_states"].put(p.joint_state(packed, now_ns), now_ns)
             self.topics[f"/{r}/wrench"].put(p.wrench(packed, now_ns), now_ns)
             self.published += 2
-        ssc = self._view("ssc")
+        ssc = self.views.get("ssc")
         if ssc is not None and self.robots:
             k = int(ssc.read("plan", 0)["segment"])
             name = self.segments[k - 1] if 0 < k <= len(self.segments) else ""
@@ -226,8 +217,7 @@ class Bridge:
             for tok in tokens:
                 tok.undeclare()
         finally:
-            for v in self.views.values():
-                v.close()
+            self.views.close()
             s.close()
         return 0
 

@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 
 from redistro.errors import ConfigError, clipped
+from redistro.localdata.view import SessionViews
+from redistro.log.scene import quat_mul, quat_rotvec
 
 FORCE_M_PER_N = 0.01  # an arrow's length per newton of wrist force
 SPEEDS = ("0.25", "0.5", "1", "2", "4")
@@ -142,27 +144,17 @@ class Live:
         self.goal = {r: np.zeros((1, 6)) for r in robots}
         self.segment = np.zeros(1, dtype=np.uint8)
         self.cycles = np.zeros(1, dtype=np.int64)
-        self.views: dict[str, Any] = {}
-
-    def _view(self, node: str) -> Any:
-        from redistro.localdata.view import NodeView
-
-        if node not in self.views:
-            view = NodeView.open(self.sid, node)
-            if view is None:
-                return None
-            self.views[node] = view
-        return self.views[node]
+        self.views = SessionViews(session_id)
 
     def poll(self) -> None:
         """The nodes' latest data into the frame (a node not up yet: as it was)."""
         for r in self.robots:
-            esc = self._view(f"esc.{r}")
+            esc = self.views.get(f"esc.{r}")
             if esc is not None:
                 fb = esc.read("feedback", 0)
                 self.q[r][0] = fb["q_rad"]
                 self.force[r][0] = fb["wrench"][:3]
-        ssc = self._view("ssc")
+        ssc = self.views.get("ssc")
         if ssc is not None:
             for i, r in enumerate(self.robots):
                 plan = ssc.read("plan", i)
@@ -177,9 +169,7 @@ class Live:
         return self.sid in live_sessions()
 
     def close(self) -> None:
-        for v in self.views.values():
-            v.close()
-        self.views.clear()
+        self.views.close()
 
 
 def live_session(session: str | None) -> Live:
@@ -251,8 +241,6 @@ def _mul(a: Pose, b: Pose) -> Pose:
     rx = bx + qw * tx + (qy * tz - qz * ty)
     ry = by + qw * ty + (qz * tx - qx * tz)
     rz = bz + qw * tz + (qx * ty - qy * tx)
-    from redistro.log.scene import quat_mul
-
     return (ax + rx, ay + ry, az + rz, *quat_mul(a[3:], b[3:]))
 
 
@@ -436,8 +424,6 @@ class View:
                                   shaft_radius=0.004, head_radius=0.01,
                                   head_length=0.02)  # fmt: skip
                 if r in self.goals:
-                    from redistro.log.scene import quat_rotvec
-
                     g = rec.goal[r][k]
                     rot = quat_rotvec(float(g[3]), float(g[4]), float(g[5]))
                     self.goals[r].position = tuple(float(v) for v in g[:3])

@@ -96,3 +96,27 @@ class NodeView:
     def pid(self, who: str) -> int:
         """The pid of the manager (``"manager"``) or of a worker process."""
         return int((self.manager() if who == "manager" else self.proc(who))["pid"])
+
+
+class SessionViews:
+    """The views of a running session's nodes, each opened once it exists
+    and kept (a watcher polling several nodes: the ROS 2 bridge, the live
+    view)."""
+
+    def __init__(self, session_id: str) -> None:
+        self.session_id = session_id
+        self.views: dict[str, NodeView] = {}
+
+    def get(self, node: str) -> NodeView | None:
+        """The node's view; None while it has no Local Data."""
+        view = self.views.get(node)
+        if view is None:
+            view = NodeView.open(self.session_id, node)
+            if view is not None:
+                self.views[node] = view
+        return view
+
+    def close(self) -> None:
+        for v in self.views.values():
+            v.close()
+        self.views.clear()

@@ -119,7 +119,6 @@ class Group:
     session_id: str
     escs: list[_Node] = field(default_factory=list)
     ssc: _Node | None = None
-    robots: list[str] = field(default_factory=list)
     cycle: int = 0
     waits_missed: int = 0  # phases that gave up (a node hung or ended)
     samples: list[tuple[_Node, Counter, Counter]] = field(default_factory=list)
@@ -153,7 +152,6 @@ class Group:
                 g.ssc = node
             else:
                 g.escs.append(node)
-                g.robots.append(name.removeprefix("esc."))
         return g
 
     def linked(self) -> bool:

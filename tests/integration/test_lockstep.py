@@ -70,17 +70,16 @@ def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
         for t in ("socket", "reflective", "zenoh")
     }
     assert len(set(digests.values())) == 1, digests
-    tmp_path = runs
     # each run again from its folder alone (its config, task and start)
     for transport in ("socket", "zenoh"):
-        run = tmp_path / transport / "run"
-        rc, out = _replay(run, tmp_path / transport / "runs", tmp_path)
+        run = runs / transport / "run"
+        rc, out = _replay(run, runs / transport / "runs", tmp_path)
         assert rc == 0 and out["replay_digest"] == digests[transport], out
         assert out["result"] == "ok"
     # one gain changed: the replay names the first cycle, channel and field
     # that differ (the admittance acts from the first contact on)
-    run = tmp_path / "reflective" / "run"
-    rc, out = _replay(run, tmp_path / "reflective" / "runs", tmp_path, "ssc.force.k_adm=0.0021")
+    run = runs / "reflective" / "run"
+    rc, out = _replay(run, runs / "reflective" / "runs", tmp_path, "ssc.force.k_adm=0.0021")
     first = out["first_difference"]
     assert rc == 1 and first is not None, out
     assert first["cycle"] > 100 and first["topic"].startswith("/r2/"), first
