@@ -244,6 +244,23 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
     vw.add_argument("--bind", default="127.0.0.1", help="the address served (loopback only)")
 
+    ct = sub.add_parser(
+        "ctl",
+        help="the operator's pause, resume, stop, e-stop and jog of a running session",
+        parents=[common],
+    )
+    ct.add_argument("session", help="the session's id (the first line `redistro session` prints)")
+    ct.add_argument("order", choices=["pause", "resume", "stop", "estop", "jog"])
+    ct.add_argument("robot", nargs="?", default=None, help="jog: the robot whose tool moves")
+    ct.add_argument("--mm", nargs=3, type=float, default=[0.0, 0.0, 0.0],
+                    metavar=("X", "Y", "Z"),
+                    help="jog: the tool's step along world x, y, z [mm] (at most 5)")  # fmt: skip
+    ct.add_argument("--deg", nargs=3, type=float, default=[0.0, 0.0, 0.0],
+                    metavar=("RX", "RY", "RZ"),
+                    help="jog: its turn about world x, y, z [degrees] (at most 2)")  # fmt: skip
+    ct.add_argument("--key", default=None, help="the key file (default: the session's own)")
+    ct.add_argument("--timeout", type=float, default=15.0, help="wait this long for the answer [s]")
+
     rp = sub.add_parser(
         "replay",
         help="run a recorded lockstep session again and compare its log, cycle by cycle",
@@ -414,6 +431,12 @@ def _dispatch(args: argparse.Namespace, cfg: Any) -> int:
         from redistro.view import run_view
 
         return run_view(args.run, args.port, args.bind, args.live)
+    if args.command == "ctl":
+        from redistro.ctl import run_ctl
+
+        return run_ctl(
+            args.session, args.order, args.robot, args.mm, args.deg, args.key, args.timeout
+        )
     if args.command == "replay":
         from redistro.session.replay import run_replay
 

@@ -28,6 +28,7 @@ drives cycle after cycle.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -358,3 +359,16 @@ def hybrid_update(
     posture = N @ (gains.k_null * (ref.q_null - arm.q))
     tau: F64 = J.T @ F + arm.gravity_nm + posture - gains.d_joint * arm.qd
     return tau, applied
+
+
+def move_gains(
+    into: np.ndarray[Any, Any], config: np.ndarray[Any, Any], k: Sequence[float]
+) -> None:
+    """A move's law gains (``into``): the config's, with the move's own
+    stiffness ``k`` where it gives one (6: N/m, N m/rad), the rotation's
+    damping scaled by sqrt(k / k_config) to keep its damping ratio."""
+    into[...] = config
+    if k:
+        k0, d0 = config["k"][3:], config["d"][3:]
+        into["k"][:] = k
+        into["d"][3:] = d0 * np.sqrt(into["k"][3:] / np.where(k0 > 0, k0, into["k"][3:]))

@@ -304,6 +304,10 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
         ("search_m", "<f8"),  # the search's path so far [m]
         ("arms_clearance_m", "<f8"),  # the SSC's watch: the two arms' nearest links [m]
         ("cell_clearance_m", "<f8"),  # ... and the nearest link to the work-cell (not the tool)
+        ("paused", "u1"),  # 1: the operator paused the task; every robot holds
+        ("op_seq", "<u4"),  # the operator's last command the worker took (ssc/operator.py) ...
+        ("op_command", "u1"),  # ... what it was (ssc/ctl.py: Command) ...
+        ("op_status", "u1"),  # ... and how it ended (ssc/ctl.py: Status; 0 while under way)
     ]
 )
 
@@ -320,6 +324,18 @@ SSC_CLOCK = np.dtype(  # the task's clock, when each arm's law runs in a worker 
         ("fail_t_s", "<f8"),  # ... then [s, task time]
         ("arms_clearance_m", "<f8"),  # the watch's (ssc/clearance.py)
         ("cell_clearance_m", "<f8"),
+    ]
+)
+
+OPERATOR = np.dtype(  # the operator's latest command, as the SSC manager took it (ssc/ctl.py)
+    [
+        ("seq", "<u4"),  # commands accepted so far: the latest's number
+        ("command", "u1"),  # ssc/ctl.py: Command
+        ("robot", "u1"),  # a jog's robot (index in the group)
+        ("step", "<f8", (6,)),  # a jog's step: [m] along world x, y, z; [rad] about them
+        ("cycle", "<u8"),  # the manager's cycle when it took it
+        ("refused", "<u4"),  # commands refused so far (a bad signature, a replay, bad data)
+        ("refused_why", "S48"),  # ... the last one's reason
     ]
 )
 
@@ -340,6 +356,7 @@ BLOCKS: dict[str, tuple[np.dtype[Any], str]] = {
     "guard": (GUARD, "robot"),
     "plan": (PLAN, "robot"),
     "clock": (SSC_CLOCK, "one"),
+    "operator": (OPERATOR, "one"),
 }
 
 SELF = "<self>"
@@ -363,6 +380,7 @@ WRITERS: dict[str, dict[str, str]] = {
     "guard": {"esc": "sender"},
     "plan": {"ssc": "worker"},
     "clock": {"ssc": "worker"},
+    "operator": {"ssc": "manager"},
 }
 
 

@@ -66,6 +66,7 @@ class SscResult:
     hole_depth_m: float = 0.0
     search: dict[str, Any] = field(default_factory=dict)
     clearance: dict[str, Any] = field(default_factory=dict)  # the watch's nearest
+    operator: dict[str, int] = field(default_factory=dict)  # commands accepted, refused
 
 
 @dataclass

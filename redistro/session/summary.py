@@ -273,6 +273,8 @@ def build_summary(
             summary["search"] = ssc.search
         if ssc is not None and ssc.clearance:
             summary["clearance"] = ssc.clearance  # the controller's; the plant's: plant.arms
+        if ssc is not None and ssc.operator:
+            summary["operator"] = ssc.operator  # redistro ctl: commands accepted, refused
         _inserted(summary, ssc is not None, depth, hole_depth, _plant_depths(task, plant))
         summary.update(placed(task, plant))  # (a task that carries an object)
         summary["ddm"] = {r.node: d for r in results if (d := _exchange(r))}

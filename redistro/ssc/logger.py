@@ -26,9 +26,10 @@ import numpy as np
 from redistro.control.cartesian import pose_error, rotvec_to_matrix
 from redistro.control.search import Phase
 from redistro.localdata.block import Record
-from redistro.localdata.layout import PLAN
+from redistro.localdata.layout import OPERATOR, PLAN
 from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
 from redistro.process.worker import Worker
+from redistro.ssc.ctl import Command, Status
 from redistro.ssc.plan import segment_plans
 from redistro.ssc.worker import AFTER
 
@@ -80,6 +81,9 @@ class SegmentFigures:
 
 
 class SscLogger(Worker):
+    op_taken = (0, 0)  # the operator's commands accepted and refused, logged so far ...
+    op_effect = (0, 0)  # ... and the (command, status) the plans last said
+
     def initialize(self) -> None:
         cfg = self.spec.cfg()
         task = self.spec.task()
@@ -159,19 +163,52 @@ class SscLogger(Worker):
         self.wrench_task = [rec.array["wrench_task"] for rec in self.recs]
         self.wrench_goal = [rec.array["wrench_goal"] for rec in self.recs]
         self.sel3 = [mv.selection[:3].tolist() for mv in moves]
+        self.op_block, self.op = self.ld.block("operator"), Record(OPERATOR)  # (the operator's)
 
     def step(self, cycle: int) -> None:
         if self.recorder is not None:
             self.recorder.drain(self._cycle)
+            self._operator()
             return
         for block, rec in zip(self.blocks, self.recs, strict=True):
             block.read_into(rec.bytes)
         self._cycle(cycle)
 
+    def _operator(self) -> None:
+        """The operator's commands the manager took or refused, as events."""
+        self.op_block.read_into(self.op.bytes)
+        op, rec = self.op, self.recorder
+        seq, refused = int(op["seq"]), int(op["refused"])
+        if (seq, refused) == self.op_taken or rec is None:
+            return
+        if seq != self.op_taken[0]:
+            step = [round(float(v), 6) for v in op.array["step"]]
+            rec.event("operator", int(op["cycle"]), event="command", seq=seq,
+                      command=Command(int(op["command"])).name.lower(),
+                      robot=self.robots[int(op["robot"])] if int(op["robot"]) < len(self.robots)
+                      else "", step=step)  # fmt: skip
+        if refused != self.op_taken[1]:
+            why = op.array["refused_why"].item().decode(errors="replace")
+            rec.event("operator", int(op["cycle"]), event="refused", refused=refused, why=why)
+        self.op_taken = (seq, refused)
+
+    def _effect(self, cycle: int, pl: Record) -> None:
+        """A command's effect, as the worker wrote it in the plans."""
+        key = (int(pl["op_seq"]), int(pl["op_status"]))
+        if key == self.op_effect or not key[0] or self.recorder is None:
+            return
+        self.op_effect = key
+        self.recorder.event("operator", cycle, event="effect", seq=key[0],
+                            command=Command(int(pl["op_command"])).name.lower(),
+                            status=Status(key[1]).name.lower(), paused=bool(pl["paused"]),
+                            t_s=round(float(pl["t_s"]), 4))  # fmt: skip
+
     def _cycle(self, cycle: int) -> None:
         """One cycle's plans: segment events, the segments' figures, the depth."""
         self.cycles += 1
         rec = self.recs[0] if self.recs else None
+        if rec is not None and rec["op_seq"]:
+            self._effect(cycle, rec)
         if rec is not None and rec["stamp_ns"]:  # (the watch's, in every robot's plan)
             arms, cell = float(rec["arms_clearance_m"]), float(rec["cell_clearance_m"])
             if arms < self.arms_min[0]:

@@ -10,10 +10,14 @@ the finished status has gone out for a few cycles.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
+import signal
 import time
 from pathlib import Path
+from typing import Any
 
 from redistro.ddm.exchange import exchange_report
 from redistro.errors import NodeFault
@@ -22,6 +26,7 @@ from redistro.localdata.layout import EXCHANGE, PLAN
 from redistro.process.manager import Manager
 from redistro.process.result import SscResult
 from redistro.process.spec import NodeSpec
+from redistro.ssc.ctl import Command, Desk, Receiver
 
 FINISH_CYCLES = 20  # cycles the finished status goes out before the node ends
 
@@ -48,11 +53,20 @@ class SscManager(Manager):
         self.last_change = [0] * n
         self.done_cycles = 0
         self.starving_max = 0
+        self.desk = _desk(self, cfg, n)
         self._message(
             "manager", logging.INFO, f"waiting for feedback from {', '.join(self.spec.robots)}"
         )
 
+    def idle(self, deadline_ns: int) -> bool:
+        if self.desk is not None:
+            self.desk.idle(self.cycle)  # (one operator datagram a cycle at most)
+        return False
+
     def on_tick(self, cycle: int) -> bool:
+        desk = self.desk
+        if desk is not None and desk.act != Command.NONE:
+            self._operator(desk)
         for i, robot in enumerate(self.spec.robots):
             self.ex_blocks[i].read_into(self.exs[i].bytes)
             updates = int(self.exs[i]["updates"])
@@ -76,6 +90,8 @@ class SscManager(Manager):
                 )
         for block, rec in zip(self.plan_blocks, self.plans, strict=True):
             block.read_into(rec.bytes)
+        if desk is not None and desk.owed is not None:
+            desk.answer(self.plans[0])
         if all(int(rec["done"]) for rec in self.plans):
             self.done_cycles += 1
         if self.done_cycles <= FINISH_CYCLES:
@@ -92,8 +108,20 @@ class SscManager(Manager):
             r.fault_monotonic_ns, r.fault_cycle = time.monotonic_ns(), cycle
         return True
 
+    def _operator(self, desk: Desk) -> None:
+        """An operator's stop (as Ctrl-C: the session owner ends every node
+        in order) or e-stop (the group's, from this node)."""
+        act, desk.act = desk.act, Command.NONE
+        if act == Command.ESTOP:
+            raise NodeFault("estop", "the operator's e-stop (redistro ctl)")
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(os.getppid(), signal.SIGINT)  # (the owner: it started this manager)
+
     def cleanup(self) -> None:
         ssc = self.result.ssc = SscResult(robots=list(self.spec.robots))
+        if self.desk is not None:
+            ssc.operator = {"accepted": self.desk.accepted, "refused": self.desk.refused}
+            self.desk.close()
         if self.ex_blocks:
             ssc.ddm = {
                 r: exchange_report(b.read())
@@ -112,3 +140,27 @@ class SscManager(Manager):
                 ssc.clearance = dict(doc.get("clearance") or {})
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 self._message("manager", logging.WARNING, f"segment figures unreadable: {exc}")
+
+
+def _desk(m: SscManager, cfg: Any, n: int) -> Desk | None:
+    """The operator's desk (``ssc/ctl.py``): its socket in the session's
+    runtime folder, its commands checked with the link's key."""
+    from redistro.ddm import record as wire
+    from redistro.ipc.session import Manifest
+
+    directory = Manifest.for_session(m.spec.session_id).directory
+    key_path = cfg.ddm.key_file or str(directory / wire.SESSION_KEY)
+    try:
+        key = wire.load_key(key_path)
+        rx = Receiver(directory, key, m.spec.session_id)
+    except (OSError, ValueError) as exc:
+        m._message("manager", logging.WARNING, f"no operator commands: {exc}")
+        return None
+    ld = m.ld
+    assert ld is not None
+    block = ld.writer("operator", role="manager")
+
+    def say(text: str, warning: bool = False) -> None:
+        m._message("manager", logging.WARNING if warning else logging.INFO, text)
+
+    return Desk(rx, block, list(m.spec.robots)[:n], say, not cfg.ssc.parallel_arms)

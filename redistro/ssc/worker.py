@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,6 +37,7 @@ from redistro.control.cartesian import (
     ImpedanceGains,
     TaskFrameCommand,
     matrix_to_rotvec,
+    move_gains,
     pose_error,
     rotvec_to_matrix,
 )
@@ -55,6 +55,7 @@ from redistro.ssc import parallel
 from redistro.ssc.carry import CarryRun, carry_moves
 from redistro.ssc.clearance import ClearanceWatch
 from redistro.ssc.follow import Follow
+from redistro.ssc.operator import Operator
 from redistro.ssc.plan import SCHEMES, MovePlan, SegmentPlan, segment_plans
 from redistro.ssc.search_steps import steer
 
@@ -252,6 +253,13 @@ class SscWorker(Worker):
         self.narrates = True  # it says what the task does (an arm worker only its own arm)
         self.fail_robot, self.fail_t = -1, 0.0  # the last _fail's robot and time
         self.arm, self.lead = parallel.parts(self, _grip, RETREAT_S + RETREAT_HOLD_S)
+        # the operator's pause, resume and jog (ssc/operator.py; a serial SSC's)
+        serial = self.arm is None and self.lead is None
+        self.operator = Operator(self, _pose) if serial else None
+
+    def idle(self, deadline_ns: int) -> bool:
+        """A jog's planning, in slices (none: one call, nothing done)."""
+        return self.operator.idle() if self.operator is not None else False
 
     # -- the cycle --
 
@@ -279,7 +287,10 @@ class SscWorker(Worker):
             arms_m, cell_m = arm.clearance()
         if self.hooks is not None:
             self.hooks.steer(self.states, dt)
-        if arm is None:
+        op = self.operator
+        if op is not None:
+            op.take(t, dt)  # (the operator's command; paused, the segment's clock stops)
+        if arm is None and (op is None or not op.paused):
             self._advance(t)
         seg_t = t - self.seg_start_t
         law_t = t - self.law_start_t
@@ -309,7 +320,10 @@ class SscWorker(Worker):
                     self._guarded(i, st, mv, t)
             else:
                 pl["moving"] = 0
-                self._hold(st, dt)
+                if op is not None and op.paused:
+                    op.hold(i, st, dt, t)
+                else:
+                    self._hold(st, dt)
             self.plan_blocks[i].publish(pl.bytes)
         # every robot's command at once, then one wake of the ddm: it sends
         # them together (a wake per robot cost the ddm a whole step each)
@@ -644,19 +658,6 @@ def close_search(st: RobotState) -> None:
     if st.search is not None:
         st.search.phase = Phase.NOT_FOUND
     st.plan["phase"] = Phase.NOT_FOUND
-
-
-def move_gains(
-    into: np.ndarray[Any, Any], config: np.ndarray[Any, Any], k: Sequence[float]
-) -> None:
-    """A move's law gains (``into``): the config's, with the move's own
-    stiffness ``k`` where it gives one (6: N/m, N m/rad), the rotation's
-    damping scaled by sqrt(k / k_config) to keep its damping ratio."""
-    into[...] = config
-    if k:
-        k0, d0 = config["k"][3:], config["d"][3:]
-        into["k"][:] = k
-        into["d"][3:] = d0 * np.sqrt(into["k"][3:] / np.where(k0 > 0, k0, into["k"][3:]))
 
 
 def _follows(

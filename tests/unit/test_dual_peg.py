@@ -10,9 +10,9 @@ import numpy as np
 from redistro.bench.dual import target_object
 from redistro.config.loader import load_config
 from redistro.config.task import load_task
+from redistro.control.cartesian import move_gains
 from redistro.control.cartesian_layout import GAINS
 from redistro.ssc.plan import segment_plans
-from redistro.ssc.worker import move_gains
 
 ROOT = Path(__file__).parents[2]
 
