@@ -242,7 +242,9 @@ def _parser() -> argparse.ArgumentParser:
         help="a running session instead (its id; default: the only one)",
     )
     vw.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
-    vw.add_argument("--bind", default="127.0.0.1", help="the address served (loopback only)")
+    vw.add_argument(
+        "--bind", default="127.0.0.1", help="the address (not loopback: the page asks a token)"
+    )
 
     ct = sub.add_parser(
         "ctl",

@@ -20,19 +20,16 @@ from redistro.ssc.ctl import JOG_MAX_M, JOG_MAX_RAD, Client, Command, Order, ses
 ORDERS = ("pause", "resume", "stop", "estop", "jog")
 
 
-def order_of(
-    command: str, robot: str | None, robots: list[str], mm: list[float], deg: list[float]
-) -> Order:
-    """The command as signed, from the command line (ConfigError: one line)."""
+def order_of(command: str, robot: str | None, mm: list[float], deg: list[float]) -> Order:
+    """The command as signed, from the command line, its robot's index still
+    0 (ConfigError: one line)."""
     cmd = Command[command.upper()]
     if cmd != Command.JOG:
         if robot is not None:
             raise ConfigError(f"ctl {command}: takes no robot (got {clipped(robot)})")
         return Order(cmd)
     if robot is None:
-        raise ConfigError(f"ctl jog: name the robot ({', '.join(robots)})")
-    if robot not in robots:
-        raise ConfigError(f"ctl jog: no robot {clipped(robot)} in the group ({', '.join(robots)})")
+        raise ConfigError("ctl jog: name the robot whose tool moves")
     if not all(math.isfinite(v) for v in (*mm, *deg)):
         raise ConfigError("ctl jog: --mm and --deg take finite numbers")
     step = [v / 1000.0 for v in mm] + [math.radians(v) for v in deg]
@@ -44,7 +41,7 @@ def order_of(
     if moved == 0.0 and turned == 0.0:
         raise ConfigError("ctl jog: give a step (--mm X Y Z and/or --deg RX RY RZ)")
     s0, s1, s2, s3, s4, s5 = step
-    return Order(cmd, robots.index(robot), (s0, s1, s2, s3, s4, s5))
+    return Order(cmd, 0, (s0, s1, s2, s3, s4, s5))
 
 
 def group_robots(directory: Path, session: str) -> list[str]:
@@ -69,9 +66,14 @@ def run_ctl(
 ) -> int:
     if not (math.isfinite(timeout_s) and 0.1 <= timeout_s <= 600):
         raise ConfigError(f"ctl: --timeout: expected 0.1..600 s, got {timeout_s}")
+    order = order_of(command, robot, mm, deg)
     sid, directory = session_dir(session)
     robots = group_robots(directory, sid)
-    order = order_of(command, robot, robots, mm, deg)
+    if robot is not None:
+        if robot not in robots:
+            group = ", ".join(robots)
+            raise ConfigError(f"ctl jog: no robot {clipped(robot)} in the group ({group})")
+        order = Order(order.command, robots.index(robot), order.step)
     key = None
     if key_file is not None:
         from redistro.ddm import record as wire

@@ -11,7 +11,10 @@ cycles, play and pause, and the speed.
 
 Everything comes from the run folder (``summary.json``, ``session.mcap``,
 ``plant.json``); nothing is computed but the arms' forward kinematics, in
-pure Python (:class:`redistro.log.scene.Arm`). The server binds loopback.
+pure Python (:class:`redistro.log.scene.Arm`). The server binds loopback;
+on any other address each browser first gives a token (``view_gate.py``).
+A live view whose user can read the session's key has the operator's
+buttons (``operator_panel.py``).
 """
 
 from __future__ import annotations
@@ -129,7 +132,10 @@ class Live:
     and the ROS 2 bridge do; nothing written, no cycle waits) at most 30
     times a second, into one frame the view draws."""
 
-    def __init__(self, session_id: str, cfg: Any, task: Any, robots: list[str]) -> None:
+    def __init__(
+        self, session_id: str, cfg: Any, task: Any, robots: list[str], ssc_robots: list[str]
+    ) -> None:
+        """ssc_robots: the SSC's robots, in its order (none: no SSC to command)."""
         from redistro.log.recorder import robots_meta
 
         self.sid, self.robots = session_id, robots
@@ -144,10 +150,20 @@ class Live:
         self.goal = {r: np.zeros((1, 6)) for r in robots}
         self.segment = np.zeros(1, dtype=np.uint8)
         self.cycles = np.zeros(1, dtype=np.int64)
+        self.paused = False
         self.views = SessionViews(session_id)
+        self.lock = threading.Lock()  # (one poll at a time: a view per browser, with a token)
+        from redistro.operator_panel import client_for
+
+        self.ssc_robots = ssc_robots
+        self.client = client_for(session_id) if ssc_robots else None
 
     def poll(self) -> None:
         """The nodes' latest data into the frame (a node not up yet: as it was)."""
+        with self.lock:
+            self._poll()
+
+    def _poll(self) -> None:
         for r in self.robots:
             esc = self.views.get(f"esc.{r}")
             if esc is not None:
@@ -161,6 +177,7 @@ class Live:
                 self.goal[r][0, :3], self.goal[r][0, 3:] = plan["goal_xyz_m"], plan["goal_rot_xyz"]
                 if i == 0:
                     self.segment[0] = int(plan["segment"])
+                    self.paused = bool(plan["paused"])
             self.cycles[0] = ssc.cycle()
 
     def alive(self) -> bool:
@@ -189,15 +206,22 @@ def live_session(session: str | None) -> Live:
     specs = node_specs(names.runtime_dir() / session, 30.0, "view --live")
     first = specs.get("ssc") or next(iter(specs.values()))
     robots = sorted({r for sp in specs.values() if sp.kind == "esc" for r in sp.robots})
-    return Live(session, first.cfg(), first.task() if first.task_data else None, robots)
+    ssc = list(specs["ssc"].robots) if "ssc" in specs else []
+    return Live(session, first.cfg(), first.task() if first.task_data else None, robots, ssc)
 
 
 def check_address(bind: str, port: int) -> None:
-    """The address the page is served on, decided before anything starts."""
-    if bind not in LOOPBACK:
-        raise ConfigError(
-            f"view: --bind {clipped(bind)}: only a loopback address (127.0.0.1, ::1) is served"
-        )
+    """The address the page is served on, decided before anything starts:
+    loopback, or an IP address of this host (then the page asks for a token)."""
+    import ipaddress
+
+    if bind != "localhost":
+        try:
+            ipaddress.ip_address(bind)
+        except ValueError:
+            raise ConfigError(
+                f"view: --bind {clipped(bind)}: expected an IP address of this host"
+            ) from None
     if not 1 <= port <= 65535:
         raise ConfigError(f"view: --port {port}: expected 1-65535")
     family = socket.AF_INET6 if ":" in bind else socket.AF_INET
@@ -206,12 +230,14 @@ def check_address(bind: str, port: int) -> None:
         try:
             s.bind((bind, port))
         except OSError as exc:
-            raise ConfigError(f"view: --port {port}: {exc.strerror or exc}") from None
+            what = f"--bind {clipped(bind)} --port {port}"
+            raise ConfigError(f"view: {what}: {exc.strerror or exc}") from None
 
 
 def run_view(arg: str | None, port: int, bind: str, live: str | None = None) -> int:
     """Serve the page until interrupted (Ctrl-C, SIGTERM), or, live, until
-    the session ends."""
+    the session ends. Off loopback, each browser first gives the token
+    printed here (``view_gate.py``)."""
     if (arg is None) == (live is None):
         raise ConfigError("view: give a run folder, or --live [SESSION] (not both)")
     check_address(bind, port)
@@ -219,17 +245,42 @@ def run_view(arg: str | None, port: int, bind: str, live: str | None = None) -> 
     import viser
 
     server = viser.ViserServer(host=bind, port=port, verbose=False)
-    view = View(server, rec)
     what = f"session {rec.sid}" if isinstance(rec, Live) else str(rec.run)
+    view, gate = None, None
+    if bind in LOOPBACK:
+        view = View(server, rec)
+    else:
+        from redistro.view_gate import Gate
+
+        gate = Gate(server, lambda client: View(server, rec, client))
+        print(f"token: {gate.token} (the page asks for it)", flush=True)
     print(f"view of {what} on http://{bind}:{port}/ (Ctrl-C ends it)", flush=True)
     try:
-        view.wait()
+        if view is not None:
+            view.wait()
+        else:
+            _wait(rec)
     finally:
-        view.stop()
+        if view is not None:
+            view.stop()
+        if gate is not None:
+            gate.close()
         server.stop()
         if isinstance(rec, Live):
             rec.close()
     return 0
+
+
+def _wait(rec: Recorded | Live) -> None:
+    """Until a stop signal or, live, the session's end."""
+    import signal
+
+    from redistro.ipc import signals
+
+    stops = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+    while signals.wait(stops, 0.5) is None:
+        if isinstance(rec, Live) and not rec.alive():
+            return
 
 
 def _mul(a: Pose, b: Pose) -> Pose:
@@ -312,8 +363,11 @@ class View:
     """The page of one recorded run (the scene, the panel, the timeline) or
     of a running session (the scene and the panel, followed live)."""
 
-    def __init__(self, server: Any, rec: Recorded | Live) -> None:
+    def __init__(self, server: Any, rec: Recorded | Live, api: Any = None) -> None:
+        """api: where the page is drawn: the server (every browser sees it)
+        or one client (a browser that gave the token)."""
         self.server, self.rec = server, rec
+        self.api = server if api is None else api
         self.kin = Kinematics(rec)
         self.frame = 0
         self.playing = False
@@ -327,7 +381,7 @@ class View:
         self.player.start()
 
     def _scene(self) -> None:
-        sc, rec = self.server.scene, self.rec
+        sc, rec = self.api.scene, self.rec
         sc.set_up_direction("+z")
         sc.add_grid("/ground", width=2.0, height=2.0, position=(0.5, 0.0, 0.0))
         self.nodes: dict[str, Any] = {}
@@ -358,14 +412,19 @@ class View:
         self.goals = {r: sc.add_frame(f"/goals/{r}", axes_length=0.06, axes_radius=0.003)
                       for r in rec.goal}  # fmt: skip
         self.arrows: dict[str, Any] = {}
-        self.server.initial_camera.position = (1.9, -1.4, 1.3)
-        self.server.initial_camera.look_at = (0.55, 0.0, 0.35)
+        camera = self.api.initial_camera if self.api is self.server else self.api.camera
+        camera.position = (1.9, -1.4, 1.3)
+        camera.look_at = (0.55, 0.0, 0.35)
 
     def _panel(self) -> None:
-        gui, rec = self.server.gui, self.rec
+        gui, rec = self.api.gui, self.rec
         gui.add_markdown(run_text(rec))
         if isinstance(rec, Live):  # (no timeline: the session's now)
             self.status = gui.add_markdown(self._status(0))
+            if rec.client is not None:  # (the session's key is ours: the operator's buttons)
+                from redistro.operator_panel import OperatorPanel
+
+                self.operator = OperatorPanel(gui, rec.client, rec.ssc_robots)
             return
         n = len(rec.cycles)
         self.slider = gui.add_slider("cycle", min=0, max=max(1, n - 1), step=1, initial_value=0)
@@ -394,15 +453,16 @@ class View:
         names = [str(g.get("name")) for g in rec.meta.get("segments", [])]
         name = names[seg - 1] if 0 < seg <= len(names) else ("before" if seg == 0 else "after")
         t = k / rec.rate_hz
-        return f"**cycle {int(rec.cycles[k])}** · t = {t:.2f} s · segment: {name}"
+        paused = " · **paused**" if isinstance(rec, Live) and rec.paused else ""
+        return f"**cycle {int(rec.cycles[k])}** · t = {t:.2f} s · segment: {name}{paused}"
 
     def show(self, k: int) -> None:
         """Draw logged cycle ``k`` (an index into the SSC's cycles)."""
         rec = self.rec
         k = max(0, min(k, len(rec.cycles) - 1))
         self.frame = k
-        sc = self.server.scene
-        with self.server.atomic():
+        sc = self.api.scene
+        with self.api.atomic():
             for r in rec.robots:
                 poses = self.kin.links(r, rec.q[r][k])
                 for link, pose in poses.items():
