@@ -11,6 +11,7 @@ import socket
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from tests.helpers import REDISTRO, ROOT
 
@@ -93,3 +94,58 @@ def keep_for_readme(shot: Path, dest: str) -> None:
     """The picture into the docs, when asked (REDISTRO_README_FIGURES=1)."""
     if os.environ.get("REDISTRO_README_FIGURES") == "1":
         shutil.copyfile(shot, ROOT / dest)
+
+
+@contextlib.contextmanager
+def page(url: str) -> Iterator[Any]:
+    """``url`` open in headless Chromium, its 3D canvas up: a Playwright page
+    to click on (``page.get_by_role("button", name="Pause")``)."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        try:
+            tab = browser.new_page(viewport={"width": 1280, "height": 800})
+            tab.goto(url)
+            tab.wait_for_selector("canvas", timeout=60_000)
+            yield tab
+        finally:
+            browser.close()
+
+
+def wait_text(tab: Any, text: str, timeout_s: float = 60.0) -> str:
+    """The page's text, once it shows ``text`` (Playwright waits, with a deadline)."""
+    tab.wait_for_function(
+        "t => document.body.innerText.includes(t)", arg=text, timeout=int(timeout_s * 1000)
+    )
+    body: str = tab.inner_text("body")
+    return body
+
+
+@contextlib.contextmanager
+def host_address() -> Iterator[str | None]:
+    """An address of this host that is not loopback, on a veth pair whose
+    other end sits alone in a network namespace (traffic to it stays on
+    this host); None when that cannot be made here (not root, no ``ip``)."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        yield None
+        return
+    tag = f"{os.getpid() % 100000}"
+    ns, host_end, ns_end = f"rdV{tag}", f"rdvh{tag}", f"rdvn{tag}"
+    addr = f"10.214.{os.getpid() % 250}.1"
+
+    def ip(*args: str) -> None:
+        subprocess.run(["ip", *args], check=True, capture_output=True, timeout=10)
+
+    made = False
+    try:
+        ip("netns", "add", ns)
+        made = True
+        ip("link", "add", host_end, "type", "veth", "peer", "name", ns_end)
+        ip("link", "set", ns_end, "netns", ns)
+        ip("addr", "add", f"{addr}/24", "dev", host_end)
+        ip("link", "set", host_end, "up")
+        yield addr
+    finally:
+        if made:  # (deleting the namespace deletes its end of the pair, and so both)
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)

@@ -122,7 +122,7 @@ def no_leaks() -> Iterator[None]:
 
 
 # the longest lockstep tests first (the second worker's run ends sooner)
-FIRST = ("test_lockstep.py", "test_peg_search.py", "test_moves.py")
+FIRST = ("test_lockstep.py", "test_peg_search.py", "test_moves.py", "test_operator.py")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -143,7 +143,7 @@ def _rank(item: pytest.Item) -> int:
 # the session tests run in lockstep at the default scheduling (their
 # verdicts are the plant's truth and the log, which no schedule changes):
 # beside the unit tests, below the real-time sessions of the first worker
-LOCKSTEP_MODULES = ("test_lockstep.py", "test_peg_search.py", "test_moves.py")
+LOCKSTEP_MODULES = ("test_lockstep.py", "test_peg_search.py", "test_moves.py", "test_operator.py")
 
 
 def _apart(nodeid: str) -> bool:

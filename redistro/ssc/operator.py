@@ -14,9 +14,10 @@ signed command, ``ssc/ctl.py``) and, on a new command:
   or 2 degrees in the world frame. Its posture is found in the Idle state
   (damped least squares on the arm's model, a few iterations a slice),
   checked against the joint limits less the guard's margin and the planned
-  clearance (``MIN_CLEARANCE_M``), then reached by a quintic in joint
-  space whose peak speed stays under ``JOG_M_S`` and ``JOG_RAD_S``. The
-  guard on the ESC and the clearance watch of every cycle apply as ever.
+  clearance (``MIN_CLEARANCE_M``); then the robot's Cartesian law (taking
+  over from the joint PID where it held) moves the tool there, its
+  reference's peak speed under ``JOG_M_S`` and ``JOG_RAD_S``. The guard on
+  the ESC and the clearance watch of every cycle apply as ever.
 
 What it costs a cycle: one seqlocked read of the block (about a
 microsecond); paused, each robot's hold instead of its move.
@@ -25,7 +26,7 @@ microsecond); paused, each robot's hold instead of its move.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -58,12 +59,10 @@ IK_PER_SLICE = 4
 class Operator:
     """The worker's part of the operator's commands (a serial SSC's worker)."""
 
-    def __init__(self, worker: SscWorker, pose: Callable[..., None]) -> None:
-        """pose: the worker's TCP-pose-into-the-plan (``ssc/worker.py:_pose``)."""
+    def __init__(self, worker: SscWorker) -> None:
         from redistro.config.limits import joint_limits
 
         self.w = worker
-        self.pose = pose
         self.block = worker.ld.block("operator")
         self.rec = Record(OPERATOR)
         self.seen = 0
@@ -76,7 +75,6 @@ class Operator:
         self.paused_at = 0.0  # when (task time) [s]
         self.planning: Iterator[None] | None = None  # a jog's posture, found in Idle
         self.jog: tuple[int, float, float] | None = None  # (robot, start [s], length [s])
-        self.jog_goal = np.zeros(7)  # a joint-held robot's jog: its posture at the end
         self.jog_end = 0.0  # (task time) [s]
 
     # -- each cycle --
@@ -184,15 +182,19 @@ class Operator:
     def _resume(self, t: float) -> None:
         w = self.w
         self.paused = False
-        for st in w.states:
+        for i, st in enumerate(w.states):
             st.plan["paused"] = 0
+            if self.by_law[i]:  # (a robot that holds in the segment: where it is now)
+                st.hold_q[...] = st.views["q"]
+                st.pid.reset()
+                self.by_law[i] = False
         w.carry = None  # (a carry re-planned from the hands' measured poses)
         w.post(f"operator resume at t={t:.2f} s after {self.since:.2f} s: the segment re-planned")
         w._begin(w.k, t)
 
     def hold(self, i: int, st: RobotState, dt: float, t: float) -> None:
         """A paused robot's law: its Cartesian law on the pose it stopped at
-        (or jogs to), or the joint PID holding (or jogging on a quintic)."""
+        (or jogs to), or the joint PID holding it."""
         jog = self.jog
         jogging = jog is not None and jog[0] == i
         if jogging and jog is not None and jog[1] < 0:  # (the jog's clock starts now)
@@ -212,12 +214,6 @@ class Operator:
             law.update(law_t, dt, law_t, self.free[i] and not self.stopping and law_t >= still)
             st.to_records()
             v["q_cmd"][...] = q
-        elif jogging and jog is not None:
-            q = st.views["q"]
-            st.quintic.at(min(t - jog[1], jog[2]))
-            st.model.gravity_into(q, st.g)
-            st.joint_loop.update(dt)
-            self.pose(st, q, goal=False)
         else:
             self.w._hold(st, dt)
         if jogging and jog is not None and t - jog[1] >= jog[2]:
@@ -229,8 +225,6 @@ class Operator:
             return
         if float(np.abs(st.views["qd"]).max()) > REST_RAD_S and t - self.jog_end < REST_WAIT_S:
             return
-        if not self.by_law[i]:
-            st.hold_q[...] = self.jog_goal
         self.jog = None
         self._answer(self.seen, Command.JOG, Status.DONE)
         step = self.rec.array["step"]
@@ -259,7 +253,7 @@ class Operator:
 
         w = self.w
         st = w.states[i]
-        q0 = (st.views["q"] if self.by_law[i] else st.hold_q).astype(np.float64)  # (at rest)
+        q0 = st.views["q"].astype(np.float64)  # (at rest)
         kin = st.model.kinematics(q0)
         p_goal = kin.p + step[:3]
         R_goal = rotvec_to_matrix(step[3:]) @ kin.R
@@ -292,19 +286,18 @@ class Operator:
         moved = float(np.linalg.norm(step[:3]))
         turned = float(np.linalg.norm(step[3:]))
         length = max(QUINTIC_PEAK * moved / JOG_M_S, QUINTIC_PEAK * turned / JOG_RAD_S, JOG_MIN_S)
-        self.jog_goal[...] = q
-        if self.by_law[i]:  # its law moves the tool to the stepped pose
-            from redistro.control.cartesian import TaskFrameCommand
+        if not self.by_law[i]:  # (held by the joint PID: its law takes over, where it is)
+            self._hold_here(st)
+            self.by_law[i] = True
+        from redistro.control.cartesian import TaskFrameCommand
 
-            none = np.zeros(6)
-            goal = np.concatenate([p_goal, matrix_to_rotvec(R_goal)])
-            start = st.model.kinematics(st.views["q"].astype(np.float64))
-            cmd = TaskFrameCommand(goal, none, none, "world")
-            st.law.start(cmd, start.p, start.R, length, q, st.law.integral.copy())
-            st.views["goal"][...] = goal[:3]
-            st.views["goal_rot"][...] = goal[3:]
-        else:  # the joint PID's quintic to its posture
-            st.quintic.start(q0, q, length)
+        none = np.zeros(6)
+        goal = np.concatenate([p_goal, matrix_to_rotvec(R_goal)])
+        start = st.model.kinematics(st.views["q"].astype(np.float64))
+        st.law.start(TaskFrameCommand(goal, none, none, "world"), start.p, start.R, length, q,
+                     st.law.integral.copy())  # fmt: skip
+        st.views["goal"][...] = goal[:3]
+        st.views["goal_rot"][...] = goal[3:]
         self.jog = (i, -1.0, length)  # (its clock starts at the next cycle)
         self.jog_end = w.last_t + length
 

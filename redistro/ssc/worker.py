@@ -255,7 +255,7 @@ class SscWorker(Worker):
         self.arm, self.lead = parallel.parts(self, _grip, RETREAT_S + RETREAT_HOLD_S)
         # the operator's pause, resume and jog (ssc/operator.py; a serial SSC's)
         serial = self.arm is None and self.lead is None
-        self.operator = Operator(self, _pose) if serial else None
+        self.operator = Operator(self) if serial else None
 
     def idle(self, deadline_ns: int) -> bool:
         """A jog's planning, in slices (none: one call, nothing done)."""
