@@ -4,7 +4,7 @@ A command is one datagram on the SSC manager's Unix socket, ``ctl.sock`` in
 the session's 0700 runtime folder, signed with the session's key (HMAC-SHA256,
 the ddm's link key, ``ddm.key`` beside it, mode 0600):
 
-    magic "RDCT", version, command, robot, session id (16 bytes), nonce (8),
+    magic "RDCT", version, command, robot, session id (32 bytes), nonce (8),
     stamp [ns, CLOCK_MONOTONIC], step (6 doubles) | tag (32 bytes)
 
 The manager takes at most one datagram a cycle, in its Idle state. A command
@@ -38,7 +38,7 @@ from redistro.errors import ConfigError
 SOCKET = "ctl.sock"
 MAGIC = b"RDCT"
 VERSION = 1
-BODY = struct.Struct("<4sHBB16sQq6d")
+BODY = struct.Struct("<4sHBB32sQq6d")
 TAG = 32
 SIZE = BODY.size + TAG
 MAX_AGE_NS = 5_000_000_000  # older (or this far ahead): refused as a replay
@@ -90,7 +90,7 @@ class Order:
 
 def sign(key: bytes, session_id: str, order: Order, nonce: int, stamp_ns: int) -> bytes:
     body = BODY.pack(
-        MAGIC, VERSION, int(order.command), order.robot, session_id.encode()[:16],
+        MAGIC, VERSION, int(order.command), order.robot, session_id.encode()[:32],
         nonce, stamp_ns, *order.step,
     )  # fmt: skip
     return body + hmac.digest(key, body, hashlib.sha256)
@@ -105,7 +105,7 @@ class Checker:
 
     def __init__(self, key: bytes, session_id: str) -> None:
         self.key = key
-        self.session = session_id.encode()[:16]
+        self.session = session_id.encode()[:32]
         self.seen: deque[int] = deque(maxlen=NONCES)
 
     def check(self, data: bytes, now_ns: int) -> Order:
