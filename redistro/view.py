@@ -151,6 +151,7 @@ class Live:
         self.segment = np.zeros(1, dtype=np.uint8)
         self.cycles = np.zeros(1, dtype=np.int64)
         self.paused = False
+        self.t_s = 0.0  # the task's time [s]
         self.views = SessionViews(session_id)
         self.lock = threading.Lock()  # (one poll at a time: a view per browser, with a token)
         from redistro.operator_panel import client_for
@@ -178,6 +179,7 @@ class Live:
                 if i == 0:
                     self.segment[0] = int(plan["segment"])
                     self.paused = bool(plan["paused"])
+                    self.t_s = float(plan["t_s"])
             self.cycles[0] = ssc.cycle()
 
     def alive(self) -> bool:
@@ -418,14 +420,15 @@ class View:
 
     def _panel(self) -> None:
         gui, rec = self.api.gui, self.rec
-        gui.add_markdown(run_text(rec))
         if isinstance(rec, Live):  # (no timeline: the session's now)
-            self.status = gui.add_markdown(self._status(0))
             if rec.client is not None:  # (the session's key is ours: the operator's buttons)
                 from redistro.operator_panel import OperatorPanel
 
                 self.operator = OperatorPanel(gui, rec.client, rec.ssc_robots)
+            self.status = gui.add_markdown(self._status(0))
+            gui.add_markdown(run_text(rec))
             return
+        gui.add_markdown(run_text(rec))
         n = len(rec.cycles)
         self.slider = gui.add_slider("cycle", min=0, max=max(1, n - 1), step=1, initial_value=0)
         self.play_button = gui.add_button("Play")
@@ -452,9 +455,11 @@ class View:
         seg = int(rec.segment[k]) if len(rec.segment) else 0
         names = [str(g.get("name")) for g in rec.meta.get("segments", [])]
         name = names[seg - 1] if 0 < seg <= len(names) else ("before" if seg == 0 else "after")
+        if isinstance(rec, Live):  # (a tenth of a second: the panel redrawn 10 times a second)
+            paused = " · **paused**" if rec.paused else ""
+            return f"t = {rec.t_s:.1f} s · segment: {name}{paused}"
         t = k / rec.rate_hz
-        paused = " · **paused**" if isinstance(rec, Live) and rec.paused else ""
-        return f"**cycle {int(rec.cycles[k])}** · t = {t:.2f} s · segment: {name}{paused}"
+        return f"**cycle {int(rec.cycles[k])}** · t = {t:.2f} s · segment: {name}"
 
     def show(self, k: int) -> None:
         """Draw logged cycle ``k`` (an index into the SSC's cycles)."""
@@ -488,7 +493,9 @@ class View:
                     rot = quat_rotvec(float(g[3]), float(g[4]), float(g[5]))
                     self.goals[r].position = tuple(float(v) for v in g[:3])
                     self.goals[r].wxyz = (rot[3], rot[0], rot[1], rot[2])
-            self.status.content = self._status(k)
+            status = self._status(k)
+            if status != self.status.content:
+                self.status.content = status
         if not isinstance(rec, Live) and int(self.slider.value) != k:
             self.slider.value = k
 

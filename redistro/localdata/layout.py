@@ -308,6 +308,7 @@ PLAN = np.dtype(  # the SSC's view of one robot: segment, references, errors (wo
         ("op_seq", "<u4"),  # the operator's last command the worker took (ssc/operator.py) ...
         ("op_command", "u1"),  # ... what it was (ssc/ctl.py: Command) ...
         ("op_status", "u1"),  # ... and how it ended (ssc/ctl.py: Status; 0 while under way)
+        ("paused_s", "<f8"),  # task time paused so far [s] (the owner's budget adds it)
     ]
 )
 

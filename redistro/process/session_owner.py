@@ -186,8 +186,12 @@ class _Budget:
         margin_s: float,
         start: float,
         clock: Callable[[], float | None] | None,
+        paused: Callable[[], float] | None = None,
     ) -> None:
+        """paused: the task time an operator held the task paused [s] (the
+        budget grows by it)."""
         self.budget_s, self.margin_s, self.clock = budget_s, margin_s, clock
+        self.paused = paused
         # the clock counts from its first reading (a plant still starting
         # beside the nodes has none yet)
         self.clock_start = clock() if clock is not None and budget_s is not None else None
@@ -212,12 +216,37 @@ class _Budget:
             if t is not None and self.clock_start is None:
                 self.clock_start = t
             ran = None if t is None or self.clock_start is None else t - self.clock_start
+            if ran is not None and ran > self.margin_s + self.budget_s and self.paused:
+                ran -= self.paused()  # (read only when the budget looks spent)
             if ran is not None and ran > self.margin_s + self.budget_s:
                 return (
                     f"nodes ran past their time budget ({self.budget_s:.1f} s of the "
                     f"plant's time, {ran:.1f} s since they started); stopping them"
                 )
         return None
+
+
+class _Paused:
+    """The SSC's paused time so far [s] (its plan's ``paused_s``), read-only."""
+
+    def __init__(self, session_id: str) -> None:
+        self.session_id = session_id
+        self.view: NodeView | None = None
+
+    def __call__(self) -> float:
+        try:
+            if self.view is None:
+                self.view = NodeView.open(self.session_id, "ssc")
+                if self.view is None:
+                    return 0.0
+            return float(self.view.read("plan", 0)["paused_s"])
+        except Exception:
+            return 0.0
+
+    def close(self) -> None:
+        if self.view is not None:
+            self.view.close()
+            self.view = None
 
 
 def _has_ddm(spec: NodeSpec) -> bool:
@@ -318,7 +347,8 @@ def _wait_nodes(
     margin = max(s.startup_timeout_s + s.shutdown_timeout_s for s in specs) + 5.0
     if budget_s is None and all(s.cycles for s in specs):
         budget_s, clock = max(s.cycles / s.rate_hz for s in specs), None
-    budget = _Budget(budget_s, margin, start, clock)
+    paused = _Paused(specs[0].session_id) if any(s.kind == "ssc" for s in specs) else None
+    budget = _Budget(budget_s, margin, start, clock, paused)
     relay = _Relay(nodes, specs[0].session_id)
     from redistro.ipc import sched
 
@@ -332,6 +362,8 @@ def _wait_nodes(
         _wait_loop(nodes, budget, on_wait, relay, side or _Beside(None))
     finally:
         relay.close()
+        if paused is not None:
+            paused.close()
         if raised:
             sched.leave_real_time()
 

@@ -73,6 +73,7 @@ class Operator:
         self.stopping = False  # paused, the robots not yet at rest (the answer waits)
         self.since = 0.0  # task time paused so far, in this pause [s]
         self.paused_at = 0.0  # when (task time) [s]
+        self.total = 0.0  # task time paused in every pause so far [s]
         self.planning: Iterator[None] | None = None  # a jog's posture, found in Idle
         self.jog: tuple[int, float, float] | None = None  # (robot, start [s], length [s])
         self.jog_end = 0.0  # (task time) [s]
@@ -91,6 +92,9 @@ class Operator:
             w.seg_start_t += dt  # (the segment's clock stops)
             w.law_start_t += dt
             self.since += dt
+            self.total += dt
+            for st in w.states:
+                st.plan["paused_s"] = self.total
             if self.stopping and (self.since >= REST_WAIT_S or self._at_rest()):
                 self.stopping = False
                 for i, st in enumerate(w.states):

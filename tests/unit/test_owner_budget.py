@@ -69,3 +69,16 @@ def test_a_clock_not_yet_readable_counts_from_its_first_reading() -> None:
 def test_no_budget_never_stops() -> None:
     b = _Budget(None, 5.0, start=0.0, clock=FakeClock())
     assert b.exceeded(1e9) is None
+
+
+def test_an_operators_pause_adds_to_the_budget() -> None:
+    """A task paused by its operator (``redistro ctl pause``) for 30 s of
+    the plant's time may run 30 s longer; past that, it is stopped."""
+    clock = FakeClock(100.0)
+    paused = [30.0]
+    b = _Budget(20.0, 5.0, start=0.0, clock=clock, paused=lambda: paused[0])
+    clock.t = 100.0 + 25.5 + 29.0  # past budget + margin, within them and the pause
+    assert b.exceeded(60.0) is None
+    clock.t = 100.0 + 25.5 + 31.0
+    why = b.exceeded(62.0)
+    assert why is not None and "20.0 s of the plant's time" in why

@@ -47,7 +47,7 @@ def test_a_pose_then_another_is_the_product_of_their_matrices(
     assert np.allclose(got, _matrix(pa) @ _matrix(pb), atol=1e-12)
 
 
-def test_a_port_taken_or_out_of_range_is_refused() -> None:
+def test_a_port_taken_or_out_of_range_or_an_address_not_ours_is_refused() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
@@ -56,5 +56,7 @@ def test_a_port_taken_or_out_of_range_is_refused() -> None:
             check_address("127.0.0.1", port)
     with pytest.raises(ConfigError, match="expected 1-65535"):
         check_address("127.0.0.1", 70000)
-    with pytest.raises(ConfigError, match="only a loopback address"):
-        check_address("192.0.2.1", 8080)
+    with pytest.raises(ConfigError, match=r"192\.0\.2\.1 --port 8080: Cannot assign"):
+        check_address("192.0.2.1", 8080)  # (TEST-NET-1: no host's address)
+    with pytest.raises(ConfigError, match="expected an IP address of this host"):
+        check_address("robot-lab.example", 8080)
