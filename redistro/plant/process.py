@@ -340,6 +340,10 @@ def _loop_lockstep(
             conductor.tick(step)
     finally:
         conductor.close()
+        # the boards' last outputs taken before the power goes: a freeze the
+        # nodes made while a tick waited on them is the plant's too
+        read_outputs()
+        chassis.apply_outputs(None, t0 + chassis.step_count * dt_ns)
     counts: dict[str, Any] = {"late_steps": 0, "skipped_steps": 0, "lockstep": conductor.report()}
     counts.update(arms=truth[0].report(), pegs=truth[1].report(), in_holes=truth[2].report())
     gap = (0, 0)

@@ -150,13 +150,15 @@ class Operator:
         w = self.w
         for i, st in enumerate(w.states):
             self.free[i] = not int(st.plan["contact"])
-            if st.cartesian and w.moving[i] is not None:
+            self.by_law[i] = False
+            if w.moving[i] is None:
+                continue  # (it holds already: its PID, integral and all, goes on)
+            if st.cartesian:
                 self._hold_here(st)  # its law holds the pose it is at
                 w.moving[i] = None
                 self.by_law[i] = True
             else:
-                w._stop(i, st)  # the joint PID holds where it is
-                self.by_law[i] = False
+                w._stop(i, st)  # a joint move: the joint PID holds where it is
         self.paused, self.since, self.paused_at, self.stopping = True, 0.0, t, True
         w.post(f"operator pause at t={t:.2f} s: every robot holds")
 

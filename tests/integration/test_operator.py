@@ -60,9 +60,6 @@ class Plant:
         self.wait_step(self.step() + int(seconds * PHYSICS_HZ))
         return {r: float(np.linalg.norm(self.tool(r)[0] - start[r])) for r in self.truth}
 
-    def braked(self) -> bool:
-        return all(bool(t.read()["braked"].all()) for t in self.truth.values())
-
     def close(self) -> None:
         self.bank.close()
 
@@ -191,18 +188,15 @@ def test_ctl_stop_ends_in_order_and_estop_brakes_the_group(
 ) -> None:
     """``ctl stop`` in the approach ends the session as Ctrl-C does (every
     ESC interrupted, its robot frozen); ``ctl estop`` is the group's e-stop:
-    every node ends ``estop`` and the plant's truth has every joint braked."""
+    every node ends ``estop``. Either way the plant records each arm fully
+    braked after the command."""
     with running(calibrated, tmp_path) as (proc, sid, out):
         plant = Plant(sid)
         try:
             plant.wait_step(2 * PHYSICS_HZ)
-            sent_ns = time.monotonic_ns()
+            sent_ns, sent_step = time.monotonic_ns(), plant.step()
             done = ctl(sid, order)
             assert done.returncode == 0 and "under way" in done.stdout, done.stdout + done.stderr
-            if order == "estop":
-                from tests.helpers import wait_for
-
-                wait_for(plant.braked, 30, "every joint braked")
         finally:
             plant.close()
         proc.communicate(timeout=120)
@@ -213,28 +207,30 @@ def test_ctl_stop_ends_in_order_and_estop_brakes_the_group(
     for r in ("r1", "r2"):
         esc = nodes[f"esc.{r}"]
         assert any(t >= sent_ns for t in esc["freeze_monotonic_ns"]), esc
-        if order == "stop":
-            assert esc["reason"] == "interrupted by SIGINT", esc["reason"]
-        else:
+        if order == "estop":
             assert esc["result"] == "estop", esc
-    if order == "estop":
+    if order == "stop":  # (as Ctrl-C: the owner's SIGINT to every node; a node
+        # the SSC's end reached first ends on its e-stop)
+        reasons = {n: v["reason"] for n, v in nodes.items()}
+        assert "interrupted by SIGINT" in reasons.values(), reasons
+        assert all(v["result"] in ("abnormal", "estop") for v in nodes.values()), reasons
+    else:
         assert nodes["ssc"]["reason"] == "the operator's e-stop (redistro ctl)", nodes["ssc"]
+    # the plant's own record: each arm's every joint braked, after the command
+    freezes = load_json(out / "plant.json")["freezes"]
+    braked = {f["robot"] for f in freezes if f["step"] >= sent_step}
+    assert braked == {"r1", "r2"}, freezes
     assert f"operator command 1: {order}" in (out / "messages.log").read_text()
 
 
-def press(tab: Any, button: str, command: str, answer: str) -> str:
-    """Click ``button`` until the panel shows the command went out (a click
-    the page lost while it redrew is clicked again; one it took, never),
-    then wait for the controller's ``answer``."""
+def press(tab: Any, button: str, answer: str) -> str:
+    """A click on ``button`` (the DOM's click on the button itself: under
+    load the page redraws its panel so often that a pointer's click never
+    finds it standing still), then the page's text once it shows the
+    controller's ``answer``."""
     from tests import browser
 
-    for _ in range(3):
-        tab.get_by_role("button", name=button, exact=True).click()
-        try:
-            browser.wait_text(tab, f"operator: {command}", 5.0)
-            break
-        except Exception:
-            continue
+    tab.get_by_role("button", name=button, exact=True).dispatch_event("click")
     return browser.wait_text(tab, answer)
 
 
@@ -258,12 +254,12 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
             with browser.page(f"http://127.0.0.1:{port}/") as tab:
                 browser.wait_text(tab, "operator: ready")
                 plant.wait_step(3 * PHYSICS_HZ)
-                press(tab, "Pause", "pause", "pause: done")
+                press(tab, "Pause", "pause: done")
                 held = plant.motion(2.0)
                 before = plant.tool("r2")[0]
-                press(tab, "+z", "jog", "jog: done")
+                press(tab, "+z", "jog: done")
                 miss = plant.tool("r2")[0] - before - np.array([0.0, 0.0, 0.005])
-                press(tab, "Resume", "resume", "resume: done")
+                press(tab, "Resume", "resume: done")
         finally:
             plant.close()
         proc.communicate(timeout=300)
