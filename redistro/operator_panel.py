@@ -48,7 +48,7 @@ class OperatorPanel:
             self.resume = gui.add_button("Resume")
             self.stop = gui.add_button("Stop")
             self.estop = gui.add_button("E-stop", color="red")
-            self.robot = gui.add_dropdown("jog robot", options=robots, initial_value=robots[-1])
+            self.robot = gui.add_dropdown("jog robot", options=robots, initial_value=robots[0])
             self.step = gui.add_dropdown("jog mm", options=JOG_STEPS_MM, initial_value="5")
             self.jog = gui.add_button_group("jog", options=JOG_AXES)
             self.answer = gui.add_markdown("operator: ready")

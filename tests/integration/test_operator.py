@@ -120,7 +120,7 @@ def commanded(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
         plant = Plant(sid)
         views = SessionViews(sid)
         try:
-            plant.wait_step(3 * PHYSICS_HZ)  # (the approach: r2 on its way to the hole)
+            plant.wait_step(PHYSICS_HZ)  # (the approach: r2 on its way to the hole, 5 s long)
             seen["pause"] = ctl(sid, "pause")
             seen["held"] = plant.motion(2.0)
             forged = Client(sid, names.runtime_dir() / sid, key=os.urandom(32))
@@ -237,7 +237,7 @@ def press(tab: Any, button: str, answer: str) -> str:
 def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_path: Path) -> None:
     """The live view of the main job in headless Chromium: a click on
     Pause holds every robot (under 0.5 mm over 2 s of the plant's time),
-    the +z jog button moves r2's tool 5 mm within 0.5 mm, a click on
+    the +z jog button moves r1's tool 5 mm within 0.5 mm, a click on
     Resume lets the task end ok with the peg in the hole."""
     from redistro.view import wait_served
     from tests import browser
@@ -256,9 +256,9 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
                 plant.wait_step(3 * PHYSICS_HZ)
                 press(tab, "Pause", "pause: done")
                 held = plant.motion(2.0)
-                before = plant.tool("r2")[0]
+                before = plant.tool("r1")[0]  # (the panel's first robot: r1, in free space)
                 press(tab, "+z", "jog: done")
-                miss = plant.tool("r2")[0] - before - np.array([0.0, 0.0, 0.005])
+                miss = plant.tool("r1")[0] - before - np.array([0.0, 0.0, 0.005])
                 press(tab, "Resume", "resume: done")
         finally:
             plant.close()
