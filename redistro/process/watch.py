@@ -77,6 +77,12 @@ class WorkerWatch:
         # late and missed heartbeats are counted for the workers on the cycle
         # (an off-cycle one signs when it runs: a recorder 50 times a second)
         self.per_cycle = [w.on_cycle for w in spec.workers]
+        # in lockstep an off-cycle worker still runs on the wall clock (its own
+        # timer, its events): it is hung when it has not signed for its limit
+        # in periods of wall time, however many ticks the plant ran meanwhile
+        lockstep = spec.clock == "lockstep"
+        self.wall_paced = [lockstep and not w.on_cycle for w in spec.workers]
+        self.signed_ns = [time.monotonic_ns()] * n  # when each heartbeat last moved
         self.late_heartbeats = 0
         self.missed_heartbeats = 0
         self.deadline_misses = 0  # cycles completed, but after their period ended
@@ -117,9 +123,12 @@ class WorkerWatch:
         due at ``due_ns``); ``limit`` misses is a hang, an e-stop request
         ends the node: both raise :class:`NodeFault`."""
         snaps: list[Record | None] = []
+        now = time.monotonic_ns()
         for j, (row, rec) in enumerate(zip(self.rows, self.recs, strict=True)):
             try:
                 row.read_into(rec.bytes)
+                if rec["heartbeat_cycle"] != self.last_hb[j]:
+                    self.signed_ns[j] = now
                 self.last_hb[j] = rec["heartbeat_cycle"]
                 snaps.append(rec)
             except TornReadTimeout:
@@ -135,6 +144,8 @@ class WorkerWatch:
             elif age > 1:
                 self.missed_heartbeats += 1  # a whole cycle without a sign-up
             limit = self.limits[j]
+            if age >= limit and self.wall_paced[j] and now - self.signed_ns[j] < limit * period_ns:
+                continue  # (lockstep: ticks ran fast, the wall clock did not)
             if age >= limit:
                 self.hung.add(j)
                 self.door_down(j)

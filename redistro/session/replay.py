@@ -51,6 +51,12 @@ def load_run(arg: str) -> tuple[Path, dict[str, Any], dict[str, Any]]:
     digest = summary.get("log", {}).get("digest") if isinstance(summary.get("log"), dict) else None
     if not isinstance(digest, str) or not (run / "session.mcap").is_file():
         raise ConfigError(f"replay: {where}: the run has no session log to compare with")
+    operator = summary.get("operator")
+    if isinstance(operator, dict) and operator.get("accepted"):
+        raise ConfigError(
+            f"replay: {where}: its operator commanded it (redistro ctl, "
+            f"{operator['accepted']} commands): a replay cannot repeat when they came"
+        )
     return run, doc, summary
 
 

@@ -180,6 +180,8 @@ def test_ctl_pauses_jogs_refuses_a_forgery_and_resumes_to_an_inserted_peg(
     assert len(refused) == 1 and "not signed" in refused[0]["why"], refused
     messages = (run / "messages.log").read_text()
     assert "operator command 1: pause" in messages and "operator command refused" in messages
+    again = run_cli("replay", str(run))  # (when the operator acted is no part of the run)
+    assert again.returncode == 2 and "its operator commanded it" in again.stderr, again.stderr
 
 
 @pytest.mark.parametrize("order", ["stop", "estop"])
