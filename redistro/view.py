@@ -193,19 +193,11 @@ class Live:
 
 def live_session(session: str | None) -> Live:
     """The running session named (or the only one); ConfigError when none."""
-    from redistro.ipc import names
-    from redistro.ipc.session import live_sessions
     from redistro.ros2bridge import node_specs
+    from redistro.ssc.ctl import session_dir
 
-    live = live_sessions()
-    if session is None:
-        if len(live) != 1:
-            names_ = ", ".join(live) or "none"
-            raise ConfigError(f"view --live: {len(live)} sessions running; name one ({names_})")
-        session = live[0]
-    if session not in live:
-        raise ConfigError(f"view --live: no running session {clipped(session)}")
-    specs = node_specs(names.runtime_dir() / session, 30.0, "view --live")
+    session, directory = session_dir(session, "view --live")
+    specs = node_specs(directory, 30.0, "view --live")
     first = specs.get("ssc") or next(iter(specs.values()))
     robots = sorted({r for sp in specs.values() if sp.kind == "esc" for r in sp.robots})
     ssc = list(specs["ssc"].robots) if "ssc" in specs else []

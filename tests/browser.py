@@ -59,20 +59,11 @@ def served(args: list[str], port: int, timeout_s: float = 60.0) -> Iterator[None
 def screenshot(url: str, out: Path, settle_ms: int = 4000) -> str:
     """Open ``url``, wait for its 3D canvas and ``settle_ms``, save a
     picture; the page's text."""
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
-        try:
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            page.goto(url)
-            page.wait_for_selector("canvas", timeout=60_000)
-            page.wait_for_function("document.body.innerText.includes('cycle')", timeout=60_000)
-            page.wait_for_timeout(settle_ms)  # (the renderer's first frames, in software)
-            page.screenshot(path=str(out))
-            text: str = page.inner_text("body")
-        finally:
-            browser.close()
+    with page(url) as tab:
+        tab.wait_for_function("document.body.innerText.includes('cycle')", timeout=60_000)
+        tab.wait_for_timeout(settle_ms)  # (the renderer's first frames, in software)
+        tab.screenshot(path=str(out))
+        text: str = tab.inner_text("body")
     return text
 
 
