@@ -306,8 +306,16 @@ def _parser() -> argparse.ArgumentParser:
     le = lsub.add_parser("export", help="one CSV per topic", parents=[common])
     le.add_argument("--csv", required=True, metavar="DIR", help="folder for the CSV files")
     ls.add_argument("--json", action="store_true", help="print the summary as JSON")
-    for q in (ls, lp, le):
+    ld = lsub.add_parser(
+        "diff",
+        help="two runs' logs compared cycle by cycle: identical, or the first cycle, "
+        "channel and field that differ (exit 0 identical, 1 not)",
+        parents=[common],
+    )
+    ld.add_argument("--json", dest="json_path", metavar="FILE", help="the report as JSON")
+    for q in (ls, lp, le, ld):
         q.add_argument("run", help="run folder, session id under runs/, or a session.mcap")
+    ld.add_argument("other", help="the run to compare RUN with (as RUN)")
 
     tp = sub.add_parser("top", help="live view of the running sessions", parents=[common])
     tp.add_argument("session", nargs="?", default=None, help="only this session id")
@@ -500,6 +508,8 @@ def _log(args: argparse.Namespace, cfg: Any) -> int:
         # the default folder, inside the run: tested as --out is, before any work
         run_dir, _ = inspect.resolve_run(args.run, cfg.session.runs_dir)
         check_out_dir(str(run_dir / "plots"), "--out")
+    if args.log_command == "diff":
+        return _log_diff(args, cfg.session.runs_dir)
     run, sl, summary = inspect.load(args.run, cfg.session.runs_dir)
     if args.log_command == "summary":
         rows = inspect.summary_rows(run, sl, summary)
@@ -522,6 +532,25 @@ def _log(args: argparse.Namespace, cfg: Any) -> int:
     for path in inspect.export_csv(sl, Path(args.csv)):
         print(f"wrote {path}")
     return 0
+
+
+def _log_diff(args: argparse.Namespace, runs_dir: str) -> int:
+    from pathlib import Path
+
+    from redistro import files
+    from redistro.log import diff, inspect
+
+    _, a = inspect.resolve_run(args.run, runs_dir)
+    _, b = inspect.resolve_run(args.other, runs_dir)
+    try:
+        report = diff.compare_logs(a, b)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    print(diff.report_line(report, "a", "b"))
+    if args.json_path:
+        doc = {"a": str(a), "b": str(b), **report}
+        files.replace(Path(args.json_path), json.dumps(doc, indent=1) + "\n")
+    return 0 if report["identical"] else 1
 
 
 def _clean() -> int:

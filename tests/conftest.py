@@ -143,7 +143,13 @@ def _rank(item: pytest.Item) -> int:
 # the session tests run in lockstep at the default scheduling (their
 # verdicts are the plant's truth and the log, which no schedule changes):
 # beside the unit tests, below the real-time sessions of the first worker
-LOCKSTEP_MODULES = ("test_lockstep.py", "test_peg_search.py", "test_moves.py", "test_operator.py")
+LOCKSTEP_MODULES = (
+    "test_lockstep.py",
+    "test_peg_search.py",
+    "test_moves.py",
+    "test_operator.py",
+    "test_faults_lockstep.py",
+)
 
 
 def _apart(nodeid: str) -> bool:

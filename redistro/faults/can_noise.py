@@ -128,11 +128,17 @@ def _ended(row: dict[str, Any], fault: str, sid: str) -> None:
 class _CanRig:
     """The plant on the CAN backplane and r2's robot-level driver open on
     it (its encoders preset from the simulation's truth), for one drill:
-    ``with _CanRig(out_dir, cfg) as rig: ...``; the plant's result after."""
+    ``with _CanRig(out_dir, cfg) as rig: ...``; the plant's result after.
+    No node runs: the plant steps on the wall clock, whatever the clock
+    of the campaign's sessions."""
 
     def __init__(self, out_dir: Path, cfg: Config) -> None:
         self.out_dir = out_dir
-        self.cfg = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, backplane="can"))
+        self.cfg = dataclasses.replace(
+            cfg,
+            plant=dataclasses.replace(cfg.plant, backplane="can"),
+            session=dataclasses.replace(cfg.session, clock="realtime"),
+        )
         self.result: dict[str, Any] = {}
 
     def __enter__(self) -> _CanRig:

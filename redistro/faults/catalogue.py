@@ -30,7 +30,10 @@ detecting node; ``guard``: 2 cycles, the check before a command; ``heartbeat``:
 the heartbeat limit; ``starving``: the starving limit; ``io``: the I/O
 timeout; ``""``: no bound, physics decides), every robot frozen, nothing left.
 ``count``: for a fault the controller must ride out, the counter (in the
-summary) that must show it refused the bad data. ``apart``: the plant's
+summary) that must show it refused the bad data. A scenario whose verdict
+is not a time (``Scenario.timed``) may run in lockstep
+(``faults --clock lockstep``): its sessions then run paced by the plant,
+and what froze after the fault is told by plant step. ``apart``: the plant's
 truth (``summary.plant.arms``) must show that the arms never touched.
 """
 
@@ -68,6 +71,13 @@ class Scenario:
     count: str = ""
     what: str = ""  # one line: the fault, for the table
     apart: bool = False  # the plant's truth must show the arms never touched
+
+    @property
+    def timed(self) -> bool:
+        """Its verdict is a time: a detection within its bound, or a
+        session that keeps time under load (the hogs, a flood of records).
+        It runs in real time only; ``--clock lockstep`` leaves it out."""
+        return bool(self.limit) or self.kind == "hogs" or self.action == "ddm.flood"
 
 
 def _process_scenarios() -> list[Scenario]:

@@ -24,6 +24,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -259,10 +260,14 @@ def _break_session(
         row["error"] = str(exc)
     finally:
         _end(proc)
+    lockstep = cfg.session.clock == "lockstep"
     fired = _fired_ns(trigger)
-    if fired:
+    if fired and not lockstep:  # (in lockstep the plant stamps its simulated clock)
         inject_ns = fired
-    row.update(_verdict(sc, sid, inject_ns, out_dir, runs, cfg, cycles_at))
+    # in lockstep the plant's records go by its step: those after the fault
+    # are those from the step its boards last gave r2's ESC at the injection
+    since = cycles_at.get("step", 0) if lockstep else None
+    row.update(_verdict(sc, sid, inject_ns, out_dir, runs, cfg, cycles_at, since))
     if "error" in row:
         row["passed"] = False
     return row
@@ -313,6 +318,9 @@ def _read_cycles(views: list[NodeView], into: dict[str, int]) -> None:
     for v in views:  # an ESC's sender: each of its cycles sends a command
         with contextlib.suppress(Exception):
             into[f"{v.node}/sender"] = int(v.proc("sender")["cycles"])
+        if v.node == "esc.r2":  # the boards' sample r2's ESC last took
+            with contextlib.suppress(Exception):
+                into["step"] = int(v.read("feedback", 0)["step"])
 
 
 def _end(proc: subprocess.Popen[str]) -> None:
@@ -382,9 +390,12 @@ def _verdict(
     runs: Path,
     cfg: Config,
     cycles_at: dict[str, int] | None = None,
+    since_step: int | None = None,
 ) -> dict[str, Any]:
     """A scenario's row: what the session said, when the fault was detected
-    and by whom, the freezes and e-stops, what was left behind."""
+    and by whom, the freezes and e-stops, what was left behind.
+    ``since_step``: in lockstep, the plant's records after the fault are
+    those from this step on (else those stamped after ``inject_ns``)."""
     row: dict[str, Any] = {}
     try:
         summary = json.loads((out_dir / "summary.json").read_text())
@@ -402,14 +413,24 @@ def _verdict(
     ]
     row["detected"] = got != "ok" and got != "none"
     detected_ns = _detection(sc, cfg, nodes, inject_ns, cycles_at, row)
-    _freezes(sc, summary, nodes, inject_ns, detected_ns, row)
+
+    def after(rec: dict[str, Any]) -> bool:  # a plant record (a freeze, a trip) is
+        if since_step is None:
+            return bool(rec.get("monotonic_ns", 0) >= inject_ns > 0)
+        return int(rec.get("step", 0)) >= since_step
+
+    if since_step is not None:  # (wall-clock figures of a paced run say nothing)
+        row["clock"] = "lockstep"
+        for key in ("detection_ms", "detection_cycles"):
+            row.pop(key, None)
+    _freezes(sc, summary, nodes, after, detected_ns, row, timed=since_step is None)
     row["estop_every_node"] = bool(nodes) and all(n.get("result") != "ok" for n in nodes.values())
     stops = [int(n["fault_monotonic_ns"]) for n in nodes.values() if n.get("fault_monotonic_ns")]
-    if len(stops) == len(nodes) > 1 and detected_ns is not None:
+    if len(stops) == len(nodes) > 1 and detected_ns is not None and since_step is None:
         # from the first node's fault to the last node's e-stop
         row["estop_spread_ms"] = round((max(stops) - min(stops)) / 1e6, 2)
     watchdog = summary.get("plant", {}).get("watchdog_trips") or []
-    row["watchdog_trips"] = [t["robot"] for t in watchdog if t.get("monotonic_ns", 0) >= inject_ns]
+    row["watchdog_trips"] = [t["robot"] for t in watchdog if after(t)]
     row["processes_left"] = len(pids_of(sid)) if sid else 0
     row["ipc_left"] = ipc_left(sid) if sid else []
     valid = []
@@ -497,20 +518,24 @@ def _freezes(
     sc: Scenario,
     summary: dict[str, Any],
     nodes: dict[str, Any],
-    inject_ns: int,
+    after: Callable[[dict[str, Any]], bool],
     detected_ns: int | None,
     row: dict[str, Any],
+    timed: bool = True,
 ) -> None:
-    """Which robots froze after the fault, how soon after its detection,
-    and each after its own ESC's fault (a dead plant freezes nothing)."""
+    """Which robots froze after the fault (``after``: a plant record is),
+    and in real time (``timed``) how soon after its detection and each
+    after its own ESC's fault (a dead plant freezes nothing)."""
     if sc.kind == "process" and sc.node == "plant":
         return
     frozen: dict[str, float] = {}
     for f in summary.get("plant", {}).get("freezes") or []:
-        if f.get("monotonic_ns", 0) >= inject_ns > 0 and f["robot"] not in frozen:
+        if after(f) and f["robot"] not in frozen:
             frozen[f["robot"]] = f["monotonic_ns"]
     row["frozen"] = sorted(frozen)
     row["all_frozen"] = set(frozen) >= {"r1", "r2"}
+    if not timed:  # (the plant's stamps are its simulated clock)
+        return
     if frozen and detected_ns is not None:
         # from the first detection to the last robot's brakes at the plant
         row["freeze_ms"] = round((max(frozen.values()) - detected_ns) / 1e6, 2)

@@ -48,6 +48,11 @@ WRENCH_STAMPED_DEF = _with(
 EVENT = "redistro/msg/Event"
 EVENT_DEF = "string json\n"
 
+# one a cycle beside a node's timing (``/<node>/digest``): the hash of that
+# cycle's logged data but its wall-clock stamps (the run's digest chains them)
+CYCLE_DIGEST = "redistro/msg/CycleDigest"
+CYCLE_DIGEST_DEF = "uint64 log_cycle\nuint8[16] digest\n"
+
 # a message-box line (a worker's or the manager's text), its levels those
 # of rcl_interfaces/msg/Log (and of Python's logging)
 MESSAGE = "redistro/msg/Message"

@@ -182,8 +182,8 @@ MSG_FOLDER = "redistro/msg"  # the package's message definitions, beside its cod
 def package_messages() -> dict[str, str]:
     """Every redistro message a session log holds, as the ``.msg`` files of
     a ROS 2 package named ``redistro`` (file name -> text): one per logged
-    Local Data block, ``Timing<n>`` for a node of ``n`` processes, the event
-    and the message-box line. ``redistro/msg/`` holds them; a unit test
+    Local Data block, ``Timing<n>`` for a node of ``n`` processes, a
+    cycle's digest, the event and the message-box line. ``redistro/msg/`` holds them; a unit test
     keeps the two equal (``write_package_messages`` writes them anew)."""
     from redistro.localdata.layout import BLOCKS, MAX_PROCS
     from redistro.log import ros2
@@ -195,6 +195,7 @@ def package_messages() -> dict[str, str]:
     for n in range(1, MAX_PROCS + 1):
         out[f"Timing{n}.msg"] = msg_definition(timing_dtype(n))
     out["Event.msg"] = ros2.EVENT_DEF
+    out["CycleDigest.msg"] = ros2.CYCLE_DIGEST_DEF
     out["Message.msg"] = ros2.MESSAGE_DEF.split(ros2.SEPARATOR)[0]
     return out
 

@@ -32,6 +32,7 @@ from redistro.log.frames import (
 )
 
 CHUNK_BYTES = 256 * 1024
+DIGEST_DEF = ros2.CYCLE_DIGEST_DEF.encode()
 PACE_S = 0.01  # after a read that emptied the pipe, the next waits this long
 
 
@@ -143,10 +144,12 @@ class _McapSink:
         self.message_schema: int | None = None
         self.node = ""
         self.frames = self.messages = 0
-        # the run's digest: each cycle's logged data but its wall-clock
-        # stamps, chained (two lockstep runs of one task give the same)
+        # each cycle's digest (its logged data but the wall-clock stamps,
+        # on /<node>/digest) and the run's, which chains them: two lockstep
+        # runs of one task give the same
         self.digest = hashlib.blake2b(digest_size=16)
         self.digest_runs: list[list[tuple[int, int]]] = []
+        self.digest_channel = 0
 
     def header(self, header: dict[str, Any]) -> None:
         """The node's channels (one per logged block, and its timing), and
@@ -162,6 +165,11 @@ class _McapSink:
             cid = w.register_channel(ch["topic"], MESSAGE_ENCODING, sid, {"node": header["node"]})
             if ch is header["timing"]:
                 self.timing = Timing(header, cid)
+                sid = w.register_schema(ros2.CYCLE_DIGEST, SCHEMA_ENCODING, DIGEST_DEF)
+                topic = ch["topic"].rsplit("/", 1)[0] + "/digest"
+                self.digest_channel = w.register_channel(
+                    topic, MESSAGE_ENCODING, sid, {"node": header["node"]}
+                )
             else:
                 runs = [(int(a), int(a) + int(n), bytes(int(p))) for a, n, p in ch["runs"]]
                 spec = ch.get("ros2")
@@ -208,7 +216,8 @@ class _McapSink:
         cycle_bytes = body[0:8]
         seq = int.from_bytes(cycle_bytes, "little") & 0xFFFFFFFF
         poses: list[Any] = []  # (the cycle's transforms, in the scene's order)
-        digest = self.digest.update
+        this = hashlib.blake2b(digest_size=16)
+        digest = this.update
         for (cid, off, n, runs, std, part), keep in zip(self.cuts, self.digest_runs, strict=True):
             packed = cycle_bytes + body[off : off + n]
             for a, b in keep:
@@ -225,7 +234,12 @@ class _McapSink:
             w.add_message(self.tf_channel, log_ns, self.scene.message(log_ns, poses), log_ns, seq)
             self.messages += 1
         w.add_message(timing.channel, log_ns, timing.message(body), log_ns, seq)
-        self.messages += len(self.cuts) + 1
+        cycle_digest = this.digest()
+        self.digest.update(cycle_digest)
+        w.add_message(
+            self.digest_channel, log_ns, CDR_HEADER + cycle_bytes + cycle_digest, log_ns, seq
+        )
+        self.messages += len(self.cuts) + 2
         self.frames += 1
         for doc in timing.events(body):
             self.event(str(doc.pop("topic")), doc, log_ns)

@@ -20,8 +20,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from redistro import files
 from redistro.config.model import Config
 from redistro.errors import ConfigError, clipped
@@ -139,63 +137,25 @@ def compare(run: Path, again: Path, summary: dict[str, Any], new: dict[str, Any]
         "result": new.get("result", "none"),
     }
     if not report["identical"] and (again / "session.mcap").is_file():
-        report["first_difference"] = first_difference(run / "session.mcap", again / "session.mcap")
+        from redistro.log.diff import compare_logs
+
+        try:
+            found = compare_logs(run / "session.mcap", again / "session.mcap")
+        except ValueError as exc:  # (a log that does not read: named in the report)
+            report["unreadable"] = str(exc)
+            return report
+        report["nodes"] = found["nodes"]
+        report["first_difference"] = found.get("first_difference")
     return report
 
 
 def report_line(report: dict[str, Any]) -> str:
+    from redistro.log.diff import report_line as line
+
     if report["identical"]:
         return f"identical: true (log.digest {report['digest']})"
-    d = report.get("first_difference")
-    if not d:
+    if report.get("unreadable"):
+        return f"identical: false ({report['unreadable']})"
+    if not report.get("first_difference"):
         return f"identical: false (the replay ended {report['result']}, no log to compare)"
-    return (
-        f"identical: false: first difference at cycle {d['cycle']}, {d['topic']} "
-        f"{d['field']} (recorded {d['recorded']}, replayed {d['replayed']})"
-    )
-
-
-def first_difference(a: Path, b: Path) -> dict[str, Any] | None:
-    """The earliest cycle at which two session logs' cycle channels differ
-    (wall-clock stamps and timing channels aside): its topic and field."""
-    from redistro.log.mcapfile import read_log
-
-    la, lb = read_log(a), read_log(b)
-    best: dict[str, Any] | None = None
-    for topic in sorted(set(la.arrays) | set(lb.arrays)):
-        if topic.endswith("/timing"):
-            continue
-        x, y = la.arrays.get(topic), lb.arrays.get(topic)
-        found = _first_in(topic, x, y)
-        if found is not None and (best is None or found["cycle"] < best["cycle"]):
-            best = found
-    return best
-
-
-def _first_in(topic: str, x: Any, y: Any) -> dict[str, Any] | None:
-    if x is None or y is None:
-        return {"cycle": 0, "topic": topic, "field": "(channel)", "recorded": x is not None,
-                "replayed": y is not None}  # fmt: skip
-    n = min(len(x), len(y))
-    first: dict[str, Any] | None = None
-    for name in x.dtype.names or ():
-        if name.endswith("_ns") or name == "log_cycle":
-            continue
-        differ = np.asarray(x[name][:n] != y[name][:n]).reshape(n, -1).any(axis=1)
-        if differ.any():
-            i = int(np.argmax(differ))
-            if first is None or i < first["row"]:
-                first = {"row": i, "field": name, "recorded": _plain(x[name][i]),
-                         "replayed": _plain(y[name][i])}  # fmt: skip
-    if first is None and len(x) != len(y):
-        first = {"row": n, "field": "(cycles)", "recorded": len(x), "replayed": len(y)}
-    if first is None:
-        return None
-    row = int(first.pop("row"))
-    cycles = x["log_cycle"] if row < len(x) else y["log_cycle"]
-    cycle = int(cycles[min(row, len(cycles) - 1)]) if len(cycles) else 0
-    return {"cycle": cycle, "topic": topic, **first}
-
-
-def _plain(v: Any) -> Any:
-    return v.tolist() if hasattr(v, "tolist") else v
+    return line(report)

@@ -313,6 +313,13 @@ CASES = [
         ["log", "summary", "{corrupt_plain}"],
         "not a readable session log",
     ),
+    (
+        "log diff of a corrupt log",
+        ["log", "diff", "{list_event}", "{corrupt}"],
+        "not a readable session log",
+    ),
+    ("log diff with no second run", ["log", "diff", "{list_event}"], "the following arguments"),
+    ("log diff with a missing run", ["log", "diff", "{list_event}", "{empty}"], "not a run folder"),
     # output targets that can never be written
     (
         "--csv into /sys",

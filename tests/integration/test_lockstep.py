@@ -70,6 +70,10 @@ def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
         for t in ("socket", "reflective", "zenoh")
     }
     assert len(set(digests.values())) == 1, digests
+    _cycle_digests_chain_to_the_runs(runs / "socket" / "run")
+    # two runs compared cycle by cycle, from their logs alone
+    same = run_cli("log", "diff", str(runs / "socket" / "run"), str(runs / "zenoh" / "run"))
+    assert same.returncode == 0 and same.stdout.startswith("identical: true"), same
     # each run again from its folder alone (its config, task and start)
     for transport in ("socket", "zenoh"):
         run = runs / transport / "run"
@@ -84,6 +88,31 @@ def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
     assert rc == 1 and first is not None, out
     assert first["cycle"] > 100 and first["topic"].startswith("/r2/"), first
     assert first["field"] in ("tau_nm", "q_cmd_rad", "ref_xyz_m", "wrench_task"), first
+    # the cycles' digests agree on where, and count the cycles that differ
+    assert out["nodes"]["ssc"]["first_cycle"] == first["cycle"], out["nodes"]
+    assert 0 < out["nodes"]["ssc"]["differing"] <= max(out["nodes"]["ssc"]["cycles"])
+    report = tmp_path / "diff.json"
+    differ = run_cli("log", "diff", str(run), out["replay"], "--json", str(report))
+    assert differ.returncode == 1, differ.stdout + differ.stderr
+    assert f"first difference at cycle {first['cycle']}, {first['topic']}" in differ.stdout
+    assert load_json(report)["first_difference"] == first
+
+
+def _cycle_digests_chain_to_the_runs(run: Path) -> None:
+    """One digest a logged cycle (``/ssc/digest``); chained, they are the
+    node's digest in summary.json."""
+    import hashlib
+
+    from redistro.log.mcapfile import read_log
+
+    summary = load_json(run / "summary.json")
+    rows = read_log(run / "session.mcap").arrays["/ssc/digest"]
+    node = summary["log"]["nodes"]["ssc"]
+    assert len(rows) == node["recorded"] > 0
+    assert (rows["log_cycle"][1:] > rows["log_cycle"][:-1]).all()
+    chain = hashlib.blake2b(rows["digest"].tobytes(), digest_size=16).hexdigest()
+    assert chain == node["digest"]
+    assert len({bytes(r) for r in rows["digest"]}) == len(rows)  # (each cycle's own)
 
 
 def test_a_session_over_the_can_backplane_runs_to_its_end_in_lockstep(
