@@ -105,10 +105,19 @@ def page(url: str) -> Iterator[Any]:
 
 
 def wait_text(tab: Any, text: str, timeout_s: float = 60.0) -> str:
-    """The page's text, once it shows ``text`` (Playwright waits, with a deadline)."""
-    tab.wait_for_function(
-        "t => document.body.innerText.includes(t)", arg=text, timeout=int(timeout_s * 1000)
-    )
+    """The page's text, once it shows ``text`` (Playwright waits, with a
+    deadline; past it, an AssertionError that shows what the page said)."""
+    from playwright.sync_api import TimeoutError as PageTimeout
+
+    try:
+        tab.wait_for_function(
+            "t => document.body.innerText.includes(t)", arg=text, timeout=int(timeout_s * 1000)
+        )
+    except PageTimeout:
+        raise AssertionError(
+            f"the page never showed {text!r} in {timeout_s} s; it shows: "
+            + tab.inner_text("body")[:3000]
+        ) from None
     body: str = tab.inner_text("body")
     return body
 

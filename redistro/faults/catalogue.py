@@ -16,7 +16,8 @@ Kinds:
 - ``start``: what the next start finds: a crashed session's leftovers, a
   missing, corrupt or unclean positions file;
 - ``input``: a bad task file, config or command line;
-- ``hogs``: the whole peg insertion beside two processes spinning on both CPUs;
+- ``hogs``: the short peg insertion (every segment of the main job)
+  beside two processes spinning on both CPUs;
 - ``limits``: the drill itself, with config that puts a joint limit in its
   way: nothing is injected, the guard must stop the joint inside the limit;
 - ``rerun``: a session's records to r2, recorded, sent again in a later
@@ -250,7 +251,8 @@ def _other_scenarios() -> list[Scenario]:
         out.append(Scenario(f"input-{case}", "input", "", "", case, refused, "", "", what=what))
     out.append(
         Scenario("cpu-hogs-peg", "hogs", "", "", "hogs", ("ok",), "", "",
-                 what="the whole peg insertion beside two processes spinning on both CPUs")
+                 what="the short peg insertion (the main job's four segments) beside two "
+                      "processes spinning on both CPUs")
     )  # fmt: skip
     return out
 

@@ -50,6 +50,7 @@ TASK = "tasks/fault_drill.yaml"
 CALIBRATION_TASK = "tasks/self_calibration_short.yaml"
 ROBOT = 1  # r2, the robot that moves (index in the task's robots)
 SESSION_TIMEOUT_S = 240.0
+HOGS_TASK = "tasks/peg_insertion_short.yaml"  # (every segment of the main job, in 27 s)
 
 
 def _cli(runs: Path, config_args: list[str]) -> list[str]:
@@ -668,7 +669,8 @@ def _stale_ipc(
 
 
 def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> dict[str, Any]:
-    """The whole peg insertion beside two processes spinning at normal priority."""
+    """The short peg insertion (the main job's four segments) beside two
+    processes spinning at normal priority."""
     spin = "import time\nwhile True:\n    pass\n"
     hogs = [
         subprocess.Popen([sys.executable, "-c", spin], preexec_fn=die_with_parent) for _ in range(2)
@@ -676,8 +678,7 @@ def _hogs(sc: Scenario, runs: Path, out_dir: Path, config_args: list[str]) -> di
     t0 = time.monotonic()
     try:
         done = subprocess.run(
-            [*_session_args(sc, runs, config_args), "session", "tasks/peg_insertion.yaml",
-             "--out", str(out_dir)],
+            [*_session_args(sc, runs, config_args), "session", HOGS_TASK, "--out", str(out_dir)],
             capture_output=True,
             text=True,
             timeout=1800,

@@ -6,8 +6,8 @@ signed command, ``ssc/ctl.py``) and, on a new command:
 - **pause**: every robot holds where it is: one moving under its Cartesian
   law keeps the law, restarted on the pose it is at with every axis under
   position control (a force axis's goal force goes to zero; the arm holds
-  its place), anchored again where it comes to rest; one on a joint move,
-  the joint PID on its measured pose; one that held already, its hold.
+  its place), anchored again where it comes to rest; one on a joint move
+  too (its law's integral from nought); one that held already, its hold.
   The segment's clock stops; the answer waits until every joint is at rest.
 - **resume**: the segment starts again from the current pose, its moves
   re-planned (the task's clock goes on from where it stopped).
@@ -153,19 +153,20 @@ class Operator:
             self.by_law[i] = False
             if w.moving[i] is None:
                 continue  # (it holds already: its PID, integral and all, goes on)
-            if st.cartesian:
-                self._hold_here(st)  # its law holds the pose it is at
-                w.moving[i] = None
-                self.by_law[i] = True
-            else:
-                w._stop(i, st)  # a joint move: the joint PID holds where it is
+            # its Cartesian law holds the pose it is at; a joint move's too (a
+            # joint PID set on the pose it was at overshot it, settled for
+            # seconds and let the tool sag mm), its integral from nought
+            self._hold_here(st, learned=st.cartesian)
+            w.moving[i] = None
+            self.by_law[i] = True
         self.paused, self.since, self.stopping = True, 0.0, True
         w.post(f"operator pause at t={t:.2f} s: every robot holds")
 
-    def _hold_here(self, st: RobotState) -> None:
+    def _hold_here(self, st: RobotState, learned: bool = True) -> None:
         """The robot's Cartesian law restarted on the pose it is at, every axis
         under position control: the arm comes to rest there, and what a force
-        axis pressed with goes to zero as the arm holds its place."""
+        axis pressed with goes to zero as the arm holds its place.
+        ``learned``: the law's integral goes on (else from nought)."""
         from redistro.control.cartesian import TaskFrameCommand, matrix_to_rotvec
 
         q = st.views["q"].astype(np.float64)
@@ -174,7 +175,8 @@ class Operator:
         none = np.zeros(6)
         cmd = TaskFrameCommand(pose, none, none, "world")
         move_gains(st.law.gains, st.gains_cfg, HOLD_K)  # (stiffer than a move's: it stands)
-        st.law.start(cmd, kin.p, kin.R, HOLD_S, q, st.law.integral.copy())
+        integral = st.law.integral.copy() if learned else np.zeros_like(st.law.integral)
+        st.law.start(cmd, kin.p, kin.R, HOLD_S, q, integral)
         st.follow = st.holder = None
         st.search = None
         st.short_move = True

@@ -106,10 +106,25 @@ def _jog(plant: Plant, sid: str, robot: str, mm: tuple[float, float, float]) -> 
     return float(np.linalg.norm(moved - np.asarray(mm) / 1000.0))
 
 
+HOME = 4  # the short main job's last segment: r2's joint move home
+
+
+def _wait_segment(ssc: Any, robot: int, segment: int, into_s: float) -> None:
+    """Until the SSC's plan has ``robot`` ``into_s`` into ``segment`` (polled, to a deadline)."""
+    deadline = time.monotonic() + 120.0
+    while True:
+        plan = ssc.read("plan", robot)
+        if int(plan["segment"]) == segment and float(plan["segment_t_s"]) >= into_s:
+            return
+        assert time.monotonic() < deadline, f"segment {segment} never came: {plan}"
+        time.sleep(0.01)  # (polling the controller's plan, with a deadline)
+
+
 @pytest.fixture(scope="module")
 def commanded(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """The short main job commanded by ``redistro ctl`` in its approach:
-    pause, a forged resume, a jog of each arm, resume; what the truth said."""
+    pause, a forged resume, a jog of each arm, resume; then a pause and a
+    resume in r2's joint move home; what the truth said."""
     from redistro.ipc import names
     from redistro.localdata.view import SessionViews
     from redistro.ssc.ctl import Client, Command, Order
@@ -134,6 +149,11 @@ def commanded(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dic
             seen["too_far"] = ctl(sid, "jog", "r2", "--mm", "6", "0", "0")
             seen["resume"] = ctl(sid, "resume")
             seen["resume_again"] = ctl(sid, "resume")
+            # r2 homing on a joint move: its Cartesian law holds it too
+            _wait_segment(ssc, 1, HOME, 1.0)
+            seen["pause_home"] = ctl(sid, "pause")
+            seen["held_home"] = plant.motion(2.0)
+            seen["resume_home"] = ctl(sid, "resume")
         finally:
             views.close()
             plant.close()
@@ -149,8 +169,9 @@ def test_ctl_pauses_jogs_refuses_a_forgery_and_resumes_to_an_inserted_peg(
     a command signed with another key is refused, counted and changes
     nothing; a jog moves the tool by its step within 0.5 mm (r2 held by its
     Cartesian law, r1 by the joint PID); a jog past 5 mm is bad input; after
-    resume the task ends ok with the peg in the hole; each command, its
-    effect and the refusal are events in the log."""
+    resume the task ends ok with the peg in the hole; paused in r2's joint
+    move home, every tool holds as well; each command, its effect and the
+    refusal are events in the log."""
     from redistro.log.mcapfile import read_log
 
     c = commanded
@@ -165,14 +186,17 @@ def test_ctl_pauses_jogs_refuses_a_forgery_and_resumes_to_an_inserted_peg(
     assert c["resume"].returncode == 0 and "resume: done" in c["resume"].stdout
     again = c["resume_again"]  # (not paused: refused by the worker, exit 1)
     assert again.returncode == 1 and "resume: not now" in again.stderr, again.stderr
+    # paused in r2's joint move home: held as well
+    assert c["pause_home"].returncode == 0 and c["resume_home"].returncode == 0, c
+    assert max(c["held_home"].values()) < 0.0005, c["held_home"]
     assert c["returncode"] == 0, c["stdout"][-3000:]
     run = c["run"]
     summary = load_json(run / "summary.json")
     assert summary["result"] == "ok" and summary["inserted"] is True, summary.get("reason")
-    assert summary["operator"] == {"accepted": 5, "refused": 1}, summary["operator"]
+    assert summary["operator"] == {"accepted": 7, "refused": 1}, summary["operator"]
     events = read_log(run / "session.mcap").events.get("/ssc/operator", [])
     commands = [e["command"] for e in events if e.get("event") == "command"]
-    assert commands == ["pause", "jog", "jog", "resume", "resume"], events
+    assert commands == ["pause", "jog", "jog", "resume", "resume", "pause", "resume"], events
     effects = [(e["command"], e["status"]) for e in events if e.get("event") == "effect"]
     assert ("pause", "done") in effects and ("jog", "done") in effects, effects
     assert ("resume", "not_now") in effects, effects
@@ -236,27 +260,46 @@ def press(tab: Any, button: str, answer: str) -> str:
     return browser.wait_text(tab, answer)
 
 
+def _slow_approach(tmp: Path) -> str:
+    """The short main job with an approach of 20 s: the page's Pause
+    lands while r2 moves to the hole."""
+    import yaml
+
+    task = yaml.safe_load((ROOT / SHORT).read_text())
+    approach = task["segments"][0]
+    assert approach["name"] == "approach", approach
+    approach["duration_s"], approach["goal"]["move_s"] = 25, 20
+    path = tmp / "peg_insertion_slow_approach.yaml"
+    path.write_text(yaml.safe_dump(task, sort_keys=False))
+    return str(path)
+
+
 def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_path: Path) -> None:
-    """The live view of the main job in headless Chromium: a click on
-    Pause holds every robot (under 0.5 mm over 2 s of the plant's time),
-    the +z jog button moves r1's tool 5 mm within 0.5 mm, a click on
-    Resume lets the task end ok with the peg in the hole."""
+    """The live view of the peg insertion in headless Chromium. The
+    session runs as fast as the CPUs allow, so ``ctl pause`` holds it 1 s
+    into the approach while the page loads. Then, on the page: Resume; a
+    click on Pause holds every robot (under 0.5 mm over 2 s of the plant's
+    time); the +z jog button moves r1's tool 5 mm within 0.5 mm; Resume
+    lets the task end ok with the peg in the hole."""
     from redistro.view import wait_served
     from tests import browser
 
     port = browser.free_port()
-    with running(calibrated, tmp_path, "tasks/peg_insertion.yaml") as (proc, sid, out):
+    with running(calibrated, tmp_path, _slow_approach(tmp_path)) as (proc, sid, out):
         view = subprocess.Popen(
             [*REDISTRO, "view", "--live", sid, "--port", str(port)],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         plant = Plant(sid)
         try:
+            plant.wait_step(PHYSICS_HZ)
+            held_off = ctl(sid, "pause")
+            assert held_off.returncode == 0, held_off.stdout + held_off.stderr
             assert wait_served(port, 60.0), "the live view never served its page"
             with browser.page(f"http://127.0.0.1:{port}/") as tab:
                 browser.wait_text(tab, "operator: ready")
-                plant.wait_step(3 * PHYSICS_HZ)
-                press(tab, "Pause", "pause: done")
+                press(tab, "Resume", "resume: done")
+                text = press(tab, "Pause", "pause: done")  # (in the approach, mostly)
                 held = plant.motion(2.0)
                 before = plant.tool("r1")[0]  # (the panel's first robot: r1, in free space)
                 press(tab, "+z", "jog: done")
@@ -267,11 +310,11 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
         proc.communicate(timeout=300)
         _, err = view.communicate(timeout=30)  # (it ends with the session)
         assert view.returncode == 0, err[-2000:]
-    assert max(held.values()) < 0.0005, held
+    assert max(held.values()) < 0.0005, (held, text[text.find("segment:") :][:60])
     assert float(np.linalg.norm(miss)) < 0.0005, miss
     summary = load_json(out / "summary.json")
     assert summary["result"] == "ok" and summary["inserted"] is True, summary.get("reason")
-    assert summary["operator"] == {"accepted": 3, "refused": 0}, summary["operator"]
+    assert summary["operator"] == {"accepted": 5, "refused": 0}, summary["operator"]
 
 
 def test_off_loopback_the_page_asks_for_its_token(commanded: dict[str, Any]) -> None:
