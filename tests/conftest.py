@@ -122,7 +122,13 @@ def no_leaks() -> Iterator[None]:
 
 
 # the longest lockstep tests first (the second worker's run ends sooner)
-FIRST = ("test_lockstep.py", "test_peg_search.py", "test_moves.py", "test_operator.py")
+FIRST = (
+    "test_lockstep.py",
+    "test_peg_search.py",
+    "test_moves.py",
+    "test_operator.py",
+    "test_faults_lockstep.py",
+)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
