@@ -1,5 +1,5 @@
 """The parts of lockstep that need no session: the tick source, the log's
-digest runs, the run digest, and the replay's first difference."""
+digest runs, the run digest, the first difference, the cycles' digests."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import numpy as np
 
 from redistro.ipc.timer import IntervalTimer, LockstepTicks, tick_source
 from redistro.localdata.layout import FEEDBACK, GUARD, PLAN
+from redistro.log.diff import _digests, _first_in
 from redistro.log.mcapfile import run_digest
 from redistro.log.recorder import digest_runs
-from redistro.session.replay import _first_in
 
 
 def test_the_tick_source_follows_the_clock() -> None:
@@ -66,3 +66,19 @@ def test_the_first_difference_names_the_cycle_and_the_field() -> None:
     assert found["replayed"][2] == 1e-12
     # a run that ends sooner: the first cycle it lacks
     assert _first_in("/r1/feedback", x, x[:6])["field"] == "(cycles)"  # type: ignore[index]
+
+
+def test_the_cycles_digests_count_the_cycles_that_differ_and_find_the_first() -> None:
+    dtype = np.dtype([("log_cycle", "<u8"), ("digest", "u1", (16,))])
+    x = np.zeros(8, dtype)
+    x["log_cycle"] = np.arange(1, 9)
+    x["digest"] = np.arange(8 * 16).reshape(8, 16) % 251
+    assert _digests(x, x.copy()) == {"cycles": [8, 8], "differing": 0}
+    y = x.copy()
+    y["digest"][3, 15] ^= 1
+    y["digest"][6, 0] ^= 1
+    assert _digests(x, y) == {"cycles": [8, 8], "differing": 2, "first_cycle": 4}
+    # a log that ends sooner: its missing cycles differ, from the first it lacks
+    assert _digests(x, x[:5]) == {"cycles": [8, 5], "differing": 3, "first_cycle": 6}
+    # a node only one log has: every one of its cycles
+    assert _digests(x, None) == {"cycles": [8, 0], "differing": 8, "first_cycle": 0}
