@@ -75,7 +75,7 @@ def test_every_transport_gives_the_same_log_to_the_byte_and_replays_it(
     same = run_cli("log", "diff", str(runs / "socket" / "run"), str(runs / "zenoh" / "run"))
     assert same.returncode == 0 and same.stdout.startswith("identical: true"), same
     # each run again from its folder alone (its config, task and start)
-    for transport in ("socket", "zenoh"):
+    for transport in ("socket", "reflective", "zenoh"):
         run = runs / transport / "run"
         rc, out = _replay(run, runs / transport / "runs", tmp_path)
         assert rc == 0 and out["replay_digest"] == digests[transport], out
