@@ -48,10 +48,17 @@ class Plant:
     def step(self) -> int:
         return self.tool(next(iter(self.truth)))[1]
 
-    def wait_step(self, step: int, timeout_s: float = 120.0) -> None:
+    def wait_step(
+        self, step: int, timeout_s: float = 120.0, session: subprocess.Popen[str] | None = None
+    ) -> None:
+        """Until the plant's step counter reaches ``step`` (a deadline; an
+        ended ``session`` fails at once)."""
         deadline = time.monotonic() + timeout_s
         while self.step() < step:
             assert time.monotonic() < deadline, f"the plant never reached step {step}"
+            if session is not None and session.poll() is not None:
+                raise AssertionError(f"the session ended (exit {session.returncode}) at step "
+                                     f"{self.step()}, before step {step}")  # fmt: skip
             time.sleep(0.01)  # (polling the plant's step counter, with a deadline)
 
     def motion(self, seconds: float) -> dict[str, float]:
@@ -87,6 +94,12 @@ def running(
     )  # fmt: skip
     try:
         yield proc, read_session_id(proc), out
+    except BaseException:
+        if proc.poll() is None:
+            proc.kill()
+        said, err = proc.communicate()
+        print(f"the session said:\n{said[-4000:]}\n{err[-4000:]}")  # (in the failure's report)
+        raise
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -292,7 +305,7 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
         )  # fmt: skip
         plant = Plant(sid)
         try:
-            plant.wait_step(PHYSICS_HZ)
+            plant.wait_step(PHYSICS_HZ, session=proc)
             held_off = ctl(sid, "pause")
             assert held_off.returncode == 0, held_off.stdout + held_off.stderr
             assert wait_served(port, 60.0), "the live view never served its page"
