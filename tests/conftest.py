@@ -162,9 +162,11 @@ def _apart(nodeid: str) -> bool:
     """Runs in the second worker: the unit tests, the front door's (its
     refusals start no session) and the lockstep sessions; not the
     transports' contract tests, whose zenoh drops records on a loaded host
-    (congestion control DROP), as a session's ddm would."""
+    (congestion control DROP), as a session's ddm would; nor the two-hand
+    carries (lockstep, beside the real-time sessions: the workers' shares
+    even)."""
     path = nodeid.split("::")[0]
-    if path.endswith("/test_transports.py"):
+    if path.endswith("/test_transports.py") or "::test_two_hands_carry_one_bar" in nodeid:
         return False
     name = path.rsplit("/", 1)[-1]
     return "integration/" not in path or name == "test_front_door.py" or name in LOCKSTEP_MODULES

@@ -158,6 +158,10 @@ class Transport(ABC):
     # a memory, not a stream (reflective memory): a receive hands over the
     # latest record of each slot written since the last
     latest_only = False
+    # a stream that drops records rather than block when its link is
+    # congested (zenoh's publishers, congestion control DROP): what arrives
+    # is in order, the starving index sees what does not
+    drops_when_congested = False
     links: Links = NO_LINKS
     accelerator: Accelerator | None = None
 

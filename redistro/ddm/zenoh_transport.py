@@ -342,6 +342,8 @@ class ZenohTransport(Transport):
     ``esc`` (its one robot); ``gids`` maps each robot's name to the group-wide
     index the ddm sends with."""
 
+    drops_when_congested = True
+
     def __init__(
         self,
         settings: dict[str, Any],
