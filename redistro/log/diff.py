@@ -27,9 +27,11 @@ def compare_logs(a: Path, b: Path) -> dict[str, Any]:
     and when they are not identical the first difference (cycle, topic,
     field, both values). Raises ValueError naming a log that is not one."""
     la, lb = read_log(a), read_log(b)
+    # (a node's digests in one log only: a log from before they were kept,
+    # compared on its channels; a node missing altogether, by its channels)
     nodes = {
-        topic.split("/")[1]: _digests(la.arrays.get(topic), lb.arrays.get(topic))
-        for topic in sorted(set(la.arrays) | set(lb.arrays))
+        topic.split("/")[1]: _digests(la.arrays[topic], lb.arrays[topic])
+        for topic in sorted(set(la.arrays) & set(lb.arrays))
         if topic.endswith(DIGEST_TOPIC)
     }
     first = first_difference(la, lb)

@@ -146,6 +146,9 @@ def compare(run: Path, again: Path, summary: dict[str, Any], new: dict[str, Any]
             return report
         report["nodes"] = found["nodes"]
         report["first_difference"] = found.get("first_difference")
+        # (a run recorded before the cycles' digests chained its log.digest
+        # otherwise: the same data, cycle by cycle, is the same run)
+        report["identical"] = bool(found["identical"])
     return report
 
 
