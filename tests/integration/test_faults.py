@@ -30,19 +30,27 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(5400)]
 TIMED = [s.name for s in CATALOGUE if s.timed]
 
 
-@pytest.fixture(scope="module")
-def table(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    tmp = tmp_path_factory.mktemp("faults")
+def campaign(calibrated: Path, tmp: Path, *args: str, timeout: float) -> dict[str, Any]:
+    """``redistro faults`` (``args`` before and after the command's name,
+    split at ``faults``) from a copy of the calibrated runs folder: its
+    rows by name, the finished process and the JSON document."""
     runs = tmp / "runs"
     shutil.copytree(calibrated, runs)
     out = tmp / "faults.json"
-    only = [a for name in TIMED for a in ("--only", name)]
+    at = args.index("faults")
     done = run_cli(
-        "--set", f"session.runs_dir={runs}", "faults", *only, "--json", str(out), "--seed", "1",
-        "--retries", "2", timeout=4800,
+        *args[:at], "--set", f"session.runs_dir={runs}", *args[at:], "--json", str(out),
+        "--seed", "1", "--retries", "2", timeout=timeout,
     )  # fmt: skip
-    rows = {r["name"]: r for r in load_json(out)["scenarios"]}
-    return {"rows": rows, "done": done}
+    doc = load_json(out)
+    return {"rows": {r["name"]: r for r in doc["scenarios"]}, "done": done, "doc": doc}
+
+
+@pytest.fixture(scope="module")
+def table(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    only = [a for name in TIMED for a in ("--only", name)]
+    tmp = tmp_path_factory.mktemp("faults")
+    return campaign(calibrated, tmp, "faults", *only, timeout=4800)
 
 
 def _row(table: dict[str, Any], name: str) -> dict[str, Any]:

@@ -10,15 +10,14 @@ verdict is a time run in real time (`test_faults.py`).
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from redistro.faults.catalogue import CATALOGUE
-from tests.helpers import LOCKSTEP, load_json, run_cli
-from tests.integration.test_faults import check_row, check_table
+from tests.helpers import LOCKSTEP, run_cli
+from tests.integration.test_faults import campaign, check_row, check_table
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
 UNTIMED = [s.name for s in CATALOGUE if not s.timed]
@@ -27,15 +26,7 @@ UNTIMED = [s.name for s in CATALOGUE if not s.timed]
 @pytest.fixture(scope="module")
 def table(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     tmp = tmp_path_factory.mktemp("faults_lockstep")
-    runs = tmp / "runs"
-    shutil.copytree(calibrated, runs)
-    out = tmp / "faults.json"
-    done = run_cli(
-        *LOCKSTEP, "--set", f"session.runs_dir={runs}", "faults", "--json", str(out),
-        "--seed", "1", "--retries", "2", timeout=3000,
-    )  # fmt: skip
-    doc = load_json(out)
-    return {"rows": {r["name"]: r for r in doc["scenarios"]}, "done": done, "doc": doc}
+    return campaign(calibrated, tmp, *LOCKSTEP, "faults", timeout=3000)
 
 
 @pytest.mark.parametrize("name", UNTIMED)
