@@ -11,14 +11,15 @@ signed command, ``ssc/ctl.py``) and, on a new command:
   The segment's clock stops; the answer waits until every joint is at rest.
 - **resume**: the segment starts again from the current pose, its moves
   re-planned (the task's clock goes on from where it stopped).
-- **jog** (paused only): one robot's tool moves by a step of at most 5 mm
-  or 2 degrees in the world frame. Its posture is found in the Idle state
-  (damped least squares on the arm's model, a few iterations a slice),
-  checked against the joint limits less the guard's margin and the planned
-  clearance (``MIN_CLEARANCE_M``); then the robot's Cartesian law (taking
-  over from the joint PID where it held) moves the tool there, its
-  reference's peak speed under ``JOG_M_S`` and ``JOG_RAD_S``. The guard on
-  the ESC and the clearance watch of every cycle apply as ever.
+- **jog** (paused, once at rest): the pose one robot's tool holds moves by
+  a step of at most 5 mm or 2 degrees in the world frame. Its posture is
+  found in the Idle state (damped least squares on the arm's model, a few
+  iterations a slice), checked against the joint limits less the guard's
+  margin and the planned clearance (``MIN_CLEARANCE_M``); then the robot's
+  Cartesian law (taking over from the joint PID where it held) moves the
+  tool there, its reference's peak speed under ``JOG_M_S`` and
+  ``JOG_RAD_S``. The guard on the ESC and the clearance watch of every
+  cycle apply as ever.
 
 What it costs a cycle: one seqlocked read of the block (0.25 µs timed
 alone); paused, each robot's hold instead of its move.
@@ -261,11 +262,16 @@ class Operator:
 
         w = self.w
         st = w.states[i]
-        q0 = st.views["q"].astype(np.float64)  # (at rest)
-        kin = st.model.kinematics(q0)
-        p_goal = kin.p + step[:3]
-        R_goal = rotvec_to_matrix(step[3:]) @ kin.R
-        q = q0.copy()
+        q = st.views["q"].astype(np.float64)  # (at rest)
+        # the step moves the pose the robot holds, not one sample of where
+        # it is (a joint PID's hold wanders within its torque's quantum)
+        if self.by_law[i]:
+            p_hold, R_hold = st.views["goal"].copy(), rotvec_to_matrix(st.views["goal_rot"])
+        else:
+            held = st.model.kinematics(st.hold_q.astype(np.float64))
+            p_hold, R_hold = held.p, held.R
+        p_goal = p_hold + step[:3]
+        R_goal = rotvec_to_matrix(step[3:]) @ R_hold
         reached = False
         for k in range(IK_ITERATIONS):
             if k % IK_PER_SLICE == IK_PER_SLICE - 1:

@@ -39,11 +39,24 @@ class Plant:
         self.bank = wait_for(lambda: _attach(RegisterBank, sid), 60, "the plant's bank")
         names = self.bank.robot_names
         self.truth = {r: self.bank.truth(names.index(r)) for r in names}
+        from redistro.config.loader import load_config
+        from redistro.robotmodel import PLATE
+
+        cfg = load_config()  # (the tool centre point: the peg's tip, or the plate's face)
+        self.tcp_m = {
+            r: cfg.workcell.peg.length_m if cfg.robots[r].peg else PLATE[1] for r in names
+        }
 
     def tool(self, robot: str) -> tuple[np.ndarray[Any, Any], int]:
         """(the tool's position [m], the plant's step) now."""
         d = self.truth[robot].read()
         return d["tool_xyz_m"].copy(), int(d["step"])
+
+    def tcp(self, robot: str) -> np.ndarray[Any, Any]:
+        """The tool centre point [m] now: the peg's tip, or the plate's face,
+        along the wrist sensor's z axis (a jog moves this point)."""
+        d = self.truth[robot].read()
+        return np.asarray(d["tool_xyz_m"] + d["tool_rot"] @ np.array([0.0, 0.0, self.tcp_m[robot]]))
 
     def step(self) -> int:
         return self.tool(next(iter(self.truth)))[1]
@@ -111,11 +124,11 @@ def ctl(sid: str, *args: str) -> subprocess.CompletedProcess[str]:
 
 
 def _jog(plant: Plant, sid: str, robot: str, mm: tuple[float, float, float]) -> float:
-    """``ctl jog``: how far the tool's move [m] missed the step, by the truth."""
-    before = plant.tool(robot)[0]
+    """``ctl jog``: how far the tool centre point's move [m] missed the step, by the truth."""
+    before = plant.tcp(robot)
     done = ctl(sid, "jog", robot, "--mm", *(str(v) for v in mm))
     assert done.returncode == 0 and "jog: done" in done.stdout, done.stdout + done.stderr
-    moved = plant.tool(robot)[0] - before
+    moved = plant.tcp(robot) - before
     return float(np.linalg.norm(moved - np.asarray(mm) / 1000.0))
 
 
@@ -180,7 +193,7 @@ def test_ctl_pauses_jogs_refuses_a_forgery_and_resumes_to_an_inserted_peg(
 ) -> None:
     """Paused, every tool holds (under 0.5 mm over 2 s of the plant's time);
     a command signed with another key is refused, counted and changes
-    nothing; a jog moves the tool by its step within 0.5 mm (r2 held by its
+    nothing; a jog moves the tool centre point by its step within 0.5 mm (r2 held by its
     Cartesian law, r1 by the joint PID); a jog past 5 mm is bad input; after
     resume the task ends ok with the peg in the hole; paused in r2's joint
     move home, every tool holds as well; each command, its effect and the
@@ -314,9 +327,9 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
                 press(tab, "Resume", "resume: done")
                 text = press(tab, "Pause", "pause: done")  # (in the approach, mostly)
                 held = plant.motion(2.0)
-                before = plant.tool("r1")[0]  # (the panel's first robot: r1, in free space)
+                before = plant.tcp("r1")  # (the panel's first robot: r1, in free space)
                 press(tab, "+z", "jog: done")
-                miss = plant.tool("r1")[0] - before - np.array([0.0, 0.0, 0.005])
+                miss = plant.tcp("r1") - before - np.array([0.0, 0.0, 0.005])
                 press(tab, "Resume", "resume: done")
         finally:
             plant.close()
