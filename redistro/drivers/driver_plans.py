@@ -91,5 +91,6 @@ def driver_plans(d: RobotDriver) -> tuple[Any, Any]:
         tau=d.tau_cmd,
         volts_per_nm=d.volts_per_nm,
         code_off=at(dac, "out", "code", rows("dac"), chs("dac"), 2),
+        residual=d.dac_residual,
     )
     return decode_plan, dac_plan

@@ -127,6 +127,8 @@ class RobotDriver:
         self._wire = wire
         self._arena(physics_hz)
         self.tau_cmd = self.arena.take("tau_cmd", np.float64, DOF)  # the torques send() writes
+        # each joint's rounding error [DAC codes], carried into its next code
+        self.dac_residual = self.arena.take("dac_residual", np.float64, DOF)
         self._read: Any = None  # the batch reader and writer: made by open()
         self._write_dac: Any = None
         self._dac_watchdog = regs.out[BoardType.DAC]["watchdog"]
@@ -311,16 +313,21 @@ class RobotDriver:
         bad = np.flatnonzero(~np.isfinite(tau))
         if bad.size:
             return int(bad[0]) + 1
-        volts = tau * self.volts_per_nm  # (as the kernel multiplies: bit for bit)
+        # (as the kernel computes: bit for bit)
+        x = tau * self.volts_per_nm * (2048 / R.DAC_FULL_SCALE_V) + self.dac_residual
+        code = np.rint(x)
+        clipped = np.clip(code, R.DAC_CODE_MIN, R.DAC_CODE_MAX)
+        self.dac_residual[...] = np.where(clipped == code, x - code, 0.0)
         for a, (js, ch) in self.dac.items():
             dac = self.modules[a]
             assert isinstance(dac, DacDriver)
-            dac.set_volts(ch, volts[js])
+            dac.set_codes(ch, clipped[js])
         return 0
 
     def freeze(self) -> None:
-        """Brakes on, then every DAC channel to zero."""
+        """Brakes on, then every DAC channel to zero (nothing carried)."""
         self._set_brakes(True)
+        self.dac_residual[...] = 0.0
         for a in self.dac:
             dac = self.modules[a]
             assert isinstance(dac, DacDriver)

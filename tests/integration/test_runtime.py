@@ -322,4 +322,6 @@ def test_idle_work_runs_between_cycles_and_gives_way_to_the_sync() -> None:
     texts = [m["text"] for m in r.messages if m["text"].endswith("us of work done")]
     posted = {f"cycle {k}: 0 us of work done" for k in (50, 100, 150, 200)}
     assert set(texts) <= posted and len(texts) == len(set(texts)), texts
-    assert len(texts) >= len(posted) - b.skipped - b.stage_timeouts >= 1, (texts, b)
+    # (a loaded host's stalls may cost more cycles than b posts on: then
+    # at least one of the four still arrives)
+    assert len(texts) >= max(len(posted) - b.skipped - b.stage_timeouts, 1), (texts, b)

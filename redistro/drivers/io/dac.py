@@ -18,6 +18,10 @@ class DacDriver(ModuleDriver):
         """Stage output voltages (rounded and saturated by the converter); ``flush`` sends."""
         self.out["code"][channels] = dac_code(volts)
 
+    def set_codes(self, channels: np.ndarray[Any, Any], codes: np.ndarray[Any, Any]) -> None:
+        """Stage output codes (within the converter's range); ``flush`` sends."""
+        self.out["code"][channels] = codes
+
     def flush(self) -> None:
         # a new watchdog value on every write (never 0, which disables it)
         self.out["watchdog"] = (time.monotonic_ns() >> 10) & 0xFFFFFFFF or 1
