@@ -153,7 +153,8 @@ def test_the_dac_kernel_carries_its_rounding_as_the_numpy_driver_does() -> None:
     try:
         chassis = Chassis(CFG, world, HW)
         fast, ref = (
-            RobotDriver(HW["r2"], Loopback(chassis), 1000.0, use_kernels=use) for use in (True, False)
+            RobotDriver(HW["r2"], Loopback(chassis), 1000.0, use_kernels=use)
+            for use in (True, False)
         )
         for d in (fast, ref):
             d.open(owner=False)
