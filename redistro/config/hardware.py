@@ -82,6 +82,10 @@ class SensorsConfig:
     home_hysteresis_rad: the switch turns on this much inside the window
         edges and off this much outside them (half each side).
     ft_calibration: 6x6 matrix, wrench [N, N m] = C @ gauge counts.
+    dac_error_feedback: the driver carries the joint's DAC rounding error
+        into its next code (a torque under one code comes out on average);
+        off, each code is the torque rounded (a light link that one code
+        kicks hard is quieter so).
     """
 
     counts_per_rev: list[int] = field(metadata={"len": DOF, "ge": 4})
@@ -96,6 +100,9 @@ class SensorsConfig:
     home_window_rad: list[float] = field(metadata={"len": DOF, "gt": 0})
     home_hysteresis_rad: list[float] = field(metadata={"len": DOF, "ge": 0})
     ft_calibration: list[list[float]] = field(metadata={"len": 6})
+    dac_error_feedback: list[bool] = field(
+        default_factory=lambda: [True] * DOF, metadata={"len": DOF}
+    )
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ enum {
     DD_TAU, DD_WRENCH, DD_HOME, DD_BRAKES, DD_LCOUNT, DD_LEDGE, DD_LATCH_Q, DD_OUT
 };
 
-enum { DT_IMAGE, DT_TAU, DT_VOLTS_PER_NM, DT_CODE_OFF, DT_RESIDUAL };
+enum { DT_IMAGE, DT_TAU, DT_VOLTS_PER_NM, DT_CODE_OFF, DT_RESIDUAL, DT_CARRY };
 
 #define MAX_JOINTS 64
 #define STATE(pl, f) I64(pl, DD_STATE)[DRIVER_DECODE_STATE_##f]
@@ -165,17 +165,18 @@ static PyObject *driver_decode(PyObject *mod, PyObject *arg) {
 }
 
 /* Joint torques -> DAC codes (rounded, saturated) in the DAC boards' out
- * banks, each rounding's error carried into the next cycle's code (error
- * feedback: over cycles the codes average the torque asked for; a
- * saturated code carries nothing). Returns 0, or 1 + the first joint whose
- * torque is not finite (nothing is written, nothing carried then). */
+ * banks; on a joint whose carry is 1, each rounding's error is carried into
+ * the next cycle's code (error feedback: over cycles the codes average the
+ * torque asked for; a saturated code carries nothing). Returns 0, or 1 +
+ * the first joint whose torque is not finite (nothing is written, nothing
+ * carried then). */
 static PyObject *driver_dac(PyObject *mod, PyObject *arg) {
     PlanObject *pl = plan_arg(arg, "driver_dac");
     if (pl == NULL)
         return NULL;
     uint8_t *img = U8(pl, DT_IMAGE);
     double *tau = F64(pl, DT_TAU), *vpn = F64(pl, DT_VOLTS_PER_NM);
-    double *res = F64(pl, DT_RESIDUAL);
+    double *res = F64(pl, DT_RESIDUAL), *carry = F64(pl, DT_CARRY);
     int64_t *off = I64(pl, DT_CODE_OFF);
     Py_ssize_t n = pl->n[DT_TAU];
     for (Py_ssize_t j = 0; j < n; j++)
@@ -191,7 +192,7 @@ static PyObject *driver_dac(PyObject *mod, PyObject *arg) {
             v = -2048.0;
             res[j] = 0.0;
         } else {
-            res[j] = x - v;
+            res[j] = carry[j] * (x - v);
         }
         st_i16(img + off[j], (int16_t)v);
     }
@@ -219,7 +220,8 @@ static const Signature DRIVER_SIGNATURES[] = {
           DIM("latch_q", 'd', 'j', 1), REC("out", 'd', DRIVER_DECODE_OUT__N))},
     {"driver_dac",
      ARGS(FREE("image", 'B'), DIM("tau", 'd', 'j', 1), DIM("volts_per_nm", 'd', 'j', 1),
-          DIM("code_off", 'q', 'j', 1), DIM("residual", 'd', 'j', 1))},
+          DIM("code_off", 'q', 'j', 1), DIM("residual", 'd', 'j', 1),
+          DIM("carry", 'd', 'j', 1))},
 };
 
 static PyMethodDef DRIVER_METHODS[] = {

@@ -92,5 +92,6 @@ def driver_plans(d: RobotDriver) -> tuple[Any, Any]:
         volts_per_nm=d.volts_per_nm,
         code_off=at(dac, "out", "code", rows("dac"), chs("dac"), 2),
         residual=d.dac_residual,
+        carry=d.dac_carry,
     )
     return decode_plan, dac_plan

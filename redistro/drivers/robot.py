@@ -128,7 +128,10 @@ class RobotDriver:
         self._arena(physics_hz)
         self.tau_cmd = self.arena.take("tau_cmd", np.float64, DOF)  # the torques send() writes
         # each joint's rounding error [DAC codes], carried into its next code
+        # where the joint's carry is 1 (sensors.dac_error_feedback)
         self.dac_residual = self.arena.take("dac_residual", np.float64, DOF)
+        self.dac_carry = self.arena.take("dac_carry", np.float64, DOF)
+        self.dac_carry[...] = np.asarray(s.dac_error_feedback, dtype=np.float64)
         self._read: Any = None  # the batch reader and writer: made by open()
         self._write_dac: Any = None
         self._dac_watchdog = regs.out[BoardType.DAC]["watchdog"]
@@ -317,7 +320,7 @@ class RobotDriver:
         x = tau * self.volts_per_nm * (2048 / R.DAC_FULL_SCALE_V) + self.dac_residual
         code = np.rint(x)
         clipped = np.clip(code, R.DAC_CODE_MIN, R.DAC_CODE_MAX)
-        self.dac_residual[...] = np.where(clipped == code, x - code, 0.0)
+        self.dac_residual[...] = np.where(clipped == code, self.dac_carry * (x - code), 0.0)
         for a, (js, ch) in self.dac.items():
             dac = self.modules[a]
             assert isinstance(dac, DacDriver)

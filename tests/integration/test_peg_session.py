@@ -230,9 +230,10 @@ def test_an_unsafe_r1_stops_r2_and_every_node_sees_the_estop(
         "--set",
         f"session.runs_dir={runs}",
         "--set",
-        # above r1's joint 1 average speed (0.097 rad/s: the load check passes),
-        # below its quintic's peak (0.18 rad/s: the guard trips while it moves)
-        "esc.safety.qd_max_rad_s=[0.12, 0.12, 0.12, 0.12, 0.12, 0.12, 0.12]",
+        # joint 1's: above its average speed (0.097 rad/s: the load check
+        # passes), below its quintic's peak (0.18 rad/s: the guard trips
+        # while it moves); the other joints keep the config's 1 rad/s
+        "esc.safety.qd_max_rad_s=[0.12, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]",
         "session",
         str(ROOT / "tests/data/r1_moves_first.yaml"),
         "--out",
