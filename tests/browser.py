@@ -62,7 +62,7 @@ def screenshot(url: str, out: Path, settle_ms: int = 4000) -> str:
     with page(url) as tab:
         tab.wait_for_function("document.body.innerText.includes('cycle')", timeout=60_000)
         tab.wait_for_timeout(settle_ms)  # (the renderer's first frames, in software)
-        tab.screenshot(path=str(out))
+        tab.screenshot(path=str(out), timeout=90_000)  # (software rendering on a loaded host)
         text: str = tab.inner_text("body")
     return text
 

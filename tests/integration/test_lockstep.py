@@ -154,9 +154,12 @@ def test_the_live_view_follows_a_running_session_and_ends_with_it(
 ) -> None:
     """``redistro view --live`` beside a running main job (lockstep): the
     page draws the arms and names the task's segments; the session ended
-    (Ctrl-C), the view ends by itself, exit 0, nothing left behind."""
+    (Ctrl-C), the view ends by itself, exit 0, nothing left behind. The
+    session is paused (``ctl pause``) while Chromium loads the page: on a
+    loaded host the page once came up after the job's end."""
     import signal
     import subprocess
+    import time
 
     from tests import browser
     from tests.helpers import REDISTRO, ROOT, read_session_id
@@ -171,6 +174,10 @@ def test_the_live_view_follows_a_running_session_and_ends_with_it(
     view = None
     try:
         sid = read_session_id(session)
+        deadline = time.monotonic() + 120.0
+        while run_cli("ctl", sid, "pause", timeout=60).returncode != 0:  # (not yet started)
+            assert time.monotonic() < deadline and session.poll() is None, "no pause taken"
+            time.sleep(0.2)  # (polling the session's start, with a deadline)
         view = subprocess.Popen(
             [*REDISTRO, "view", "--live", sid, "--port", str(port)],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
