@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 PIPE_BUF = 4096  # a pipe write up to this size is all-or-nothing
 PIPE_BYTES = 1 << 20  # asked for; the kernel may give less (fs.pipe-max-size)
 WRITER_WAIT_S = 10.0
+EVENT_WAIT_S = 2.0  # in lockstep, the longest an event waits for room in the pipe
 RECORDERS = ("recorder", "logger")  # the logging workers' roles
 
 
@@ -262,15 +263,19 @@ class CycleRecorder:
         finally:
             os.close(fd)
 
-    def close(self) -> dict[str, Any]:
-        """Send the counters and the node's fault, close the pipe, wait for the writer."""
+    def close(self, on_cycle: Any = None) -> dict[str, Any]:
+        """Record what is left in the ring (``on_cycle`` as in :meth:`drain`),
+        send the counters and the node's fault, close the pipe, wait for the
+        writer."""
         if self.fd < 0:
             return {}
         final = self.last_cycle
         with contextlib.suppress(Exception):
-            # Cleanup is off real time: what is left in the ring may wait for the writer
+            # Cleanup is off real time: what is left in the ring may wait for
+            # the writer (a drain on a full pipe would stop short: the
+            # worker's own figures would miss the last cycles)
             os.set_blocking(self.fd, True)
-            self.drain()  # what the manager captured since the last cycle we ran
+            self.drain(on_cycle)  # what the manager captured since the last cycle we ran
             self.manager.read_into(self.mrec.bytes)
             final = max(final, int(self.mrec["cycle"]))
             self._messages(final)
@@ -348,6 +353,7 @@ class CycleRecorder:
                 self.overwritten += 1
             c += 1
         self.next = c
+        ring.drained = c - 1
         if taken:
             self._messages(captured)
         return taken
@@ -377,11 +383,28 @@ class CycleRecorder:
         if len(frame) > PIPE_BUF:  # could be split by a non-blocking write: never sent
             self.events_dropped += 1
             return
-        try:
-            os.write(self.fd, frame)
-            self.events += 1
-        except BlockingIOError:
-            self.events_dropped += 1
+        # (lockstep: an event waits for room in the pipe, up to EVENT_WAIT_S:
+        # ticks as fast as the CPUs go may starve the writer, and nothing of
+        # a lockstep run's log is dropped)
+        waits = 1 if self.spec.clock == "lockstep" else 0
+        while True:
+            try:
+                os.write(self.fd, frame)
+                self.events += 1
+                return
+            except BlockingIOError:
+                if not waits or not self._writable():
+                    self.events_dropped += 1
+                    return
+                waits -= 1
+
+    def _writable(self) -> bool:
+        """The pipe has room again within ``EVENT_WAIT_S``."""
+        import select
+
+        poller = select.poll()
+        poller.register(self.fd, select.POLLOUT)
+        return bool(poller.poll(int(EVENT_WAIT_S * 1000)))
 
     def _send_blocking(self, kind: int, body: bytes) -> None:
         data = FRAME.pack(len(body), kind, time.time_ns()) + body

@@ -39,6 +39,10 @@ MAGIC = b"RDSTRING"
 # ring header: magic, slots, slot size, payload size, layout hash, captured (last cycle)
 HEADER = struct.Struct("<8sIIIQQ")
 CAPTURED_AT = 8 + 4 + 4 + 4 + 8
+# after the header: the last cycle the logging worker has taken (sent, or
+# counted lost); in lockstep the plant holds its tick while the worker is
+# more than half the ring behind (redistro.plant.lockstep)
+DRAINED_AT = 40
 HEADER_BYTES = 64
 # a payload starts with: cycle, tick due, tick taken, e-stop (then padding)
 FRAME_HEAD = struct.Struct("<QqqB7x")
@@ -87,6 +91,7 @@ class LogRing:
         self.raw = np.frombuffer(shm.buffer, dtype=np.uint8)
         self._mem = memoryview(self.raw)  # type: ignore[arg-type]
         self._captured = self._mem[CAPTURED_AT : CAPTURED_AT + 8].cast("Q")
+        self._drained = self._mem[DRAINED_AT : DRAINED_AT + 8].cast("Q")
         # each slot's counter and payload as views made once (a reader takes
         # one slot per cycle; making and releasing two views cost more than
         # the copy)
@@ -136,6 +141,15 @@ class LogRing:
         """The last cycle captured (0: none yet)."""
         return int(self._captured[0])
 
+    @property
+    def drained(self) -> int:
+        """The last cycle the logging worker has taken (0: none yet)."""
+        return int(self._drained[0])
+
+    @drained.setter
+    def drained(self, cycle: int) -> None:
+        self._drained[0] = cycle
+
     def slot_offset(self, cycle: int) -> int:
         return HEADER_BYTES + (cycle % self.slots) * self.layout.slot
 
@@ -158,6 +172,7 @@ class LogRing:
             view.release()
         self._seqs, self._srcs = [], []
         self._captured.release()
+        self._drained.release()
         self._mem.release()
         self.raw = np.empty(0, dtype=np.uint8)
         with contextlib.suppress(IPCError):
@@ -225,3 +240,38 @@ class Capture:
         mem[at + 8 : at + 8 + self.ring.layout.payload] = self._head
         seq[0] = s + 2
         seq.release()
+
+
+class Progress:
+    """How far a node's logging worker lags its manager, read from outside
+    (the lockstep plant): the ring's header alone."""
+
+    def __init__(self, shm: SharedMemory) -> None:
+        self.shm = shm
+        mem = memoryview(shm.buffer)
+        self._captured = mem[CAPTURED_AT : CAPTURED_AT + 8].cast("Q")
+        self._drained = mem[DRAINED_AT : DRAINED_AT + 8].cast("Q")
+        self.slots = int(HEADER.unpack_from(shm.buffer, 0)[1])
+        mem.release()
+
+    @classmethod
+    def attach(cls, session_id: str, node: str) -> Progress | None:
+        """The node's ring, or None: it has none (no logging worker)."""
+        try:
+            shm = SharedMemory.attach(names.object_name(session_id, node, OBJECT))
+        except IPCError:
+            return None
+        if bytes(shm.buffer[:8]) != MAGIC:
+            shm.close()
+            return None
+        return cls(shm)
+
+    def lag(self) -> int:
+        """Cycles captured that the logging worker has not taken yet."""
+        return int(self._captured[0]) - int(self._drained[0])
+
+    def close(self) -> None:
+        self._captured.release()
+        self._drained.release()
+        with contextlib.suppress(IPCError):
+            self.shm.close()

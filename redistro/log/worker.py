@@ -9,8 +9,6 @@ strategy session is logged by the SSC's logger instead.
 
 from __future__ import annotations
 
-import contextlib
-
 from redistro.localdata.layout import GUARD, SETPOINT
 from redistro.log.recorder import CycleRecorder, log_topics, robots_meta
 from redistro.process.worker import Worker
@@ -55,6 +53,4 @@ class EscRecorder(Worker):
             self.rec.event("events", cycle, event="guard trip", robot=self.robot, text=text)
 
     def cleanup(self) -> None:
-        with contextlib.suppress(Exception):  # the cycles since the last drain
-            self.rec.drain(self._cycle)
-        self.rec.close()
+        self.rec.close(self._cycle)  # (the cycles since the last drain first)

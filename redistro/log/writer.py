@@ -18,6 +18,7 @@ import math
 import os
 import struct
 import time
+from pathlib import Path
 from typing import IO, Any
 
 from redistro.log import ros2
@@ -74,6 +75,18 @@ def _read_exact(f: IO[bytes], n: int) -> bytes | None:
 
 
 def run_writer(fd: int, out: str, ready_fd: int = -1) -> int:
+    """Write the frames the pipe ``fd`` brings into the MCAP file ``out``."""
+    import contextlib
+
+    from redistro.process import hooks
+
+    # a developer's profile (tools/profile.py TASK NODE/logwriter)
+    profiled = hooks.profile(f"{Path(out).stem}/logwriter")
+    with profiled if profiled is not None else contextlib.nullcontext():
+        return _write(fd, out, ready_fd)
+
+
+def _write(fd: int, out: str, ready_fd: int) -> int:
     from redistro import files
 
     if ready_fd >= 0:  # imported: the recorder may start the cycles

@@ -39,6 +39,7 @@ from typing import Any
 from redistro.errors import TornReadTimeout
 from redistro.localdata.layout import ProcState
 from redistro.localdata.view import NodeView
+from redistro.log.ring import Progress
 
 NODES_FILE = "lockstep.json"  # in the session's runtime folder: the group's nodes
 # the longest a phase waits for a node (a hung one: its heartbeat check);
@@ -101,6 +102,7 @@ class _Node:
     ddm: bool  # the node has a ddm (its robots' data cross to another node)
     live: bool = True
     counters: list[Counter] = field(default_factory=list)  # its cycle, its workers' heartbeats
+    log: Any = None  # its log ring's progress (redistro.log.ring.Progress), if it logs
 
     def __post_init__(self) -> None:
         self.state_word = self.view.block("manager").word("state")
@@ -124,6 +126,7 @@ class Group:
     ssc: _Node | None = None
     cycle: int = 0
     waits_missed: int = 0  # phases that gave up (a node hung or ended)
+    missed: list[dict[str, Any]] = field(default_factory=list)  # the first ones: tick, phase
     samples: list[tuple[_Node, Counter, Counter]] = field(default_factory=list)
     commands: list[tuple[_Node, Counter, Counter]] = field(default_factory=list)
     # what the plant does while it waits: the CAN backplane's frames
@@ -136,6 +139,8 @@ class Group:
     def close(self) -> None:
         for n in self.nodes():
             n.view.close()
+            if n.log is not None:
+                n.log.close()
 
     @classmethod
     def open(cls, session_id: str, names: list[str]) -> Group | None:
@@ -151,6 +156,7 @@ class Group:
                 view.close()
                 g.close()
                 return None
+            node.log = Progress.attach(session_id, name)
             if name == "ssc":
                 g.ssc = node
             else:
@@ -178,18 +184,20 @@ class Group:
         physics to the next tick; returns once all is over. The physics
         steps while the SSC runs: they need only the senders' outputs of
         this tick, and the SSC reads nothing of the boards."""
+        if self.logging:
+            self._wait(self._logs_kept, "logs")
         self.cycle += 1
         k = self.cycle
         _send(self.escs)
-        self._wait(lambda: all(n.signed(k) for n in self._live(self.escs)))
+        self._wait(lambda: all(n.signed(k) for n in self._live(self.escs)), "escs")
         if self.ssc is None or not self.ssc.live:
             step()
             return
-        self._wait(self._feedback_in)
+        self._wait(self._feedback_in, "feedback")
         _send([self.ssc])
         step()
-        self._wait(lambda: self.ssc is None or not self.ssc.live or self.ssc.signed(k))
-        self._wait(self._commands_in)
+        self._wait(lambda: self.ssc is None or not self.ssc.live or self.ssc.signed(k), "ssc")
+        self._wait(self._commands_in, "commands")
 
     def _live(self, nodes: list[_Node]) -> list[_Node]:
         for n in nodes:
@@ -211,17 +219,29 @@ class Group:
             for i, e in enumerate(self.escs)
         ]
 
+    @property
+    def logging(self) -> bool:
+        return any(n.log is not None for n in self.nodes())
+
+    def _logs_kept(self) -> bool:
+        """No logging worker is more than half its ring behind (its writer
+        starved of CPU by ticks as fast as the CPUs allow: the ring would
+        overwrite cycles not yet logged, and the log would differ run to run)."""
+        return all(n.log.lag() <= n.log.slots // 2 for n in self.nodes() if n.live and n.log)
+
     def _feedback_in(self) -> bool:
         return all(a.equals(b) for e, a, b in self.samples if e.live)
 
     def _commands_in(self) -> bool:
         return all(a.equals(b) for e, a, b in self.commands if e.live)
 
-    def _wait(self, done: Any) -> None:
+    def _wait(self, done: Any, phase: str) -> None:
         deadline = time.monotonic() + WAIT_S
         while not done():
             if time.monotonic() > deadline:
                 self.waits_missed += 1
+                if len(self.missed) < 10:  # (which tick and phase: the plant's report)
+                    self.missed.append({"tick": self.cycle, "phase": phase})
                 return
             if not self._live(self.nodes()):
                 return
@@ -273,6 +293,7 @@ class Conductor:
         self.groups = 0  # groups run so far (each starts the plant's noise afresh)
         self.ticks = 0
         self.waits_missed = 0
+        self.missed: list[dict[str, Any]] = []
         self.pause: Any = None  # (Group.pause)
 
     @property
@@ -310,6 +331,7 @@ class Conductor:
     def _end_group(self) -> None:
         if self.group is not None:
             self.waits_missed += self.group.waits_missed
+            self.missed += self.group.missed[: 10 - len(self.missed)]
             self.group.close()
             self.group = None
 
@@ -334,4 +356,9 @@ class Conductor:
         self._end_group()
 
     def report(self) -> dict[str, Any]:
-        return {"groups": self.groups, "ticks": self.ticks, "waits_missed": self.waits_missed}
+        return {
+            "groups": self.groups,
+            "ticks": self.ticks,
+            "waits_missed": self.waits_missed,
+            "missed": self.missed,
+        }

@@ -141,7 +141,8 @@ def _run_loop(
             from redistro.plant.lockstep import Conductor
 
             conductor = Conductor(session_id, folder, cfg.plant.physics_hz)
-            return _loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor)
+            boost = _step_priority(cfg.scheduling.priorities)
+            return _loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor, boost)
         pace = cfg.plant.real_time_factor
         return _loop(cfg.plant.physics_hz, seconds, chassis, bank, port, pace)
 
@@ -289,14 +290,44 @@ def _loop(
     )
 
 
+def _step_priority(priorities: dict[str, int]) -> tuple[Any, Any] | None:
+    """In lockstep, the plant's real-time priority while it steps the
+    physics, above every node's, and its own for the rest (None: it does not
+    run real time).
+
+    A lockstep tick is the ESCs' cycle, then the physics and the SSC's cycle
+    side by side. At the plant's own priority, the lowest, the SSC's
+    processes and the log's writer took its CPU in the middle of the
+    physics: the tick waited for the physics longer than the physics took.
+    Raised for the physics alone, the plant runs it on one CPU unbroken,
+    and the nodes share the other; while it waits on the nodes it is back
+    below them."""
+    try:
+        from redistro.ipc import sched
+
+        if not sched.is_real_time():
+            return None
+        own = os.sched_getparam(0)
+        top = max(v for k, v in priorities.items() if k != "plant")
+        return own, os.sched_param(min(99, max(top + 1, own.sched_priority)))
+    except (OSError, ValueError):
+        return None
+
+
 def _loop_lockstep(
-    physics_hz: float, chassis: Any, bank: RegisterBank, port: BoardPort, conductor: Any
+    physics_hz: float,
+    chassis: Any,
+    bank: RegisterBank,
+    port: BoardPort,
+    conductor: Any,
+    boost: tuple[Any, Any] | None = None,
 ) -> dict[str, Any]:
     """Step the physics when the nodes have done their tick, then tick
     them (``redistro.plant.lockstep``); as fast as the CPUs allow. Until a
     group of nodes is up, the boards are served (the managers' freezes and
     presets) without a physics step. The amplifiers' watchdog runs on the
-    simulated clock."""
+    simulated clock. ``boost``: the plant's priority while it steps, and
+    its own (:func:`_step_priority`)."""
     from redistro.process.stats import Samples
 
     dt_ns = round(1e9 / physics_hz)
@@ -313,10 +344,14 @@ def _loop_lockstep(
     groups = 0
 
     def step() -> None:  # one tick's physics
+        if boost is not None:
+            os.sched_setparam(0, boost[1])
         for _ in range(conductor.steps_per_tick):
             _step(chassis, io, whole, physics, truth, t0 + chassis.step_count * dt_ns)
         steps = chassis.step_count
         _publish_status(bank, status, steps, dt_ns, t0 + steps * dt_ns, t0, 0, 0)
+        if boost is not None:
+            os.sched_setparam(0, boost[0])
 
     if not isinstance(port, ShmPort):  # (CAN: the drivers' frames answered while waiting)
         conductor.pause = lambda: port.service(time.monotonic_ns() + 200_000)

@@ -322,9 +322,7 @@ class SscLogger(Worker):
 
     def cleanup(self) -> None:
         if self.recorder is not None:
-            with contextlib.suppress(Exception):  # the cycles since the last drain
-                self.recorder.drain(self._cycle)
-            self.recorder.close()
+            self.recorder.close(self._cycle)  # (the cycles since the last drain first)
         if not self.out_path:
             return
         self._final_errors()

@@ -19,7 +19,7 @@ from redistro.localdata import LocalData
 from redistro.localdata.layout import BLOCKS
 from redistro.log.mcapfile import SESSION_LOG, finish_run_log, read_log
 from redistro.log.recorder import CycleRecorder
-from redistro.log.ring import Capture, LogRing, RingLayout
+from redistro.log.ring import Capture, LogRing, Progress, RingLayout
 from redistro.log.schema import dtype_from_msg, msg_definition, with_cycle
 from redistro.process.spec import NodeSpec, WorkerSpec
 
@@ -194,3 +194,63 @@ def test_a_stalled_writer_makes_the_recorder_wait_in_the_ring_then_count(
     cycles = sl.arrays["/r1/feedback"]["log_cycle"]
     assert len(cycles) == stats["recorded"]
     assert np.all(np.diff(cycles.astype(np.int64)) > 0)  # in order, none twice
+
+
+def test_the_ring_shows_how_far_the_recorder_lags_and_its_last_drain_takes_every_cycle(
+    node: tuple[LocalData, NodeSpec], ring: Capture, tmp_path: Path
+) -> None:
+    """The ring's header tells an outside reader (the lockstep plant) how
+    many captured cycles the recorder has not taken; its last drain, at
+    Cleanup, waits for a writer that had fallen behind and hands every
+    cycle left to the worker's own figures (``on_cycle``), none dropped."""
+    ld, spec = node
+    ld, rec = _started(node, tmp_path)
+    progress = Progress.attach(spec.session_id, spec.node)
+    assert progress is not None and progress.slots == 64
+    assert Progress.attach(spec.session_id, "esc.r9") is None  # (a node that logs nothing)
+    assert rec.proc is not None
+    os.kill(rec.proc.pid, signal.SIGSTOP)  # the writer stops draining the pipe
+    try:
+        c = 0
+        while rec.pipe_full == 0 and c < 50_000:
+            c += 1
+            _drive(ld, rec, ring, range(c, c + 1))
+            assert progress.lag() == c - (rec.next - 1)
+        assert rec.pipe_full > 0, "the pipe never filled"
+        waiting = c - (rec.next - 1)  # (the cycle that did not fit, at least)
+        _drive(ld, rec, ring, range(c + 1, c + 31), drain_every=10**9)  # not drained
+        assert progress.lag() == waiting + 30
+    finally:
+        os.kill(rec.proc.pid, signal.SIGCONT)
+    seen: list[int] = []
+    stats = rec.close(seen.append)
+    assert seen == list(range(c - waiting + 1, c + 31))
+    assert stats["dropped"] == 0 and stats["recorded"] == c + 30
+    assert progress.lag() == 0
+    progress.close()
+
+
+def test_the_lockstep_plant_holds_its_tick_while_a_log_is_half_a_ring_behind(
+    node: tuple[LocalData, NodeSpec], ring: Capture
+) -> None:
+    """A tick as fast as the CPUs allow could starve the log's writer until
+    the ring overwrote cycles never logged; the plant waits for it first."""
+    from types import SimpleNamespace
+
+    from redistro.plant.lockstep import Group
+
+    _, spec = node
+    progress = Progress.attach(spec.session_id, spec.node)
+    assert progress is not None
+    group = Group(spec.session_id)
+    group.escs = [SimpleNamespace(live=True, log=progress)]  # type: ignore[list-item]
+    assert group.logging
+    ring.ring._captured[0] = 100
+    ring.ring.drained = 67  # 33 behind: over half the 64 slots
+    assert not group._logs_kept()
+    ring.ring.drained = 68
+    assert group._logs_kept()
+    group.escs[0].live = False  # (a node that ended is not waited for)
+    ring.ring.drained = 0
+    assert group._logs_kept()
+    progress.close()

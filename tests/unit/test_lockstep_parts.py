@@ -3,6 +3,8 @@ digest runs, the run digest, the first difference, the cycles' digests."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from redistro.ipc.timer import IntervalTimer, LockstepTicks, tick_source
@@ -82,3 +84,24 @@ def test_the_cycles_digests_count_the_cycles_that_differ_and_find_the_first() ->
     assert _digests(x, x[:5]) == {"cycles": [8, 5], "differing": 3, "first_cycle": 6}
     # a node only one log has: every one of its cycles
     assert _digests(x, None) == {"cycles": [8, 0], "differing": 8, "first_cycle": 0}
+
+
+def test_the_plant_steps_above_every_node_and_waits_below_them(monkeypatch: Any) -> None:
+    """In lockstep the plant raises its real-time priority for the physics
+    alone (the SSC's processes no longer break into it) and drops back to
+    its own while it waits on the nodes; not real time, it leaves it alone."""
+    import os
+
+    from redistro.config.model import PAPER_PRIORITIES
+    from redistro.ipc import sched
+    from redistro.plant.process import _step_priority
+
+    monkeypatch.setattr(sched, "is_real_time", lambda: True)
+    monkeypatch.setattr(os, "sched_getparam", lambda pid: os.sched_param(1))
+    own, stepping = _step_priority(dict(PAPER_PRIORITIES))  # type: ignore[misc]
+    assert own.sched_priority == PAPER_PRIORITIES["plant"] == 1
+    top = max(v for k, v in PAPER_PRIORITIES.items() if k != "plant")
+    assert stepping.sched_priority == top + 1
+    assert _step_priority({"manager": 99, "plant": 1})[1].sched_priority == 99  # type: ignore[index]
+    monkeypatch.setattr(sched, "is_real_time", lambda: False)
+    assert _step_priority(dict(PAPER_PRIORITIES)) is None
