@@ -2,7 +2,8 @@
 
     python tools/profile.py TASK NODE/WORKER [--set KEY=VALUE ...] [--top N]
 
-(NODE/manager profiles the node's manager.)
+(NODE/manager profiles the node's manager, NODE/logwriter its log's writer,
+plant/loop the plant's loop.)
 
 runs ``redistro session TASK`` with that one process under cProfile (every
 other process runs as usual; the profiled one runs about twice as slow, so

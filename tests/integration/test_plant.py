@@ -6,10 +6,12 @@ Real plant process, real PyBullet, real shared memory or real python-can
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -167,6 +169,23 @@ def test_wrist_sensor_reads_the_contact_force(backplane: str, tmp_path: Path) ->
     assert err < 0.10, f"sensed {sensed} vs contact {contact}: {err:.1%}"
 
 
+@contextlib.contextmanager
+def _above_the_load() -> Iterator[None]:
+    """This process at real-time priority (10: below the nodes of a session
+    beside it, above everything else) while it watches the plant step by
+    step; as it was where that is refused."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+    except OSError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, policy, param)
+
+
 @pytest.mark.parametrize("backplane", BACKPLANES)
 def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
     with plant_rig(backplane, tmp_path) as rig:
@@ -179,12 +198,14 @@ def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
         d.freeze()
         braked_at = stopped_at = None
         deadline = time.monotonic() + 5
-        while stopped_at is None and time.monotonic() < deadline:
-            tr = rig.truth("r1")
-            if braked_at is None and tr["braked"][0]:
-                braked_at = int(tr["step"])
-            if braked_at is not None and abs(tr["qd_rad_s"][0]) < 1e-3:
-                stopped_at = int(tr["step"])
+        with _above_the_load():  # (a stall of this watcher would make the stop look late)
+            while stopped_at is None and time.monotonic() < deadline:
+                tr = rig.truth("r1")
+                if braked_at is None and tr["braked"][0]:
+                    braked_at = int(tr["step"])
+                if braked_at is not None and abs(tr["qd_rad_s"][0]) < 1e-3:
+                    stopped_at = int(tr["step"])
+                time.sleep(0.0002)  # (5 looks a step)
         wall_ms = (time.monotonic() - t0) * 1e3
         assert braked_at is not None and stopped_at is not None
         stop_ms = (stopped_at - braked_at) * 1e3 / rig.cfg.plant.physics_hz

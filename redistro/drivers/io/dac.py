@@ -8,15 +8,11 @@ from typing import Any
 import numpy as np
 
 from redistro.drivers.io.module import ModuleDriver
-from redistro.drivers.io.registers import BoardType, dac_code, dac_volts
+from redistro.drivers.io.registers import BoardType, dac_volts
 
 
 class DacDriver(ModuleDriver):
     TYPE = BoardType.DAC
-
-    def set_volts(self, channels: np.ndarray[Any, Any], volts: np.ndarray[Any, Any]) -> None:
-        """Stage output voltages (rounded and saturated by the converter); ``flush`` sends."""
-        self.out["code"][channels] = dac_code(volts)
 
     def set_codes(self, channels: np.ndarray[Any, Any], codes: np.ndarray[Any, Any]) -> None:
         """Stage output codes (within the converter's range); ``flush`` sends."""
