@@ -23,7 +23,9 @@ the plant serves the boards (brakes, encoder presets) without stepping
 the physics, so the first tick comes after the same state in every run.
 A node that ends (its work done, a fault) leaves the group; a wait that
 is not met within ``WAIT_S`` (a hung or stopped process) lets the tick
-go on, and the node's own heartbeat check finds the culprit.
+go on, and the node's own heartbeat check finds the culprit. A node whose
+process is runnable then, only starved of CPU by a loaded host, is
+waited for again, up to ``WAIT_MAX_S``.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ NODES_FILE = "lockstep.json"  # in the session's runtime folder: the group's nod
 # a node at the default scheduling was once starved over 0.5 s on a loaded
 # host, and the tick stepped without it (a run no longer the same to the bit)
 WAIT_S = 2.0
+# ... and again while the node is runnable, only starved of CPU (a loaded
+# host: a real-time session beside it), or its log still drains, up to this
+WAIT_MAX_S = 60.0
 LIVE = (int(ProcState.ROUTINE), int(ProcState.IDLE))
 
 
@@ -103,6 +108,7 @@ class _Node:
     live: bool = True
     counters: list[Counter] = field(default_factory=list)  # its cycle, its workers' heartbeats
     log: Any = None  # its log ring's progress (redistro.log.ring.Progress), if it logs
+    pids: list[int] = field(default_factory=list)  # its manager's and workers'
 
     def __post_init__(self) -> None:
         self.state_word = self.view.block("manager").word("state")
@@ -236,9 +242,15 @@ class Group:
         return all(a.equals(b) for e, a, b in self.commands if e.live)
 
     def _wait(self, done: Any, phase: str) -> None:
-        deadline = time.monotonic() + WAIT_S
+        start = time.monotonic()
+        deadline = start + WAIT_S
+        lags = None
         while not done():
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
+                if now < start + WAIT_MAX_S and self._going(phase, lags):
+                    deadline, lags = now + WAIT_S, self._lags()
+                    continue
                 self.waits_missed += 1
                 if len(self.missed) < 10:  # (which tick and phase: the plant's report)
                     self.missed.append({"tick": self.cycle, "phase": phase})
@@ -249,6 +261,18 @@ class Group:
                 self.pause()
             else:
                 time.sleep(20e-6)  # the nodes run above the plant: let them
+
+    def _lags(self) -> list[int]:
+        return [n.log.lag() for n in self.nodes() if n.log is not None]
+
+    def _going(self, phase: str, lags: list[int] | None) -> bool:
+        """Whether a wait past ``WAIT_S`` is a node starved of CPU, not hung:
+        one of the nodes' processes is runnable (a stopped or blocked one is
+        not); for the logs, one drained since the last look (a first look:
+        yes)."""
+        if phase == "logs":
+            return lags is None or self._lags() != lags
+        return any(n.live and any(_runnable(pid) for pid in n.pids) for n in self.nodes())
 
     def over(self) -> bool:
         """Every node of the group has ended (or left its Routine)."""
@@ -264,10 +288,22 @@ def _node(name: str, view: NodeView) -> _Node | None:
         static = view.static
         stages = [int(s) for s in static["proc_stage"]]
         roles = view.ld.proc_roles()
+        pids = [int(view.read("proc", j)["pid"]) for j in range(len(roles))]
     except Exception:
         return None
     on_cycle = [j for j, s in enumerate(stages[: len(roles)]) if s >= 0]
-    return _Node(name, view, int(m["pid"]), on_cycle, "ddm" in roles)
+    node = _Node(name, view, int(m["pid"]), on_cycle, "ddm" in roles)
+    node.pids = [node.pid, *(p for p in pids if p > 0)]
+    return node
+
+
+def _runnable(pid: int) -> bool:
+    """The process is running or waiting for a CPU (state R)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] == b"R"
+    except (OSError, IndexError):
+        return False
 
 
 def _send(nodes: list[_Node]) -> None:

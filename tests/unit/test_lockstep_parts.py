@@ -105,3 +105,40 @@ def test_the_plant_steps_above_every_node_and_waits_below_them(monkeypatch: Any)
     assert _step_priority({"manager": 99, "plant": 1})[1].sched_priority == 99  # type: ignore[index]
     monkeypatch.setattr(sched, "is_real_time", lambda: False)
     assert _step_priority(dict(PAPER_PRIORITIES)) is None
+
+
+def test_a_wait_goes_on_for_a_node_starved_of_cpu_not_for_a_stopped_one() -> None:
+    """Past its 2 s, a lockstep wait goes on while one of the nodes'
+    processes is runnable (a loaded host starves it of CPU), and gives up
+    on a stopped or blocked one (its heartbeat check then finds it)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from types import SimpleNamespace
+
+    from redistro.plant.lockstep import Group, _runnable
+
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    nap = subprocess.Popen(["sleep", "30"])
+    try:
+        group = Group("sid")
+        group.escs = [SimpleNamespace(live=True, log=None, pids=[spin.pid])]  # type: ignore[list-item]
+        assert _runnable(os.getpid())  # (this one, reading)
+        deadline = time.monotonic() + 10
+        while not group._going("escs", None) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert group._going("escs", None), "the spinning process never showed runnable"
+        os.kill(spin.pid, signal.SIGSTOP)
+        while group._going("escs", None) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not group._going("escs", None), "a stopped process counted as runnable"
+        while _runnable(nap.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not _runnable(nap.pid)  # (asleep)
+        assert not _runnable(2**22 + 7)  # (no such process)
+    finally:
+        for p in (spin, nap):
+            p.kill()
+            p.wait()
