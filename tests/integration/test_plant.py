@@ -6,12 +6,10 @@ Real plant process, real PyBullet, real shared memory or real python-can
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import signal
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +17,7 @@ import pytest
 
 from redistro.drivers.io.registers import ENC_MODULO
 from redistro.errors import ConfigError, IOFault
-from tests.integration.plant_rig import Model, plant_rig
+from tests.integration.plant_rig import Model, above_the_load, plant_rig
 
 BACKPLANES = ["shm", "can"]
 
@@ -110,7 +108,8 @@ def test_home_switches_toggle_at_their_angles(backplane: str, tmp_path: Path) ->
             d.send_torques(tau)
             seen.append((tr["q_rad"].copy(), fb.home.copy()))
 
-        rig.run_for(1.8, sweep)
+        with above_the_load():  # (its torques written in time, beside a loaded host)
+            rig.run_for(1.8, sweep)
         d.freeze()
         model.close()
         q = np.array([a for a, _ in seen])
@@ -169,23 +168,6 @@ def test_wrist_sensor_reads_the_contact_force(backplane: str, tmp_path: Path) ->
     assert err < 0.10, f"sensed {sensed} vs contact {contact}: {err:.1%}"
 
 
-@contextlib.contextmanager
-def _above_the_load() -> Iterator[None]:
-    """This process at real-time priority (10: below the nodes of a session
-    beside it, above everything else) while it watches the plant step by
-    step; as it was where that is refused."""
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-    except OSError:
-        yield
-        return
-    try:
-        yield
-    finally:
-        os.sched_setscheduler(0, policy, param)
-
-
 @pytest.mark.parametrize("backplane", BACKPLANES)
 def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
     with plant_rig(backplane, tmp_path) as rig:
@@ -198,7 +180,7 @@ def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
         d.freeze()
         braked_at = stopped_at = None
         deadline = time.monotonic() + 5
-        with _above_the_load():  # (a stall of this watcher would make the stop look late)
+        with above_the_load():  # (a stall of this watcher would make the stop look late)
             while stopped_at is None and time.monotonic() < deadline:
                 tr = rig.truth("r1")
                 if braked_at is None and tr["braked"][0]:
