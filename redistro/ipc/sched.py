@@ -119,6 +119,16 @@ def share_with_threads() -> int:
         return 0
 
 
+def runnable(pid: int) -> bool:
+    """The process is running or waiting for a CPU (state R): starved by a
+    loaded host, not stopped nor blocked (a lockstep wait goes on for it)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] == b"R"
+    except (OSError, IndexError):
+        return False
+
+
 def is_real_time() -> bool:
     """Whether the calling thread runs under SCHED_RR or SCHED_FIFO."""
     try:

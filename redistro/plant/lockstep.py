@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from redistro.errors import TornReadTimeout
+from redistro.ipc import sched
 from redistro.localdata.layout import ProcState
 from redistro.localdata.view import NodeView
 from redistro.log.ring import Progress
@@ -272,7 +273,7 @@ class Group:
         yes)."""
         if phase == "logs":
             return lags is None or self._lags() != lags
-        return any(n.live and any(_runnable(pid) for pid in n.pids) for n in self.nodes())
+        return any(n.live and any(sched.runnable(pid) for pid in n.pids) for n in self.nodes())
 
     def over(self) -> bool:
         """Every node of the group has ended (or left its Routine)."""
@@ -295,15 +296,6 @@ def _node(name: str, view: NodeView) -> _Node | None:
     node = _Node(name, view, int(m["pid"]), on_cycle, "ddm" in roles)
     node.pids = [node.pid, *(p for p in pids if p > 0)]
     return node
-
-
-def _runnable(pid: int) -> bool:
-    """The process is running or waiting for a CPU (state R)."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            return f.read().rsplit(b")", 1)[1].split()[0] == b"R"
-    except (OSError, IndexError):
-        return False
 
 
 def _send(nodes: list[_Node]) -> None:

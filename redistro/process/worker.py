@@ -40,6 +40,9 @@ WAIT_SET = frozenset({signals.SIG_SYNC, signals.SIG_END, signals.SIG_ORPHAN}) | 
 # when the deadline passes still ends before the sync comes
 IDLE_GUARD_NS = 200_000
 LOCKSTEP_STAGE_NS = 400_000_000  # a collecting point's wait in lockstep (below the plant's)
+# ... and again while a previous stage's process is runnable (starved of
+# CPU by a loaded host, not hung), up to this (below the plant's 60 s)
+LOCKSTEP_STAGE_MAX_NS = 30_000_000_000
 
 
 class Worker:
@@ -246,7 +249,8 @@ class _Runner:
         watch_s = max(0.05, 4 * self.period_ns / 1e9)
         # a collecting point gives up at the end of the period; in lockstep
         # the plant waits for the cycle, and so does a later stage
-        stage_ns = self.period_ns if self.spec.clock != "lockstep" else LOCKSTEP_STAGE_NS
+        lockstep = self.spec.clock == "lockstep"
+        stage_ns = LOCKSTEP_STAGE_NS if lockstep else self.period_ns
         # Hot path on local records: snapshot into them, publish from them.
         mine = Record(PROC_STATUS)
         row.read_into(mine.bytes)  # this process is the row's one writer
@@ -278,7 +282,9 @@ class _Runner:
             cycle = tick["cycle"]
             due_ns = tick["tick_due_ns"]
             self.lateness.add(wake_ns - due_ns)
-            if pred_recs and not self._wait_stage(cycle, pred_recs, my_go, due_ns + stage_ns):
+            if pred_recs and not self._wait_stage(
+                cycle, pred_recs, my_go, due_ns + stage_ns, lockstep
+            ):
                 self.stage_timeouts += 1
             else:
                 self._step(worker, cycle, due_ns)
@@ -480,16 +486,25 @@ class _Runner:
             poller.close()
             os.close(sigfd)
 
+    @staticmethod
     def _wait_stage(
-        self, cycle: int, preds: list[tuple[Any, Record]], my_go: Semaphore, deadline_ns: int
+        cycle: int,
+        preds: list[tuple[Any, Record]],
+        my_go: Semaphore,
+        deadline_ns: int,
+        lockstep: bool = False,
     ) -> bool:
         """Collecting point: wait until every worker of the previous stage finished ``cycle``.
 
         The heartbeat cycles in Local Data are the truth; the semaphore only
-        wakes us. Stale posts from earlier cycles are dropped first.
+        wakes us. Stale posts from earlier cycles are dropped first. In
+        lockstep, past the deadline the wait goes on while a previous
+        stage's process is runnable (up to ``LOCKSTEP_STAGE_MAX_NS``): a
+        stage starved of CPU is not a missed one, and the run stays the same.
         """
         while my_go.try_acquire():
             pass
+        last_ns = deadline_ns + LOCKSTEP_STAGE_MAX_NS
         while True:
             try:
                 for block, rec in preds:
@@ -498,9 +513,12 @@ class _Runner:
                     return True
             except TornReadTimeout:
                 pass  # a predecessor stuck inside its write: keep waiting to the deadline
-            remaining = (deadline_ns - time.monotonic_ns()) / 1e9
+            now = time.monotonic_ns()
+            remaining = (deadline_ns - now) / 1e9
             if remaining <= 0:
-                return False
+                if not lockstep or now > last_ns or not _starved(preds):
+                    return False
+                deadline_ns, remaining = now + LOCKSTEP_STAGE_NS, LOCKSTEP_STAGE_NS / 1e9
             my_go.acquire(remaining)
 
     def _finish(self, ld: LocalData, i: int) -> None:
@@ -533,3 +551,8 @@ def run_worker(spec_path: str, index: int, manager_pid: int, wake_fd: int = -1) 
         return _Runner(spec, index, manager_pid, wake_fd).run()
     except WorkerFailed:
         return EXIT_FAILED  # the reason is in the message box; the manager reports it
+
+
+def _starved(preds: list[tuple[Any, Record]]) -> bool:
+    """A previous stage's process is runnable (starved of CPU, not hung)."""
+    return any(sched.runnable(int(rec["pid"])) for _, rec in preds if int(rec["pid"]) > 0)

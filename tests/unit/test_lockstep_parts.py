@@ -118,7 +118,8 @@ def test_a_wait_goes_on_for_a_node_starved_of_cpu_not_for_a_stopped_one() -> Non
     import time
     from types import SimpleNamespace
 
-    from redistro.plant.lockstep import Group, _runnable
+    from redistro.ipc.sched import runnable as _runnable
+    from redistro.plant.lockstep import Group
 
     spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     nap = subprocess.Popen(["sleep", "30"])
@@ -142,3 +143,57 @@ def test_a_wait_goes_on_for_a_node_starved_of_cpu_not_for_a_stopped_one() -> Non
         for p in (spin, nap):
             p.kill()
             p.wait()
+
+
+def test_a_later_stage_waits_on_for_a_starved_one_in_lockstep_alone() -> None:
+    """A collecting point gives up at its deadline in real time; in
+    lockstep it waits on while the previous stage's process is runnable
+    (a loaded host: the run stays the same to the bit), not when it is
+    stopped."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from redistro.ipc.sched import runnable
+    from redistro.localdata.block import Record
+    from redistro.localdata.layout import PROC_STATUS
+    from redistro.process.worker import _Runner
+
+    class Row:  # a previous stage's status row: its cycle signed from ``at`` on
+        def __init__(self, pid: int, at: float) -> None:
+            self.pid, self.at = pid, at
+
+        def read_into(self, buf: Any) -> None:
+            r = Record(PROC_STATUS, buf)
+            r["pid"] = self.pid
+            r["heartbeat_cycle"] = 7 if time.monotonic() >= self.at else 6
+
+    class Go:
+        def try_acquire(self) -> bool:
+            return False
+
+        def acquire(self, timeout: float) -> None:
+            time.sleep(min(timeout, 0.005))
+
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        deadline = time.monotonic() + 10
+        while not runnable(spin.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+        def wait(lockstep: bool, signs_in_s: float) -> bool:
+            preds = [(Row(spin.pid, time.monotonic() + signs_in_s), Record(PROC_STATUS))]
+            due = time.monotonic_ns() + 50_000_000  # (50 ms)
+            return _Runner._wait_stage(7, preds, Go(), due, lockstep)  # type: ignore[arg-type]
+
+        assert not wait(False, 0.3)  # real time: the deadline is the deadline
+        assert wait(True, 0.3)  # lockstep: starved, waited for
+        os.kill(spin.pid, signal.SIGSTOP)
+        while runnable(spin.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not wait(True, 1.0)  # stopped: not waited for past the deadline
+    finally:
+        spin.kill()
+        spin.wait()
