@@ -19,6 +19,7 @@ buttons (``operator_panel.py``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import socket
@@ -30,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from redistro.errors import ConfigError, clipped
+from redistro.errors import ConfigError, TornReadTimeout, clipped
 from redistro.localdata.view import SessionViews
 from redistro.log.scene import quat_mul, quat_rotvec
 
@@ -160,8 +161,10 @@ class Live:
         self.client = client_for(session_id) if ssc_robots else None
 
     def poll(self) -> None:
-        """The nodes' latest data into the frame (a node not up yet: as it was)."""
-        with self.lock:
+        """The nodes' latest data into the frame (a node not up yet, or this
+        reader held off inside a read by a loaded host: as it was, until the
+        next poll)."""
+        with self.lock, contextlib.suppress(TornReadTimeout):
             self._poll()
 
     def _poll(self) -> None:

@@ -107,6 +107,7 @@ def test_home_switches_toggle_at_their_angles(backplane: str, tmp_path: Path) ->
             tau = model.gravity("r1", fb.q_rad) + kp * (target - fb.q_rad) - kd * fb.qd_rad_s
             d.send_torques(tau)
             seen.append((tr["q_rad"].copy(), fb.home.copy()))
+            time.sleep(0.0002)  # (real time: the rest of the host gets its turn)
 
         with above_the_load():  # (its torques written in time, beside a loaded host)
             rig.run_for(1.8, sweep)
