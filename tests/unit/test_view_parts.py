@@ -60,3 +60,28 @@ def test_a_port_taken_or_out_of_range_or_an_address_not_ours_is_refused() -> Non
         check_address("192.0.2.1", 8080)  # (TEST-NET-1: no host's address)
     with pytest.raises(ConfigError, match="expected an IP address of this host"):
         check_address("robot-lab.example", 8080)
+
+
+def test_a_live_poll_held_off_inside_a_read_keeps_the_frame_as_it_was() -> None:
+    """A loaded host can hold the live view off inside a seqlocked read
+    past its budget (TornReadTimeout): the frame stays as it was until the
+    next poll, and the thread that sees the session end goes on."""
+    import threading
+
+    from redistro.errors import TornReadTimeout
+    from redistro.view import Live
+
+    class Torn:
+        def read(self, name: str, index: int) -> None:
+            raise TornReadTimeout(f"block {name}: no consistent snapshot in 0.005 s")
+
+    class Views:
+        def get(self, node: str) -> Torn:
+            return Torn()
+
+    live = Live.__new__(Live)
+    live.robots, live.views, live.lock = ["r1"], Views(), threading.Lock()  # type: ignore[assignment]
+    live.q = {"r1": np.full((1, 7), 0.25)}
+    live.poll()  # (no exception)
+    assert np.all(live.q["r1"] == 0.25)
+    assert not live.lock.locked()
