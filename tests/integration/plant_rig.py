@@ -33,6 +33,18 @@ class Rig:
     def truth(self, robot: str) -> np.void:
         return self.truths[robot].read()
 
+    def wait_released(self, robot: str, joints: list[int], timeout_s: float = 2.0) -> None:
+        """Until the plant's truth shows the joints' brakes released (the
+        driver's one write taken), with a deadline: a release that never
+        arrives is named as such, not found later as an arm that did not move."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not self.truth(robot)["braked"][joints].any():
+                return
+            time.sleep(0.001)  # polling the plant's truth with a deadline
+        held = [j + 1 for j in joints if self.truth(robot)["braked"][j]]
+        raise AssertionError(f"{robot}: the plant never took the release of joints {held}")
+
     def sim_time_s(self) -> float:
         t = self.plant.clock_s()  # the clock a session's time budget counts on
         assert t is not None

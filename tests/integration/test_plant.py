@@ -99,6 +99,7 @@ def test_home_switches_toggle_at_their_angles(backplane: str, tmp_path: Path) ->
         t0 = rig.sim_time_s()
         seen: list[tuple[np.ndarray, np.ndarray]] = []
         d.release_brakes()
+        rig.wait_released("r1", list(range(7)))
 
         def sweep() -> None:
             t = rig.sim_time_s() - t0
@@ -173,7 +174,9 @@ def test_wrist_sensor_reads_the_contact_force(backplane: str, tmp_path: Path) ->
 def test_freeze_stops_a_moving_arm(backplane: str, tmp_path: Path) -> None:
     with plant_rig(backplane, tmp_path) as rig:
         d = rig.drivers["r1"]
+        d.send_torques(np.zeros(7))  # (the amplifiers on: their watchdog ran out at start-up)
         d.release_brakes([0])
+        rig.wait_released("r1", [0])
         rig.run_for(0.3, lambda: d.send_torques(np.array([15.0, 0, 0, 0, 0, 0, 0])))
         speed = rig.truth("r1")["qd_rad_s"][0]
         assert speed > 0.3, f"joint 1 only reached {speed} rad/s"
