@@ -21,6 +21,12 @@ the ddm read it is lost to it, as on the real network, and counted
 (``superseded``). Each slot is seqlocked (a
 counter, odd while written) so a reader never takes a torn copy. Hellos
 (the handshake's records) have no slot: they are broadcast and handed over.
+
+The host's UDP may lose a datagram where a real card never loses a write.
+In real time the next cycle's record takes its place; in lockstep the tick
+waits for it. There (``resend_after_s``) a node that wrote nothing for that
+long writes its own slots' latest records again (a peer that had them
+counts duplicates): a lost write costs the tick that long, not the run.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import socket
 import struct
+import time
 import zlib
 from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING
@@ -48,6 +55,7 @@ BATCH = 4  # records per datagram at most (1 284 bytes)
 SLOT = 8 + SIZE  # seq (u8) + one record
 DEFAULT_GROUP = "239.255.68.68"
 _SOURCE = slice(8, 24)  # the record header's source field
+RESEND_S = 0.05  # lockstep: a node's last writes again after this long without one
 
 
 def group_port(session_id: str) -> int:
@@ -83,6 +91,7 @@ class ReflectiveTransport(Transport):
             port=cfg.ddm.port,
             peers=peers,
             manifest=Manifest.for_session(session_id),
+            resend_after_s=RESEND_S if cfg.session.clock == "lockstep" else 0.0,
         )
 
     def __init__(
@@ -95,7 +104,10 @@ class ReflectiveTransport(Transport):
         port: int = 0,
         peers: list[tuple[str, int]] | None = None,
         manifest: Manifest | None = None,
+        resend_after_s: float = 0.0,
     ) -> None:
+        """resend_after_s: after this long without a write, write this
+        node's slots' latest records again (0: never; lockstep)."""
         self.node = node
         self.source = node.encode()[:16].ljust(16, b"\0")
         self.group = (group, port or group_port(link or session_id))
@@ -105,6 +117,10 @@ class ReflectiveTransport(Transport):
         # per slot: records overwritten on the card before a receive handed them over
         self.superseded_at = [0] * (KINDS * MAX_ROBOTS)
         self.pending: list[bytes] = []  # written this step, not yet sent (flush)
+        self.resend_ns = int(resend_after_s * 1e9)
+        self.own: dict[int, tuple[int, int]] = {}  # the slots this node writes -> (kind, robot)
+        self.flushed_ns = 0  # when its writes last went out
+        self.resent = 0  # records written again (resend_after_s)
         self.check: Callable[[bytes], bool] | None = None  # (links.verify_with)
         self.links = _Links(self)
         try:
@@ -161,11 +177,15 @@ class ReflectiveTransport(Transport):
         """Write ``record`` to this node's card (a hello has no slot); it goes
         out to the others' with the step's other writes, at ``links.flush``."""
         if 1 <= record[6] <= KINDS:
-            self._write_card(self._slot(record, robot), record)
+            slot = self._slot(record, robot)
+            self._write_card(slot, record)
+            self.own[slot] = (record[6], robot)
         self.pending.append(record)
 
     def _flush(self) -> None:
         pending = self.pending
+        if pending and self.resend_ns:
+            self.flushed_ns = time.monotonic_ns()
         for at in range(0, len(pending), BATCH):
             datagram = b"".join(pending[at : at + BATCH])
             for addr in (self.group, *self.peers):
@@ -180,9 +200,20 @@ class ReflectiveTransport(Transport):
                     ) from None
         pending.clear()
 
+    def _resend(self) -> None:
+        """This node's slots' latest records, out again (lockstep)."""
+        for kind, robot in self.own.values():
+            latest = self.read_card(kind, robot)
+            if latest is not None:
+                self.pending.append(latest)
+                self.resent += 1
+        self._flush()
+
     def receive(self, ready: Collection[int] | None = None) -> list[bytes]:
         """Records refused by the check (as they came), hellos, and the latest
         record of each card slot that authentic records wrote."""
+        if self.resend_ns and self.own and time.monotonic_ns() - self.flushed_ns > self.resend_ns:
+            self._resend()
         out: list[bytes] = []
         written: dict[int, tuple[int, int]] = {}  # slot -> (kind, robot)
         check = self.check

@@ -354,9 +354,14 @@ class ZenohTransport(Transport):
         robots: list[str],
         gids: dict[str, int],
         connect_timeout_s: float = 30.0,
+        lossless: bool = False,
     ) -> None:
+        """lossless: the records' publishers block rather than drop when
+        congested (lockstep: the tick waits for every record anyway; a
+        dropped one would hold it, and the run would no longer repeat)."""
         self.kind = kind
         self.group = group
+        self.drops_when_congested = not lossless
         self.replies = kind == "esc"  # as the socket transport's ESC side
         self.robots = list(robots)
         self.names = {gids[r]: r for r in robots}
@@ -410,7 +415,12 @@ class ZenohTransport(Transport):
             self.why_not = str(exc).split(" at ")[0]
             return False
         group, robots, gids = self.group, self.robots, self.gids
-        express = {"congestion_control": zenoh.CongestionControl.DROP, "express": True}
+        cc = (
+            zenoh.CongestionControl.DROP
+            if self.drops_when_congested
+            else zenoh.CongestionControl.BLOCK
+        )
+        express = {"congestion_control": cc, "express": True}
         if self.kind == "ssc":
             self.pubs = {
                 gids[r]: s.declare_publisher(command_key(group, r), **express) for r in robots
@@ -481,6 +491,7 @@ class ZenohTransport(Transport):
             robots=robots,
             gids={r: index.index(r) for r in robots},
             connect_timeout_s=cfg.ddm.connect_timeout_s,
+            lossless=cfg.session.clock == "lockstep",
         )
 
     # -- zenoh's threads --

@@ -120,13 +120,22 @@ def share_with_threads() -> int:
 
 
 def runnable(pid: int) -> bool:
-    """The process is running or waiting for a CPU (state R): starved by a
-    loaded host, not stopped nor blocked (a lockstep wait goes on for it)."""
+    """One of the process's threads is running or waiting for a CPU (state
+    R): starved by a loaded host, not stopped nor blocked (a lockstep wait
+    goes on for it). Every thread: a transport's own (zenoh's) may be the
+    one that carries the record waited for."""
     try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            return f.read().rsplit(b")", 1)[1].split()[0] == b"R"
-    except (OSError, IndexError):
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
         return False
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
+                if f.read().rsplit(b")", 1)[1].split()[0] == b"R":
+                    return True
+        except (OSError, IndexError):
+            continue
+    return False
 
 
 def is_real_time() -> bool:

@@ -253,8 +253,10 @@ class Group:
                     deadline, lags = now + WAIT_S, self._lags()
                     continue
                 self.waits_missed += 1
-                if len(self.missed) < 10:  # (which tick and phase: the plant's report)
-                    self.missed.append({"tick": self.cycle, "phase": phase})
+                if len(self.missed) < 10:  # (which tick, phase and nodes: the plant's report)
+                    self.missed.append(
+                        {"tick": self.cycle, "phase": phase, "nodes": self._behind(phase)}
+                    )
                 return
             if not self._live(self.nodes()):
                 return
@@ -262,6 +264,18 @@ class Group:
                 self.pause()
             else:
                 time.sleep(20e-6)  # the nodes run above the plant: let them
+
+    def _behind(self, phase: str) -> list[str]:
+        """The nodes a phase still waits for."""
+        k = self.cycle
+        if phase == "escs":
+            return [n.name for n in self._live(self.escs) if not n.signed(k)]
+        if phase == "ssc":
+            return [n.name for n in self._live([self.ssc] if self.ssc else []) if not n.signed(k)]
+        if phase in ("feedback", "commands"):
+            pairs = self.samples if phase == "feedback" else self.commands
+            return [e.name for e, a, b in pairs if e.live and not a.equals(b)]
+        return [n.name for n in self.nodes() if n.log and n.log.lag() > n.log.slots // 2]
 
     def _lags(self) -> list[int]:
         return [n.log.lag() for n in self.nodes() if n.log is not None]

@@ -145,6 +145,41 @@ def test_a_wait_goes_on_for_a_node_starved_of_cpu_not_for_a_stopped_one() -> Non
             p.wait()
 
 
+def test_a_process_whose_other_thread_spins_is_runnable() -> None:
+    """A transport's own thread (zenoh's) carries records: a process whose
+    main thread sleeps while another spins is runnable, not blocked."""
+    import subprocess
+    import sys
+    import time
+
+    from redistro.ipc.sched import runnable
+
+    code = (
+        "import threading, time\n"
+        "threading.Thread(target=lambda: [0 for _ in iter(int, 1)]).start()\n"
+        "time.sleep(60)"
+    )
+    p = subprocess.Popen([sys.executable, "-c", code])
+
+    def main_thread() -> bytes:  # (its state alone: what /proc/PID/stat shows)
+        with open(f"/proc/{p.pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0]
+
+    try:
+        deadline = time.monotonic() + 10
+        while main_thread() == b"R" and time.monotonic() < deadline:
+            time.sleep(0.005)  # (until it is in its sleep)
+        assert main_thread() == b"S"
+        seen = False
+        while not seen and time.monotonic() < deadline:
+            seen = runnable(p.pid)
+            time.sleep(0.01)
+        assert seen, "a process with a spinning thread never showed runnable"
+    finally:
+        p.kill()
+        p.wait()
+
+
 def test_a_later_stage_waits_on_for_a_starved_one_in_lockstep_alone() -> None:
     """A collecting point gives up at its deadline in real time; in
     lockstep it waits on while the previous stage's process is runnable

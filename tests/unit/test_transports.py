@@ -292,6 +292,48 @@ def test_a_reflective_step_goes_out_as_one_datagram_and_never_comes_back() -> No
         esc.close()
 
 
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_in_lockstep_a_reflective_write_the_host_lost_goes_out_again(lockstep: bool) -> None:
+    """The host's UDP may lose a datagram (a full socket buffer). In real
+    time the next cycle's write takes its place; in lockstep the tick waits
+    for it, so a node that wrote nothing for ``RESEND_S`` writes its slots'
+    latest records again (and its other writes are not held back)."""
+    import select
+
+    from redistro.ddm.record import SIZE
+    from redistro.ddm.reflective import RESEND_S
+
+    cls = transport_class("reflective")
+    sid = new_session_id()
+    ssc = cls(sid, "ssc", resend_after_s=RESEND_S if lockstep else 0.0)  # type: ignore[call-arg]
+    esc = cls(sid, "esc.r1")
+    try:
+        ep = select.epoll()
+        ep.register(esc.fds()[0], select.EPOLLIN)
+        ssc.send(_command(1), 0)
+        ssc.links.flush()
+        assert ep.poll(2.0)
+        assert len(os.read(esc.fds()[0], 8 * SIZE)) == SIZE  # lost: taken unread
+        start = time.monotonic()
+        got: list[bytes] = []
+        while not got and time.monotonic() < start + 0.5:
+            assert ssc.receive() == []  # (its step: nothing came, it writes again)
+            got = esc.receive()
+            time.sleep(0.005)  # a ddm's steps, a period apart
+        if not lockstep:
+            assert got == [] and ssc.resent == 0  # type: ignore[attr-defined]
+            return
+        assert [decode(r).seq for r in got] == [1], got
+        assert time.monotonic() - start >= RESEND_S
+        assert ssc.resent == 1  # type: ignore[attr-defined]
+        ssc.send(_command(2), 0)  # a new write goes out at once, as ever
+        ssc.links.flush()
+        assert [decode(r).seq for r in _collect(esc, 1)] == [2]
+    finally:
+        ssc.close()
+        esc.close()
+
+
 @pytest.mark.parametrize("kind", ["socket", "loopback", "zenoh"])
 def test_a_closed_end_is_a_lost_link_once_its_records_are_in(kind: str) -> None:
     """Over the transports with links: what the peer sent before it closed
