@@ -139,6 +139,10 @@ class Group:
     # what the plant does while it waits: the CAN backplane's frames
     # answered (the drivers read and write during their tick); else a nap
     pause: Any = None
+    period_ns: int = 0  # the nodes' period: a paused task's ticks come no faster
+    paused_word: Any = None  # the SSC's plan: the operator paused the task
+    last_ns: int = 0  # when the last tick began
+    paced: int = 0  # ticks held back to the wall clock (the task paused)
 
     def nodes(self) -> list[_Node]:
         return [*self.escs, *([self.ssc] if self.ssc is not None else [])]
@@ -166,6 +170,7 @@ class Group:
             node.log = Progress.attach(session_id, name)
             if name == "ssc":
                 g.ssc = node
+                g.paused_word = _paused_word(view)
             else:
                 g.escs.append(node)
         return g
@@ -193,6 +198,9 @@ class Group:
         this tick, and the SSC reads nothing of the boards."""
         if self.logging:
             self._wait(self._logs_kept, "logs")
+        if self.paused_word is not None and self.paused_word[0] and self.period_ns:
+            self._pace(self.last_ns + self.period_ns)
+        self.last_ns = time.monotonic_ns()
         self.cycle += 1
         k = self.cycle
         _send(self.escs)
@@ -205,6 +213,17 @@ class Group:
         step()
         self._wait(lambda: self.ssc is None or not self.ssc.live or self.ssc.signed(k), "ssc")
         self._wait(self._commands_in, "commands")
+
+    def _pace(self, due_ns: int) -> None:
+        """A paused task's tick waits for its time on the wall clock: the
+        operator's hand (a jog, a look at the arms) works in wall time, and
+        the group held still needs no CPU."""
+        self.paced += 1
+        while (now := time.monotonic_ns()) < due_ns:
+            if self.pause is not None:
+                self.pause(due_ns)
+            else:
+                time.sleep((due_ns - now) / 1e9)
 
     def _live(self, nodes: list[_Node]) -> list[_Node]:
         for n in nodes:
@@ -261,7 +280,7 @@ class Group:
             if not self._live(self.nodes()):
                 return
             if self.pause is not None:
-                self.pause()
+                self.pause(time.monotonic_ns() + 200_000)
             else:
                 time.sleep(20e-6)  # the nodes run above the plant: let them
 
@@ -292,6 +311,14 @@ class Group:
     def over(self) -> bool:
         """Every node of the group has ended (or left its Routine)."""
         return not self._live(self.nodes())
+
+
+def _paused_word(view: NodeView) -> Any:
+    """The SSC's first plan row's ``paused`` flag (every row carries it)."""
+    try:
+        return view.block("plan", 0).word("paused")
+    except (KeyError, IndexError, ValueError):
+        return None
 
 
 def _node(name: str, view: NodeView) -> _Node | None:
@@ -336,6 +363,7 @@ class Conductor:
         self.ticks = 0
         self.waits_missed = 0
         self.missed: list[dict[str, Any]] = []
+        self.paced = 0
         self.pause: Any = None  # (Group.pause)
 
     @property
@@ -359,6 +387,7 @@ class Conductor:
             g.close()
             return False
         g.pause = self.pause
+        g.period_ns = round(1e9 / self.rate_hz) if self.rate_hz else 0
         self.group = g
         self.groups += 1
         self.names = []  # (a group runs once)
@@ -374,6 +403,7 @@ class Conductor:
         if self.group is not None:
             self.waits_missed += self.group.waits_missed
             self.missed += self.group.missed[: 10 - len(self.missed)]
+            self.paced += self.group.paced
             self.group.close()
             self.group = None
 
@@ -403,4 +433,5 @@ class Conductor:
             "ticks": self.ticks,
             "waits_missed": self.waits_missed,
             "missed": self.missed,
+            "paced_ticks": self.paced,
         }

@@ -354,7 +354,7 @@ def _loop_lockstep(
             os.sched_setparam(0, boost[0])
 
     if not isinstance(port, ShmPort):  # (CAN: the drivers' frames answered while waiting)
-        conductor.pause = lambda: port.service(time.monotonic_ns() + 200_000)
+        conductor.pause = port.service  # (until a monotonic time [ns])
     _publish_status(bank, status, 0, dt_ns, t0 + 1, t0, 0, 0)
     gc.collect()
     gc.freeze()

@@ -232,3 +232,32 @@ def test_a_later_stage_waits_on_for_a_starved_one_in_lockstep_alone() -> None:
     finally:
         spin.kill()
         spin.wait()
+
+
+def test_a_paused_task_ticks_on_the_wall_clock_and_a_running_one_at_once() -> None:
+    """While the operator holds the task paused, a tick comes no sooner
+    than a node period after the last (the group held still needs no CPU,
+    and the operator's hand works in wall time); running, at once."""
+    import time
+
+    from redistro.plant.lockstep import Group
+
+    group = Group("sid")  # (no nodes: a tick is the physics step alone)
+    group.period_ns = 20_000_000
+    flag = bytearray(1)
+    group.paused_word = memoryview(flag)
+    steps: list[int] = []
+
+    def ticks(n: int) -> float:
+        start = time.monotonic()
+        for _ in range(n):
+            group.tick(lambda: steps.append(time.monotonic_ns()))
+        return time.monotonic() - start
+
+    ticks(1)
+    flag[0] = 1
+    assert ticks(5) >= 5 * 0.02 - 1e-3  # paused: a period a tick, at least
+    assert group.paced == 5
+    flag[0] = 0
+    ticks(50)
+    assert group.paced == 5 and len(steps) == 56  # running: no tick held back
