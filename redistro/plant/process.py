@@ -149,10 +149,12 @@ def _run_loop(
 
 def _can_port(cfg: Config, session_id: str, chassis: Any) -> BoardPort:
     """The boards on a CAN bus (python-can's, as the configuration says)."""
-    from redistro.drivers.io.can import CanPort, open_bus, plant_key
+    from redistro.drivers.io.can import PLANT_RCVBUF, CanPort, open_bus, plant_key
 
     c = cfg.plant.can
-    bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only)
+    # (every frame on the bus comes in, the chassis' own replies among them:
+    # a burst past the default buffer was lost, writes with it)
+    bus = open_bus(c.interface, c.channel, c.port, session_id, c.loopback_only, PLANT_RCVBUF)
     return CanPort(chassis.boards, bus, key=plant_key(session_id))
 
 

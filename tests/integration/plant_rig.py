@@ -51,16 +51,22 @@ class Rig:
         return t
 
     def run_for(self, sim_seconds: float, body: Any = None, timeout_s: float = 60.0) -> None:
-        """Call ``body()`` repeatedly until the plant's clock advanced by ``sim_seconds``."""
-        end = self.sim_time_s() + sim_seconds
+        """Call ``body()`` once a plant step (as a driver's loop writes once
+        a cycle: as fast as Python can, its writes flooded the CAN bus past
+        the chassis' socket buffer, a brake's write lost among them) until
+        the plant's clock advanced by ``sim_seconds``."""
+        now = self.sim_time_s()
+        end, last = now + sim_seconds, -1.0
         deadline = time.monotonic() + timeout_s
-        while self.sim_time_s() < end:
+        while now < end:
             if time.monotonic() > deadline:
                 raise AssertionError(f"plant did not advance {sim_seconds} s in {timeout_s} s")
-            if body is not None:
+            if body is not None and now != last:
+                last = now
                 body()
             else:
-                time.sleep(0.005)  # polling the plant's clock with a deadline
+                time.sleep(0.0002 if body is not None else 0.005)  # the plant's clock, polled
+            now = self.sim_time_s()
 
     def synced(self, robot: str) -> tuple[Any, np.void]:
         """Feedback and ground truth from the same plant step (retries until they match)."""

@@ -357,3 +357,62 @@ def test_a_bank_being_made_is_not_attached() -> None:
         finally:
             bank.close()
             bank.unlink()
+
+
+def test_a_lost_one_shot_can_write_is_sent_again_until_acknowledged() -> None:
+    """The udp_multicast bus loses a datagram when a socket's buffer is
+    full. A write that sets a state once (a brake, an encoder preset) is
+    acknowledged by the board and sent again until it is; the DAC's
+    torques, written every cycle, are not; a silent chassis costs the
+    writer its tries, not a fault (its reads find it gone)."""
+    import can
+
+    from redistro.drivers.io.can import WRITE, WRITE_TRIES, CanBackplane, CanPort
+
+    boards = {16: BoardType.ENCODER, 32: BoardType.DAC, 48: BoardType.DIO}
+
+    lost: set[int] = set()
+
+    class Lossy(CanPort):  # the chassis' socket loses the first write to each board
+        def handle(self, msg: Any) -> None:
+            a = msg.arbitration_id & 0xFF
+            if msg.arbitration_id & 0x700 == WRITE and a not in lost:
+                if msg.data[2] == msg.data[3] - 1:  # (its last segment: the bank is lost)
+                    lost.add(a)
+                return
+            super().handle(msg)
+
+    channel = f"lossy-{time.monotonic_ns()}"
+    port = Lossy(boards, can.Bus(interface="virtual", channel=channel), key=CAN_KEY)
+    bp = CanBackplane(
+        "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
+    )
+    done = threading.Event()
+
+    def serve() -> None:
+        while not done.is_set():
+            port.service(time.monotonic_ns() + 1_000_000)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        assert bp.inventory() == boards
+        dio = np.zeros((), BANKS[BoardType.DIO][1])
+        dio["outputs"] = 0b101  # two brakes released
+        bp.write(48, dio)  # lost once, then taken and acknowledged
+        assert int(port.outputs(48)["outputs"]) == 0b101
+        assert (bp.rewrites, bp.unacknowledged, port.taken) == (1, 0, 1)
+        dac = np.zeros((), BANKS[BoardType.DAC][1])
+        dac["code"][:2] = [300, -300]
+        bp.write(32, dac)  # lost: the next cycle's write replaces it
+        assert bp.rewrites == 1 and port.taken == 1 and list(port.outputs(32)["code"][:2]) == [0, 0]
+        done.set()
+        thread.join()
+        dio["outputs"] = 0  # every brake on, with the chassis gone silent
+        bp.write(48, dio)
+        assert (bp.rewrites, bp.unacknowledged) == (1 + WRITE_TRIES - 1, 1)
+    finally:
+        done.set()
+        thread.join()
+        port.close()
+        bp.bus.shutdown()
