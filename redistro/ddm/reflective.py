@@ -25,8 +25,10 @@ counter, odd while written) so a reader never takes a torn copy. Hellos
 The host's UDP may lose a datagram where a real card never loses a write.
 In real time the next cycle's record takes its place; in lockstep the tick
 waits for it. There (``resend_after_s``) a node that wrote nothing for that
-long writes its own slots' latest records again (a peer that had them
-counts duplicates): a lost write costs the tick that long, not the run.
+long writes its own slots' latest records again: a lost write costs the
+tick that long, not the run. A card that holds a record already takes the
+same record written again as no news (nothing handed to the ddm, nothing
+counted), as a memory does.
 """
 
 from __future__ import annotations
@@ -150,6 +152,11 @@ class ReflectiveTransport(Transport):
         self.card.write(struct.pack("<Q", seq + 1), at)
         self.seqs[slot] = seq + 1
 
+    def _holds(self, slot: int, record: bytes) -> bool:
+        """The card's slot holds ``record`` already (only this node writes
+        its card: no seqlock needed)."""
+        return self.seqs[slot] > 0 and self.card.read(SIZE, slot * SLOT + 8) == record
+
     @property
     def superseded(self) -> int:
         """Records of every slot overwritten before a receive handed them over."""
@@ -237,6 +244,8 @@ class ReflectiveTransport(Transport):
                 kind, robot = rec[6], rec[7]
                 if 1 <= kind <= KINDS and robot < MAX_ROBOTS:
                     slot = self._slot(rec, robot)
+                    if self._holds(slot, rec):
+                        continue  # the card has it: written again (a resend), nothing new
                     self._write_card(slot, rec)
                     if slot in written:
                         self.superseded_at[slot] += 1  # (a node that fell behind reads the latest)

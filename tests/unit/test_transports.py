@@ -326,6 +326,13 @@ def test_in_lockstep_a_reflective_write_the_host_lost_goes_out_again(lockstep: b
         assert [decode(r).seq for r in got] == [1], got
         assert time.monotonic() - start >= RESEND_S
         assert ssc.resent == 1  # type: ignore[attr-defined]
+        # the ESC has it now: the next resend is no news to its card
+        deadline = time.monotonic() + 2.0
+        while ssc.resent < 2 and time.monotonic() < deadline:  # type: ignore[attr-defined]
+            ssc.receive()
+            time.sleep(0.005)
+        assert ep.poll(2.0)  # (the resend came in)
+        assert esc.receive() == []
         ssc.send(_command(2), 0)  # a new write goes out at once, as ever
         ssc.links.flush()
         assert [decode(r).seq for r in _collect(esc, 1)] == [2]
