@@ -359,60 +359,27 @@ def test_a_bank_being_made_is_not_attached() -> None:
             bank.unlink()
 
 
-def test_a_lost_one_shot_can_write_is_sent_again_until_acknowledged() -> None:
-    """The udp_multicast bus loses a datagram when a socket's buffer is
-    full. A write that sets a state once (a brake, an encoder preset) is
-    acknowledged by the board and sent again until it is; the DAC's
-    torques, written every cycle, are not; a silent chassis costs the
-    writer its tries, not a fault (its reads find it gone)."""
-    import can
+def test_the_chassis_bus_takes_a_larger_buffer() -> None:
+    """Every socket on the udp_multicast bus takes every frame, its own
+    included: the chassis' asks for ``PLANT_RCVBUF`` (a burst past the
+    default buffer was lost, a brake's write among it); a driver's keeps
+    the default."""
+    import socket
 
-    from redistro.drivers.io.can import WRITE, WRITE_TRIES, CanBackplane, CanPort
+    from redistro.drivers.io.can import PLANT_RCVBUF, open_bus
+    from redistro.ipc.names import new_session_id
 
-    boards = {16: BoardType.ENCODER, 32: BoardType.DAC, 48: BoardType.DIO}
-
-    lost: set[int] = set()
-
-    class Lossy(CanPort):  # the chassis' socket loses the first write to each board
-        def handle(self, msg: Any) -> None:
-            a = msg.arbitration_id & 0xFF
-            if msg.arbitration_id & 0x700 == WRITE and a not in lost:
-                if msg.data[2] == msg.data[3] - 1:  # (its last segment: the bank is lost)
-                    lost.add(a)
-                return
-            super().handle(msg)
-
-    channel = f"lossy-{time.monotonic_ns()}"
-    port = Lossy(boards, can.Bus(interface="virtual", channel=channel), key=CAN_KEY)
-    bp = CanBackplane(
-        "s", TIMEOUT_S, bus=can.Bus(interface="virtual", channel=channel), key=CAN_KEY
-    )
-    done = threading.Event()
-
-    def serve() -> None:
-        while not done.is_set():
-            port.service(time.monotonic_ns() + 1_000_000)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
+    sid = new_session_id()
+    plant = open_bus("udp_multicast", "", 0, sid, True, PLANT_RCVBUF)
+    driver = open_bus("udp_multicast", "", 0, sid, True)
     try:
-        assert bp.inventory() == boards
-        dio = np.zeros((), BANKS[BoardType.DIO][1])
-        dio["outputs"] = 0b101  # two brakes released
-        bp.write(48, dio)  # lost once, then taken and acknowledged
-        assert int(port.outputs(48)["outputs"]) == 0b101
-        assert (bp.rewrites, bp.unacknowledged, port.taken) == (1, 0, 1)
-        dac = np.zeros((), BANKS[BoardType.DAC][1])
-        dac["code"][:2] = [300, -300]
-        bp.write(32, dac)  # lost: the next cycle's write replaces it
-        assert bp.rewrites == 1 and port.taken == 1 and list(port.outputs(32)["code"][:2]) == [0, 0]
-        done.set()
-        thread.join()
-        dio["outputs"] = 0  # every brake on, with the chassis gone silent
-        bp.write(48, dio)
-        assert (bp.rewrites, bp.unacknowledged) == (1 + WRITE_TRIES - 1, 1)
+
+        def size(bus: Any) -> int:
+            return int(bus._multicast._socket.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+
+        with open("/proc/sys/net/core/rmem_max") as f:  # (the kernel's cap, doubled)
+            cap = 2 * int(f.read())
+        assert size(plant) == min(2 * PLANT_RCVBUF, cap) > size(driver)
     finally:
-        done.set()
-        thread.join()
-        port.close()
-        bp.bus.shutdown()
+        plant.shutdown()
+        driver.shutdown()

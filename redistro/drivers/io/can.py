@@ -4,8 +4,7 @@ Frames (11-bit identifiers, 64-byte CAN FD payloads):
 
 - ``0x100 | address``  controller -> board: a board's ``out`` bank (write);
 - ``0x200 | address``  controller -> board: read request;
-- ``0x300 | address``  board -> controller: the board's ``in`` bank (reply);
-- ``0x400 | address``  board -> controller: a write taken (acknowledgement).
+- ``0x300 | address``  board -> controller: the board's ``in`` bank (reply).
 
 A bank longer than one frame is split into segments. Every frame starts with a
 6-byte header: sequence number (u16), segment index (u8), segment count (u8),
@@ -36,18 +35,12 @@ only matches segments.
 - A read request carries the driver's next number; the reply's tag covers
   it, so a reply that is forged, or captured and sent again (another
   request's), is not taken (``bad_frames``).
-- A write that sets a state once (brakes, gripper, encoder latch modes and
-  presets: every board but the DAC) is acknowledged: the board answers
-  the write it took with its number and a tag over both (as a reply's).
-  Until the acknowledgement comes the driver writes the bank again, under
-  a new number, ``WRITE_TRIES`` times at most, ``ACK_WAIT_S`` apart. A CAN
-  controller retransmits a frame nobody acknowledged; the udp_multicast
-  bus loses a datagram when a socket's buffer is full, and a brake
-  release lost so would leave the joint braked under torque. The DAC's
-  torques are written every cycle: a lost one is replaced by the next.
 
 The ``udp_multicast`` bus joins its group and sends on loopback only
-(``plant.can.loopback_only``).
+(``plant.can.loopback_only``). Every socket on the bus takes every frame,
+its own included; the chassis' takes a larger buffer (``PLANT_RCVBUF``):
+a datagram that finds a socket's buffer full is lost, and a lost write to
+the DIO board (a brake) is not sent again.
 
 One file past the house's ~400 lines: the frame format, the signed write and
 the checked read are one protocol, and split they would each need the others.
@@ -56,7 +49,6 @@ the checked read are one protocol, and split they would each need the others.
 from __future__ import annotations
 
 import binascii
-import contextlib
 import hmac
 import socket
 import struct
@@ -77,9 +69,7 @@ if TYPE_CHECKING:
 FRAME = 64
 HEAD = struct.Struct("<HBBH")
 PAYLOAD = FRAME - HEAD.size
-WRITE, READ, REPLY, ACK = 0x100, 0x200, 0x300, 0x400
-WRITE_TRIES = 3  # a one-shot write sent at most this often until acknowledged ...
-ACK_WAIT_S = 0.02  # ... waiting this long for each acknowledgement
+WRITE, READ, REPLY = 0x100, 0x200, 0x300
 PLANT_RCVBUF = 4 << 20  # the chassis' socket buffer: every frame of the bus comes in
 LATE_BATCH = 64  # frames a late plant still takes before its next step
 INVENTORY = 0x7F0  # controller -> chassis: who is there?
@@ -97,15 +87,6 @@ def write_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
 
 def reply_tag(key: bytes, address: int, seq: int, bank: bytes) -> bytes:
     return hmac.digest(key, _SIGNED.pack(REPLY, address, seq) + bank, "sha256")[:REPLY_TAG]
-
-
-def ack_tag(key: bytes, address: int, seq: int) -> bytes:
-    return hmac.digest(key, _SIGNED.pack(ACK, address, seq), "sha256")[:REPLY_TAG]
-
-
-def ack_frame(key: bytes, address: int, seq: int) -> bytes:
-    """A write's acknowledgement: its number and the tag over it."""
-    return (SEQ.pack(seq) + ack_tag(key, address, seq)).ljust(FRAME, b"\0")
 
 
 def signed(seq: int, bank: bytes, tag: bytes) -> bytes:
@@ -300,8 +281,6 @@ class CanBackplane(Backplane):
         self.bad_frames = 0  # frames refused: malformed, or a reply whose tag failed
         self.resent = 0  # read requests sent a second time
         self.writes = 0  # banks written
-        self.rewrites = 0  # one-shot writes sent again, unacknowledged
-        self.unacknowledged = 0  # ... and never acknowledged (WRITE_TRIES)
 
     def next_seq(self) -> int:
         """The next sequence number: above the last, and never below the
@@ -395,31 +374,11 @@ class CanBackplane(Backplane):
         return out
 
     def write(self, address: int, record: np.ndarray[Any, Any]) -> None:
-        """The bank, signed; a one-shot write (every board but the DAC)
-        again until the board acknowledges it (see the module's text)."""
-        types = self._types or {}
-        tries = WRITE_TRIES if types.get(address, BoardType.DAC) != BoardType.DAC else 1
+        seq = self.next_seq()
         bank = record.tobytes()
+        for frame in frames_for(seq, signed(seq, bank, write_tag(self.key, address, seq, bank))):
+            self._send(WRITE | address, frame)
         self.writes += 1
-        for attempt in range(tries):
-            seq = self.next_seq()
-            payload = signed(seq, bank, write_tag(self.key, address, seq, bank))
-            for frame in frames_for(seq, payload):
-                self._send(WRITE | address, frame)
-            if tries == 1 or self._acknowledged(address, seq):
-                return
-            if attempt < tries - 1:
-                self.rewrites += 1
-        self.unacknowledged += 1
-
-    def _acknowledged(self, address: int, seq: int) -> bool:
-        """The board's acknowledgement of write ``seq`` came within ACK_WAIT_S."""
-        deadline = time.monotonic() + ACK_WAIT_S
-        want = ack_frame(self.key, address, seq)
-        while (msg := self._recv(deadline)) is not None:
-            if msg.arbitration_id == ACK | address and hmac.compare_digest(bytes(msg.data), want):
-                return True
-        return False
 
     def close(self) -> None:
         if self._own_bus:
@@ -460,8 +419,6 @@ class CanPort(BoardPort):
                 return  # the controller will time out and see an I/O fault
 
     def handle(self, msg: Any) -> None:
-        import can
-
         ident = msg.arbitration_id
         if ident == INVENTORY:
             pairs = sorted(self.types.items())
@@ -493,9 +450,6 @@ class CanPort(BoardPort):
         self._last_seq[a] = seq
         self.taken += 1
         self._out[a].reshape(1).view(np.uint8)[:] = np.frombuffer(bank, np.uint8)
-        if self.types[a] != BoardType.DAC:  # (a one-shot write: acknowledged)
-            with contextlib.suppress(can.CanError):  # (else the driver writes it again)
-                self.bus.send(_message(ACK | a, ack_frame(self.key, a, seq)), timeout=0.005)
 
     def service(self, until_ns: int) -> None:
         """Answer requests until ``until_ns``; when the step is late, take what
