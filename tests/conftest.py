@@ -161,7 +161,11 @@ LOCKSTEP_MODULES = (
 # lockstep sessions the first worker runs between its real-time ones (never
 # beside them: that worker runs one test at a time), to even the workers'
 # shares: the second's CPU is the suite's long pole
-BESIDE_REAL_TIME = ("::test_two_hands_carry_one_bar", "::test_a_campaign_finds_holes_2_to_3_mm_off")
+BESIDE_REAL_TIME = (
+    "::test_two_hands_carry_one_bar",
+    "::test_a_campaign_finds_holes_2_to_3_mm_off",
+    "::test_two_arms_insert_a_held_peg_into_a_held_block",
+)
 
 
 def _apart(nodeid: str) -> bool:
