@@ -161,7 +161,7 @@ LOCKSTEP_MODULES = (
 # lockstep sessions the first worker runs between its real-time ones (never
 # beside them: that worker runs one test at a time), to even the workers'
 # shares: the second's CPU is the suite's long pole
-BESIDE_REAL_TIME = (
+IN_THE_REAL_TIME_WORKER = (
     "::test_two_hands_carry_one_bar",
     "::test_a_campaign_finds_holes_2_to_3_mm_off",
     "::test_two_arms_insert_a_held_peg_into_a_held_block",
@@ -173,9 +173,9 @@ def _apart(nodeid: str) -> bool:
     refusals start no session) and the lockstep sessions; not the
     transports' contract tests, whose zenoh drops records on a loaded host
     (congestion control DROP), as a session's ddm would; nor the lockstep
-    sessions of ``BESIDE_REAL_TIME``."""
+    sessions of ``IN_THE_REAL_TIME_WORKER``."""
     path = nodeid.split("::")[0]
-    if path.endswith("/test_transports.py") or any(t in nodeid for t in BESIDE_REAL_TIME):
+    if path.endswith("/test_transports.py") or any(t in nodeid for t in IN_THE_REAL_TIME_WORKER):
         return False
     name = path.rsplit("/", 1)[-1]
     return "integration/" not in path or name == "test_front_door.py" or name in LOCKSTEP_MODULES
