@@ -232,7 +232,11 @@ static int encode(PlanObject *pl, const Codec *c, int64_t *row, const uint8_t *o
 }
 
 /* ddm_emit's work over a valid plan: the mask of the robots whose wire row
- * holds a new record, -1 a torn read, -2 libcrypto failed (an error set). */
+ * holds a new record, -1 a torn read, -2 libcrypto failed (an error set).
+ * Every row is read before any is encoded: a torn read of one row (its
+ * writer inside its write) leaves every row's state as it was, so that the
+ * Python path, reading again, sends them all (a row encoded before a later
+ * one tore would be counted sent, and never sent). */
 static long emit_rows(PlanObject *pl, const Codec *c) {
     const int64_t *P = I64(pl, DE_PARAMS);
     Py_ssize_t nrows = pl->n[DE_ROWS] / DDM_EMIT_ROWS__N, size = P[EP(SIZE)];
@@ -240,10 +244,14 @@ static long emit_rows(PlanObject *pl, const Codec *c) {
     uint8_t *ld = U8(pl, DE_LD);
     long mask = 0;
     for (Py_ssize_t i = 0; i < nrows; i++) {
-        int64_t *row = I64(pl, DE_ROWS) + i * DDM_EMIT_ROWS__N;
+        const int64_t *row = I64(pl, DE_ROWS) + i * DDM_EMIT_ROWS__N;
         uint8_t *out = U8(pl, DE_OUT) + i * size;
         if (!seqlock_read(ld + row[ER(SEQ_OFF)], ld + row[ER(PAY_OFF)], out, (size_t)size))
             return -1;
+    }
+    for (Py_ssize_t i = 0; i < nrows; i++) {
+        int64_t *row = I64(pl, DE_ROWS) + i * DDM_EMIT_ROWS__N;
+        uint8_t *out = U8(pl, DE_OUT) + i * size;
         int64_t produced = (int64_t)ld_u64(out + P[EP(SEQSRC_AT)]);
         if (produced == 0 || produced == row[ER(LAST_OUT)])
             continue;

@@ -171,6 +171,36 @@ def test_a_forged_command_is_dropped_and_counted(group: tuple[Node, dict[str, No
     assert float(esc.ld.block("command", 0).read()["tau_nm"][0]) == 0.0
 
 
+def test_a_command_read_torn_beside_another_robots_is_sent_once_its_write_is_over(
+    group: tuple[Node, dict[str, Node]],
+) -> None:
+    """The SSC's worker writes each robot's command in turn; its ddm may
+    read them while the worker is inside the second write. The compiled
+    emit then hands the step to the Python path, which reads again: the
+    first robot's command must still go out (a lockstep tick waited for
+    it for ever)."""
+    ssc, escs = group
+    kpath = ssc.ddm.kernel_path
+    if kpath is None:
+        pytest.skip("the kernels are not built")
+    for i in range(len(ROBOTS)):
+        cmd = Record(COMMAND)
+        cmd["seq_src"] = 1
+        cmd.array["tau_nm"] = i + 0.5
+        ssc.ld.writer("command", i, role="worker").publish(cmd.bytes)
+    seq_off = ssc.ld.block_offsets("command", 1)[0]
+    seq = ssc.ld.raw[seq_off : seq_off + 8].view(np.uint64)
+    seq[0] += 1  # the worker inside its write of robot 1's command
+    assert kpath.emit() == -1  # a torn read: the Python path's
+    seq[0] += 1  # ... and the write over
+    ssc.ddm.step(2)
+    for i, (r, esc) in enumerate(escs.items()):
+        esc.ddm.step(2)
+        got = esc.ld.block("command", 0).read()
+        assert int(got["seq_src"]) == 1 and float(got["tau_nm"][0]) == i + 0.5, r
+        assert int(ssc.ddm.ex[i]["sent"]) == 1 and int(esc.ddm.ex[0]["updates"]) == 1, r
+
+
 def test_the_ssc_worker_plans_and_commands_in_one_process(
     group: tuple[Node, dict[str, Node]],
 ) -> None:
