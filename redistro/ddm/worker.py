@@ -62,6 +62,7 @@ from redistro.ddm.transport import (
     transport_class,
 )
 from redistro.errors import TransportError
+from redistro.ipc.bell import Ringer
 from redistro.ipc.session import Manifest
 from redistro.kernels import KERNELS
 from redistro.localdata.block import Record
@@ -204,9 +205,11 @@ class Ddm(Worker):
         self.accel: Accelerator = self.transport.accelerator or NO_ACCELERATOR
         self.links.verify_with(self.greeting.authentic)
         # (in lockstep an ESC sends each sample as it comes, replying or not:
-        # the plant waits for it before the SSC's tick)
+        # the plant waits for it before the SSC's tick; and each step that
+        # admitted a record rings the plant's bell, redistro.ipc.bell)
         lockstep = self.spec.clock == "lockstep"
         self.replying = self.kind == "esc" and self.transport.replies and not lockstep
+        self.ring = Ringer(self.spec.session_id).ring if lockstep else None
         self.answer_gid = self.gid[self.robots[0]]
         # encrypted payloads take the Python path (the kernels copy payloads
         # into Local Data as they come)
@@ -259,7 +262,9 @@ class Ddm(Worker):
             self.socket_steps.bind(kpath, self.accel)
         self.publish_call = kpath.publish_call
         self.publish_plan = kpath.publish_plan
-        if not self.socket_kernels:
+        if not self.socket_kernels and self.ring is None:
+            # (not in lockstep: a record taken in the transport's thread
+            # would not ring the plant's bell)
             self.answers.offer(ld)
 
     # -- one tick --
@@ -311,6 +316,8 @@ class Ddm(Worker):
                         self._publish()
                     return
                 fresh = self._receive()
+                if fresh and self.ring is not None:
+                    self.ring()  # (lockstep: a command in)
                 new_estop = estop and not self.estop_sent
                 owed = self.answers.take_owed()
                 if owed or not (self.replying and self.commanded and not fresh and not new_estop):
@@ -321,7 +328,8 @@ class Ddm(Worker):
                 self._send(estop)
                 if not self.greeted:
                     self.greeting.greet()
-                self._receive()
+                if self._receive() and self.ring is not None:
+                    self.ring()  # (lockstep: a sample in)
                 self._check_links()  # the connecting side loses one robot's link at a time
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the

@@ -40,6 +40,7 @@ from typing import Any
 
 from redistro.errors import TornReadTimeout
 from redistro.ipc import sched
+from redistro.ipc.bell import LOOK_S
 from redistro.localdata.layout import ProcState
 from redistro.localdata.view import NodeView
 from redistro.log.ring import Progress
@@ -139,6 +140,9 @@ class Group:
     # what the plant does while it waits: the CAN backplane's frames
     # answered (the drivers read and write during their tick); else a nap
     pause: Any = None
+    bell: Any = None  # the nodes' bell (redistro.ipc.bell): else a look every 20 µs
+    rung: int = 0  # waits woken by the bell
+    unrung: int = 0  # ... and by its look anyway (LOOK_S): a phase no node rang for
     period_ns: int = 0  # the nodes' period: a paused task's ticks come no faster
     paused_word: Any = None  # the SSC's plan: the operator paused the task
     last_ns: int = 0  # when the last tick began
@@ -201,6 +205,9 @@ class Group:
         if self.paused_word is not None and self.paused_word[0] and self.period_ns:
             self._pace(self.last_ns + self.period_ns)
         self.last_ns = time.monotonic_ns()
+        if self.bell is not None:  # (rings of the last tick after its waits: stale)
+            while self.bell.try_acquire():
+                pass
         self.cycle += 1
         k = self.cycle
         _send(self.escs)
@@ -281,6 +288,11 @@ class Group:
                 return
             if self.pause is not None:
                 self.pause(time.monotonic_ns() + 200_000)
+            elif self.bell is not None:
+                if self.bell.acquire(LOOK_S):  # a node rang, or a look anyway
+                    self.rung += 1
+                else:
+                    self.unrung += 1
             else:
                 time.sleep(20e-6)  # the nodes run above the plant: let them
 
@@ -365,6 +377,8 @@ class Conductor:
         self.missed: list[dict[str, Any]] = []
         self.paced = 0
         self.pause: Any = None  # (Group.pause)
+        self.bell: Any = None  # (Group.bell)
+        self.rung = self.unrung = 0
 
     @property
     def steps_per_tick(self) -> int:
@@ -387,6 +401,7 @@ class Conductor:
             g.close()
             return False
         g.pause = self.pause
+        g.bell = self.bell
         g.period_ns = round(1e9 / self.rate_hz) if self.rate_hz else 0
         self.group = g
         self.groups += 1
@@ -404,6 +419,8 @@ class Conductor:
             self.waits_missed += self.group.waits_missed
             self.missed += self.group.missed[: 10 - len(self.missed)]
             self.paced += self.group.paced
+            self.rung += self.group.rung
+            self.unrung += self.group.unrung
             self.group.close()
             self.group = None
 
@@ -434,4 +451,5 @@ class Conductor:
             "waits_missed": self.waits_missed,
             "missed": self.missed,
             "paced_ticks": self.paced,
+            "bell": {"rung": self.rung, "unrung": self.unrung},
         }

@@ -138,11 +138,17 @@ def _run_loop(
     profiled = hooks.profile("plant/loop")
     with profiled if profiled is not None else contextlib.nullcontext():
         if cfg.session.clock == "lockstep":
+            from redistro.ipc import bell
             from redistro.plant.lockstep import Conductor
 
             conductor = Conductor(session_id, folder, cfg.plant.physics_hz)
+            conductor.bell = bell.create(session_id)  # (the nodes ring it: plant/lockstep.py)
             boost = _step_priority(cfg.scheduling.priorities)
-            return _loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor, boost)
+            try:
+                return _loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor, boost)
+            finally:
+                conductor.bell.close()
+                conductor.bell.unlink()
         pace = cfg.plant.real_time_factor
         return _loop(cfg.plant.physics_hz, seconds, chassis, bank, port, pace)
 

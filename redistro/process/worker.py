@@ -20,6 +20,7 @@ from typing import Any
 
 from redistro.errors import TornReadTimeout
 from redistro.ipc import names, sched, signals
+from redistro.ipc.bell import Ringer
 from redistro.ipc.sem import Semaphore
 from redistro.localdata import LocalData, MessageBox, ProcState
 from redistro.localdata.block import Record
@@ -257,6 +258,8 @@ class _Runner:
         tick = Record(MANAGER)
         pred_recs = [(rows[p], Record(PROC_STATUS)) for p in preds]
         idles = worker.wants_idle()  # the Idle state, if it has work
+        # in lockstep the cycle's last stage rings the plant's bell once signed
+        ring = Ringer(self.spec.session_id).ring if lockstep and not succs else None
         while True:
             # Every worker wakes at the tick; a later stage then waits at its
             # collecting point. (Waiting at the collecting point first and taking
@@ -292,6 +295,8 @@ class _Runner:
             self._wake_for_estop(worker, manager_fd)
             for j in succs:
                 go[j].release()
+            if ring is not None:
+                ring()
             if idles:
                 self._idle(worker, due_ns + self.period_ns - IDLE_GUARD_NS)
 

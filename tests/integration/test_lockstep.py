@@ -59,6 +59,8 @@ def runs(calibrated: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     for transport in ("socket", "reflective", "zenoh"):
         s = _lockstep(calibrated, tmp, transport, f"ddm.transport={transport}")
         assert s["result"] == "ok" and s["inserted"] is True, (transport, s["reason"])
+        plant = load_json(tmp / transport / "run" / "plant.json")
+        assert plant["lockstep"]["bell"]["rung"] > 0, plant["lockstep"]  # (the nodes rang)
     return tmp
 
 

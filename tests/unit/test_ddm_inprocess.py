@@ -201,6 +201,52 @@ def test_a_command_read_torn_beside_another_robots_is_sent_once_its_write_is_ove
         assert int(ssc.ddm.ex[i]["sent"]) == 1 and int(esc.ddm.ex[0]["updates"]) == 1, r
 
 
+def test_in_lockstep_each_ddm_rings_the_plants_bell_when_it_admits(tmp_path: Path) -> None:
+    """In lockstep the plant sleeps on its bell (``ipc.bell``): the SSC's
+    ddm rings it once it admitted the samples, an ESC's once it admitted
+    its command; a step that admitted nothing rings nothing."""
+    from redistro.ipc import bell
+    from redistro.ipc.sem import Semaphore
+
+    g = _setup(tmp_path, ("session.clock=lockstep",))
+    ssc_end, esc_ends = Loopback.group(g.gids)
+    ssc = _node(ssc_spec(g.cfg, g.task, g.sid, run_dir=""), ssc_end)
+    escs = {
+        r: _node(esc_spec(g.cfg, g.task, r, g.hw[r], g.sid, positions_file="p"), esc_ends[gid])
+        for r, gid in zip(ROBOTS, g.gids, strict=True)
+    }
+    plant = Semaphore.create(bell.bell_name(g.sid), None)
+    try:
+        assert ssc.spec.clock == "lockstep" and ssc.ddm.ring is not None
+        _shake_hands(ssc, escs)
+        while plant.try_acquire():
+            pass  # (the handshake's)
+        for esc in escs.values():
+            fb = Record(FEEDBACK)
+            fb["seq_src"] = 1
+            esc.ld.writer("feedback", 0, role="acquisition").publish(fb.bytes)
+            esc.ddm.step(1)  # its sample out: nothing admitted, no ring
+        assert plant.value == 0
+        ssc.ddm.step(1)  # both samples in
+        assert plant.value == 1
+        for i in range(len(ROBOTS)):
+            cmd = Record(COMMAND)
+            cmd["seq_src"] = 1
+            ssc.ld.writer("command", i, role="worker").publish(cmd.bytes)
+        ssc.ddm.step(2)  # the commands out: nothing admitted
+        assert plant.value == 1
+        for esc in escs.values():
+            esc.ddm.step(2)
+        assert plant.value == 3  # each ESC's command in
+    finally:
+        for n in [ssc, *escs.values()]:
+            n.ddm.cleanup()
+            n.ld.close()
+            n.ld.unlink()
+        plant.close()
+        plant.unlink()
+
+
 def test_the_ssc_worker_plans_and_commands_in_one_process(
     group: tuple[Node, dict[str, Node]],
 ) -> None:

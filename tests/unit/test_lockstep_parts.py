@@ -167,8 +167,8 @@ def test_a_process_whose_other_thread_spins_is_runnable() -> None:
 
     try:
         deadline = time.monotonic() + 10
-        while main_thread() == b"R" and time.monotonic() < deadline:
-            time.sleep(0.005)  # (until it is in its sleep)
+        while main_thread() != b"S" and time.monotonic() < deadline:
+            time.sleep(0.005)  # (until it is in its sleep: past its start's R and D)
         assert main_thread() == b"S"
         seen = False
         while not seen and time.monotonic() < deadline:
@@ -261,3 +261,43 @@ def test_a_paused_task_ticks_on_the_wall_clock_and_a_running_one_at_once() -> No
     flag[0] = 0
     ticks(50)
     assert group.paced == 5 and len(steps) == 56  # running: no tick held back
+
+
+def test_a_wait_sleeps_on_the_bell_and_looks_anyway_when_nobody_rings() -> None:
+    """The plant's wait sleeps on the session's bell: a node's ring wakes
+    it to look again; with no ring it looks anyway after LOOK_S. A ringer
+    before the plant made its bell rings nothing."""
+    from types import SimpleNamespace
+
+    from redistro.ipc import bell
+    from redistro.ipc.names import new_session_id
+    from redistro.ipc.session import Session
+    from redistro.plant.lockstep import LIVE, Group
+
+    with Session.create() as s:
+        sid = s.id
+        ringer = bell.Ringer(sid)
+        ringer.ring()  # (no bell yet: nothing, and no error)
+        plant = bell.create(sid)
+        try:
+            group = Group(sid)
+            group.bell = plant
+            node = SimpleNamespace(live=True, log=None, pids=[], state=lambda: LIVE[0])
+            group.escs = [node]  # type: ignore[list-item]
+            looks = []
+
+            def done() -> bool:
+                looks.append(1)
+                return len(looks) > 1
+
+            ringer.ring()  # a node rang: the wait takes it, looks again, done
+            group._wait(done, "escs")
+            assert (group.rung, group.unrung, len(looks)) == (1, 0, 2)
+            looks.clear()
+            group._wait(done, "escs")  # nobody rings: one look after LOOK_S
+            assert (group.rung, group.unrung, len(looks)) == (1, 1, 2)
+            assert bell.attach(new_session_id()) is None
+        finally:
+            ringer.close()
+            plant.close()
+            plant.unlink()
