@@ -205,8 +205,7 @@ class Ddm(Worker):
         self.accel: Accelerator = self.transport.accelerator or NO_ACCELERATOR
         self.links.verify_with(self.greeting.authentic)
         # (in lockstep an ESC sends each sample as it comes, replying or not:
-        # the plant waits for it before the SSC's tick; and each step that
-        # admitted a record rings the plant's bell, redistro.ipc.bell)
+        # the plant waits for it before the SSC's tick; a receive rings it)
         lockstep = self.spec.clock == "lockstep"
         self.replying = self.kind == "esc" and self.transport.replies and not lockstep
         self.ring = Ringer(self.spec.session_id).ring if lockstep else None
@@ -262,9 +261,7 @@ class Ddm(Worker):
             self.socket_steps.bind(kpath, self.accel)
         self.publish_call = kpath.publish_call
         self.publish_plan = kpath.publish_plan
-        if not self.socket_kernels and self.ring is None:
-            # (not in lockstep: a record taken in the transport's thread
-            # would not ring the plant's bell)
+        if not self.socket_kernels and self.ring is None:  # (lockstep: the step rings)
             self.answers.offer(ld)
 
     # -- one tick --
@@ -316,8 +313,6 @@ class Ddm(Worker):
                         self._publish()
                     return
                 fresh = self._receive()
-                if fresh and self.ring is not None:
-                    self.ring()  # (lockstep: a command in)
                 new_estop = estop and not self.estop_sent
                 owed = self.answers.take_owed()
                 if owed or not (self.replying and self.commanded and not fresh and not new_estop):
@@ -328,8 +323,7 @@ class Ddm(Worker):
                 self._send(estop)
                 if not self.greeted:
                     self.greeting.greet()
-                if self._receive() and self.ring is not None:
-                    self.ring()  # (lockstep: a sample in)
+                self._receive()
                 self._check_links()  # the connecting side loses one robot's link at a time
         except TransportError as exc:
             # no retry: a lost link is a fault; the data stop and the
@@ -359,12 +353,7 @@ class Ddm(Worker):
             # (by count: an ESC's answers in the transport's thread step the
             # count too, as the Python answer's do; the SSC's do not)
             self.status_at = steps
-            self._status(estop)
-
-    def _status(self, estop: bool) -> None:
-        """The node's status for viewers on other hosts (off the hot path:
-        once in ``status_every`` steps)."""
-        self.links.status(status_doc(self, estop))
+            self.links.status(status_doc(self, estop))  # (for viewers on other hosts)
 
     def _corrupt_command(self, i: int) -> None:
         """The fault harness's command fault on what the kernel just
@@ -426,6 +415,8 @@ class Ddm(Worker):
             fresh += self.python_admission.take(raw)
         if taken:
             self.links.authenticated()
+        if (fresh or taken) and self.ring is not None:
+            self.ring()  # (lockstep: the plant may wait for these)
         return fresh + taken
 
     def _send(self, estop: bool) -> None:
