@@ -34,14 +34,6 @@ def create(session_id: str) -> Semaphore:
     return Semaphore.create(bell_name(session_id), Manifest.for_session(session_id))
 
 
-def attach(session_id: str) -> Semaphore | None:
-    """The plant's bell, or None: none was made (a plant not in lockstep)."""
-    try:
-        return Semaphore.attach(bell_name(session_id))
-    except Exception:
-        return None
-
-
 class Ringer:
     """A node's side: :meth:`ring` posts the bell. It is opened at the first
     ring (the plant made it before any node could ring: a node rings only

@@ -142,13 +142,15 @@ def _run_loop(
             from redistro.plant.lockstep import Conductor
 
             conductor = Conductor(session_id, folder, cfg.plant.physics_hz)
-            conductor.bell = bell.create(session_id)  # (the nodes ring it: plant/lockstep.py)
+            if folder is not None:  # (a session's: the nodes ring it, plant/lockstep.py)
+                conductor.bell = bell.create(session_id)
             boost = _step_priority(cfg.scheduling.priorities)
             try:
                 return _loop_lockstep(cfg.plant.physics_hz, chassis, bank, port, conductor, boost)
             finally:
-                conductor.bell.close()
-                conductor.bell.unlink()
+                if conductor.bell is not None:
+                    conductor.bell.close()
+                    conductor.bell.unlink()
         pace = cfg.plant.real_time_factor
         return _loop(cfg.plant.physics_hz, seconds, chassis, bank, port, pace)
 
