@@ -7,6 +7,7 @@ signals before numpy (and its threads) exist.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -79,7 +80,10 @@ def _campaign_args(
     p.add_argument("--plot", default=None, help="draw the offsets by outcome into this PNG")
 
 
+@functools.cache
 def _parser() -> argparse.ArgumentParser:
+    """The command line's parser (kept: parsing leaves it as it was, and a
+    caller of :func:`main` in one process, the tests', builds it once)."""
     p = _Parser(
         prog="redistro", description="A multi-process robot controller.", parents=[_common("")]
     )

@@ -50,9 +50,9 @@ def dds_type(msgtype: str) -> str:
 
 def type_hash(msgtype: str) -> str:
     """The type's REP-2011 hash (``RIHS01_<sha256>``) from its definition."""
-    from redistro.log.scene import _store
+    from redistro.log.scene import full_store
 
-    return str(_store().hash_rihs01(msgtype))
+    return str(full_store().hash_rihs01(msgtype))
 
 
 def mangle(name: str) -> str:

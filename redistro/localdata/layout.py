@@ -385,8 +385,11 @@ WRITERS: dict[str, dict[str, str]] = {
 }
 
 
+@functools.cache
 def segment_dtype(n_procs: int, n_robots: int) -> np.dtype[Any]:
-    """The whole segment for a node with ``n_procs`` processes and ``n_robots`` robots."""
+    """The whole segment for a node with ``n_procs`` processes and ``n_robots`` robots.
+    Kept (a dtype is immutable): every attach asks for it, and a watcher
+    polling for a node's segment would build it again each time."""
     if not 1 <= n_procs <= MAX_PROCS:
         raise ValueError(f"n_procs must be 1..{MAX_PROCS}, got {n_procs}")
     if not 0 <= n_robots <= MAX_ROBOTS:

@@ -155,7 +155,7 @@ def _static_scene(w: Any, meta: dict[str, Any], stamp_ns: int) -> int:
     arms = {r: scene.Arm(r, v.get("peg")) for r, v in sorted(meta["robots"].items())}
     made = scene.static_messages(meta, arms, stamp_ns)
     for t, topic, msgtype, data in made:
-        text = scene.TF_DEF if msgtype == scene.TF else scene.definition(msgtype)
+        text = scene.definition(msgtype)
         sid = w.register_schema(msgtype, SCHEMA_ENCODING, text.encode())
         w.add_message(w.register_channel(topic, MESSAGE_ENCODING, sid, {}), t, data, t)
     return len(made)

@@ -40,38 +40,116 @@ ARROW_HZ = 30.0  # the wrench arrows' rate at most
 ARROW_M_PER_N = 0.01  # an arrow's length per newton
 WORLD = "world"
 
-TF = "tf2_msgs/msg/TFMessage"
-TF_DEF = "geometry_msgs/TransformStamped[] transforms\n" + "".join(
-    f"{'=' * 80}\nMSG: {name}\n{text}"
-    for name, text in (
-        (
-            "geometry_msgs/TransformStamped",
-            "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform\n",
-        ),
-        ("std_msgs/Header", "builtin_interfaces/Time stamp\nstring frame_id\n"),
-        ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec\n"),
-        (
-            "geometry_msgs/Transform",
-            "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n",
-        ),
-        ("geometry_msgs/Vector3", "float64 x\nfloat64 y\nfloat64 z\n"),
-        ("geometry_msgs/Quaternion", "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n"),
+
+# The standard messages the scene writes: their ``ros2msg`` definitions with
+# their dependencies, as rosbags' ROS 2 Jazzy store generates them (the unit
+# tests hold them to it). The writer registers these three alone: the whole
+# store costs about 100 ms of every session's end.
+def _msgdef(top: str, *deps: str) -> str:
+    return top + "".join(f"{'=' * 80}\nMSG: {d}\n{_MSG[d]}" for d in deps)
+
+
+_XYZ = "float64 x\nfloat64 y\nfloat64 z\n"
+_MSG = {
+    "geometry_msgs/TransformStamped": (
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform\n"
+    ),
+    "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+    "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "builtin_interfaces/Duration": "int32 sec\nuint32 nanosec\n",
+    "geometry_msgs/Transform": (
+        "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n"
+    ),
+    "geometry_msgs/Vector3": _XYZ,
+    "geometry_msgs/Point": _XYZ,
+    "geometry_msgs/Quaternion": _XYZ + "float64 w\n",
+    "geometry_msgs/Pose": "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n",
+    "std_msgs/ColorRGBA": "float32 r\nfloat32 g\nfloat32 b\nfloat32 a\n",
+    "sensor_msgs/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
+    "visualization_msgs/UVCoordinate": "float32 u\nfloat32 v\n",
+    "visualization_msgs/MeshFile": "string filename\nuint8[] data\n",
+    "visualization_msgs/Marker": "".join(
+        f"int32 {name}={value}\n"
+        for value, name in enumerate(
+            [
+                "ARROW",
+                "CUBE",
+                "SPHERE",
+                "CYLINDER",
+                "LINE_STRIP",
+                "LINE_LIST",
+                "CUBE_LIST",
+                "SPHERE_LIST",
+                "POINTS",
+                "TEXT_VIEW_FACING",
+                "MESH_RESOURCE",
+                "TRIANGLE_LIST",
+                "ARROW_STRIP",
+            ]
+        )
     )
+    + "int32 ADD=0\nint32 MODIFY=0\nint32 DELETE=2\nint32 DELETEALL=3\n"
+    + "std_msgs/Header header\nstring ns\nint32 id\nint32 type\nint32 action\n"
+    + "geometry_msgs/Pose pose\ngeometry_msgs/Vector3 scale\nstd_msgs/ColorRGBA color\n"
+    + "builtin_interfaces/Duration lifetime\nbool frame_locked\n"
+    + "geometry_msgs/Point[] points\nstd_msgs/ColorRGBA[] colors\n"
+    + "string texture_resource\nsensor_msgs/CompressedImage texture\n"
+    + "visualization_msgs/UVCoordinate[] uv_coordinates\nstring text\n"
+    + "string mesh_resource\nvisualization_msgs/MeshFile mesh_file\n"
+    + "bool mesh_use_embedded_materials\n",
+}
+TF = "tf2_msgs/msg/TFMessage"
+TF_DEF = _msgdef(
+    "geometry_msgs/TransformStamped[] transforms\n",
+    "geometry_msgs/TransformStamped",
+    "std_msgs/Header",
+    "builtin_interfaces/Time",
+    "geometry_msgs/Transform",
+    "geometry_msgs/Vector3",
+    "geometry_msgs/Quaternion",
 )
 STRING = "std_msgs/msg/String"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+MARKER_ARRAY_DEF = _msgdef(
+    "visualization_msgs/Marker[] markers\n",
+    "visualization_msgs/Marker",
+    "std_msgs/Header",
+    "builtin_interfaces/Time",
+    "geometry_msgs/Pose",
+    "geometry_msgs/Point",
+    "geometry_msgs/Quaternion",
+    "geometry_msgs/Vector3",
+    "std_msgs/ColorRGBA",
+    "builtin_interfaces/Duration",
+    "sensor_msgs/CompressedImage",
+    "visualization_msgs/UVCoordinate",
+    "visualization_msgs/MeshFile",
+)
+DEFINITIONS = {TF: TF_DEF, STRING: "string data\n", MARKER_ARRAY: MARKER_ARRAY_DEF}
 
 
 @cache
-def _store() -> Any:
+def full_store() -> Any:
+    """rosbags' whole ROS 2 Jazzy store (its type hashes, the tests' definitions)."""
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_JAZZY)
 
 
+@cache
+def _store() -> Any:
+    """A rosbags store of the marker array and its dependencies alone (what
+    the scene serializes with rosbags)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(MARKER_ARRAY_DEF, MARKER_ARRAY))
+    return store
+
+
 def definition(msgtype: str) -> str:
     """A standard message's ``ros2msg`` definition, with its dependencies."""
-    return str(_store().generate_msgdef(msgtype, ros_version=2)[0])
+    return DEFINITIONS[msgtype]
 
 
 Quat = tuple[float, float, float, float]  # x, y, z, w

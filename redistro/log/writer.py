@@ -271,11 +271,10 @@ class _McapSink:
         """The static scene and the wrench arrows, at the end of the file."""
         from redistro.log import scene
 
-        definitions = {scene.TF: scene.TF_DEF, scene.STRING: "string data\n"}
         schemas: dict[str, int] = {}
         for log_ns, topic, msgtype, data in self.scene.closing():
             if msgtype not in schemas:
-                text = definitions.get(msgtype) or scene.definition(msgtype)
+                text = scene.definition(msgtype)
                 schemas[msgtype] = self.writer.register_schema(msgtype, "ros2msg", text.encode())
             if topic not in self.scene_channels:
                 cid = self.writer.register_channel(topic, "cdr", schemas[msgtype], {})

@@ -54,6 +54,9 @@ WAIT_S = 2.0
 # host: a real-time session beside it), or its log still drains, up to this
 WAIT_MAX_S = 60.0
 LIVE = (int(ProcState.ROUTINE), int(ProcState.IDLE))
+# how often the plant looks for a group coming up (the boards are served
+# every millisecond meanwhile): each look attaches every node's segment
+LOOK_UP_NS = 10_000_000
 
 
 def write_nodes(folder: Path, nodes: list[str], rate_hz: float) -> None:
@@ -379,6 +382,7 @@ class Conductor:
         self.pause: Any = None  # (Group.pause)
         self.bell: Any = None  # (Group.bell)
         self.rung = self.unrung = 0
+        self.looked_ns = 0  # when ready() last looked for a group coming up
 
     @property
     def steps_per_tick(self) -> int:
@@ -391,6 +395,10 @@ class Conductor:
             if not self.group.over():
                 return True
             self._end_group()
+        now = time.monotonic_ns()
+        if now - self.looked_ns < LOOK_UP_NS:
+            return False
+        self.looked_ns = now
         self._read_names()
         if not self.names:
             return False

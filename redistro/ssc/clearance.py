@@ -32,6 +32,7 @@ the pairs measured together at the start do not stay due together.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,7 +75,6 @@ class GroupGeometry:
 
         self._pin = pin
         model, geom = pin.Model(), pin.GeometryModel()
-        hulls: dict[tuple[str, tuple[float, ...]], Any] = {}  # (every arm's: made once)
         self.offsets: dict[str, int] = {}  # each robot's first index in q
         for r in robots:
             rc = cfg.robots[r]
@@ -90,9 +90,7 @@ class GroupGeometry:
             for go in g.geometryObjects:
                 mesh = meshes.get(go.name)
                 if mesh is not None:  # GJK on the mesh's hull
-                    if mesh not in hulls:
-                        hulls[mesh] = _hull(coal, mesh_vertices(*mesh))
-                    go.geometry = hulls[mesh]
+                    go.geometry = _mesh_hull(*mesh)
                 go.name = f"{r} {go.name.rsplit('_', 1)[0]}"
             base = pin.SE3(np.eye(3), np.asarray(rc.base_xyz_m, dtype=np.float64))
             self.offsets[r] = model.nq
@@ -297,6 +295,20 @@ def mesh_vertices(path: str, scale: tuple[float, ...] = (1.0, 1.0, 1.0)) -> np.n
 
         v = np.asarray(coal.MeshLoader().load(path, np.ones(3)).vertices())
     return np.asarray(v, dtype=np.float64) * np.asarray(scale, dtype=np.float64)
+
+
+def _mesh_hull(path: str, scale: tuple[float, ...]) -> Any:
+    """A mesh file's hull (:func:`_hull`), made once a process for each
+    file as it is (its size and time), and shared by every model."""
+    st = Path(path).stat()
+    return _hull_of(path, scale, st.st_size, st.st_mtime_ns)
+
+
+@functools.cache
+def _hull_of(path: str, scale: tuple[float, ...], size: int, mtime_ns: int) -> Any:
+    import coal
+
+    return _hull(coal, mesh_vertices(path, scale))
 
 
 def _hull(coal: Any, vertices: np.ndarray) -> Any:

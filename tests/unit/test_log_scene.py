@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -101,12 +103,8 @@ def test_rotation_vectors_become_the_quaternions_pinocchio_makes() -> None:
         assert got.angularDistance(want) < 1e-9
 
 
-def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
-    """... and in mcap-ros2-support, from the definition the log carries."""
-    from mcap.records import Schema
-    from mcap_ros2.decoder import DecoderFactory
-
-    meta = {
+def _cell_meta() -> dict[str, Any]:
+    meta: dict[str, Any] = {
         "robots": ROBOTS,
         "hole_xyz_m": [0.55, -0.35, 0.15],
         "workcell": {
@@ -117,7 +115,16 @@ def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
             "objects": {"bar": {"size_xyz_m": [0.04, 0.4, 0.06], "xy_m": [0.5, 0.0], "yaw_deg": 2}},
         },
     }
-    meta["workcell"]["hole"].update(depth_m=0.04, floor_m=0.01)  # type: ignore[union-attr]
+    meta["workcell"]["hole"].update(depth_m=0.04, floor_m=0.01)
+    return meta
+
+
+def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
+    """... and in mcap-ros2-support, from the definition the log carries."""
+    from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    meta = _cell_meta()
     data = scene.workcell_markers(meta, 5)
     text = scene.definition(scene.MARKER_ARRAY).encode()
     schema = Schema(id=1, name=scene.MARKER_ARRAY, encoding="ros2msg", data=text)
@@ -130,10 +137,16 @@ def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
     assert [bar.scale.x, bar.scale.y, bar.scale.z] == [0.04, 0.4, 0.06]
 
 
-def test_the_tf_definition_is_the_standard_one() -> None:
-    """The writer registers /tf without rosbags: its text is the one rosbags'
-    store generates for tf2_msgs/msg/TFMessage."""
-    assert scene.definition(scene.TF) == scene.TF_DEF
+def test_the_definitions_are_the_standard_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The writer registers its standard messages from its own texts: each
+    is the one rosbags' ROS 2 store generates, and the marker array the
+    scene's small store serializes is the whole store's, byte for byte."""
+    full = scene.full_store()
+    for msgtype in (scene.TF, scene.STRING, scene.MARKER_ARRAY):
+        assert scene.definition(msgtype) == full.generate_msgdef(msgtype, ros_version=2)[0]
+    data = scene.workcell_markers(_cell_meta(), 5)
+    monkeypatch.setattr(scene, "_store", scene.full_store)
+    assert scene.workcell_markers(_cell_meta(), 5) == data
 
 
 def test_the_z_axis_shortcut_is_the_general_product(arms: dict[str, scene.Arm]) -> None:
