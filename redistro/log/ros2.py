@@ -81,6 +81,21 @@ class Cdr:
         self._align(4)
         self.buf += struct.pack("<I", v)
 
+    def i32(self, v: int) -> None:
+        self._align(4)
+        self.buf += struct.pack("<i", v)
+
+    def u8(self, v: int) -> None:
+        self.buf.append(v)
+
+    def f32s(self, values: Any) -> None:
+        self._align(4)
+        self.buf += struct.pack(f"<{len(values)}f", *values)
+
+    def f64s(self, values: Any) -> None:
+        self._align(8)
+        self.buf += struct.pack(f"<{len(values)}d", *values)
+
     def string(self, s: str) -> None:
         data = s.encode() + b"\0"
         self.u32(len(data))

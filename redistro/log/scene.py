@@ -42,9 +42,9 @@ WORLD = "world"
 
 
 # The standard messages the scene writes: their ``ros2msg`` definitions with
-# their dependencies, as rosbags' ROS 2 Jazzy store generates them (the unit
-# tests hold them to it). The writer registers these three alone: the whole
-# store costs about 100 ms of every session's end.
+# their dependencies, as rosbags' ROS 2 Jazzy store generates them, and
+# their CDR encoded here (the unit tests hold both to rosbags): the writer
+# needs neither rosbags nor numpy, about 150 ms of every session's end.
 def _msgdef(top: str, *deps: str) -> str:
     return top + "".join(f"{'=' * 80}\nMSG: {d}\n{_MSG[d]}" for d in deps)
 
@@ -134,17 +134,6 @@ def full_store() -> Any:
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_JAZZY)
-
-
-@cache
-def _store() -> Any:
-    """A rosbags store of the marker array and its dependencies alone (what
-    the scene serializes with rosbags)."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.EMPTY)
-    store.register(get_types_from_msg(MARKER_ARRAY_DEF, MARKER_ARRAY))
-    return store
 
 
 def definition(msgtype: str) -> str:
@@ -314,18 +303,19 @@ def group_urdf(arms: dict[str, Arm], bases: dict[str, list[float]]) -> str:
 def _primitive(part: ET.Element) -> None:
     """A visual or collision's mesh as the box that bounds it; a visual
     coloured inline (grey, its tool's colour kept)."""
-    import numpy as np
-
     geom = part.find("geometry")
     mesh = geom.find("mesh") if geom is not None else None
     if geom is not None and mesh is not None:
         lo, hi = _bounds(str(mesh.get("filename")))
         geom.remove(mesh)
-        ET.SubElement(geom, "box", size=" ".join(f"{v:.4f}" for v in hi - lo))
+        ET.SubElement(
+            geom, "box", size=" ".join(f"{b - a:.4f}" for a, b in zip(lo, hi, strict=True))
+        )
         o = part.find("origin")
         if o is None:
             o = ET.SubElement(part, "origin", rpy="0 0 0", xyz="0 0 0")
-        xyz = np.asarray([float(v) for v in o.get("xyz", "0 0 0").split()]) + (lo + hi) / 2
+        at = [float(v) for v in o.get("xyz", "0 0 0").split()]
+        xyz = [v + (a + b) / 2 for v, a, b in zip(at, lo, hi, strict=True)]
         o.set("xyz", " ".join(f"{v:.4f}" for v in xyz))
     if part.tag == "visual":
         mat = part.find("material")
@@ -338,18 +328,23 @@ def _primitive(part: ET.Element) -> None:
 
 
 @cache
-def _bounds(filename: str) -> tuple[Any, Any]:
-    """The bounding box of a mesh (its .obj beside it, vertex lines)."""
-    import numpy as np
-
+def _bounds(filename: str) -> tuple[list[float], list[float]]:
+    """The bounding box of a mesh (its .obj beside it, vertex lines): its
+    lowest and highest x, y, z (no numpy: the log writer has none)."""
     obj = Path(filename).with_suffix(".obj")
-    pts = [
-        [float(v) for v in line.split()[1:4]]
-        for line in obj.read_text().splitlines()
-        if line.startswith("v ")
-    ]
-    a = np.asarray(pts)
-    return a.min(axis=0), a.max(axis=0)
+    axes = zip(
+        *(
+            [float(v) for v in line.split()[1:4]]
+            for line in obj.read_text().splitlines()
+            if line.startswith("v ")
+        ),
+        strict=True,
+    )
+    lo, hi = [], []
+    for values in axes:
+        lo.append(min(values))
+        hi.append(max(values))
+    return lo, hi
 
 
 def static_transforms(meta: dict[str, Any], arms: dict[str, Arm]) -> list[tuple[str, str, Pose]]:
@@ -371,8 +366,12 @@ def static_transforms(meta: dict[str, Any], arms: dict[str, Arm]) -> list[tuple[
     return out
 
 
-def workcell_markers(meta: dict[str, Any], stamp_ns: int) -> Any:
+def workcell_markers(meta: dict[str, Any], stamp_ns: int) -> bytes:
     """The table, the fixture and the objects as the controller believes them."""
+    return _marker_array(_workcell_items(meta), stamp_ns)
+
+
+def _workcell_items(meta: dict[str, Any]) -> list[dict[str, Any]]:
     cell = meta.get("workcell") or {}
     out = []
     if "table_top_m" in cell:
@@ -400,7 +399,7 @@ def workcell_markers(meta: dict[str, Any], stamp_ns: int) -> Any:
                 frame=f"{name}_believed",
             )
         )
-    return _marker_array(out, stamp_ns)
+    return out
 
 
 def _box(
@@ -431,49 +430,42 @@ def _arrow(robot: str, force: tuple[float, float, float]) -> dict[str, Any]:
 
 
 def _marker_array(items: list[dict[str, Any]], stamp_ns: int) -> bytes:
-    import numpy as np
-
-    ts = _store()
-    t = ts.types
-    stamp = t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
-    point, vec = t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Vector3"]
-    empty_image = t["sensor_msgs/msg/CompressedImage"](
-        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=""),
-        format="",
-        data=np.zeros(0, np.uint8),
-    )
-    markers = []
+    """``visualization_msgs/msg/MarkerArray`` in CDR, one marker an item
+    (the unit tests hold it to rosbags' encoding of the same, byte for byte)."""
+    c = Cdr()
+    sec, nanosec = stamp_ns // 10**9, stamp_ns % 10**9
+    c.u32(len(items))
     for i, m in enumerate(items):
-        markers.append(
-            t["visualization_msgs/msg/Marker"](
-                header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=m["frame"]),
-                ns=m["ns"],
-                id=i,
-                type=m["type"],
-                action=0,
-                pose=t["geometry_msgs/msg/Pose"](
-                    position=point(*map(float, m["xyz"])),
-                    orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
-                ),
-                scale=vec(*map(float, m["scale"])),
-                color=t["std_msgs/msg/ColorRGBA"](*map(float, m["rgba"])),
-                lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-                frame_locked=True,
-                points=[point(*map(float, p)) for p in m["points"]],
-                colors=[],
-                texture_resource="",
-                texture=empty_image,
-                uv_coordinates=[],
-                text="",
-                mesh_resource="",
-                mesh_file=t["visualization_msgs/msg/MeshFile"](
-                    filename="", data=np.zeros(0, np.uint8)
-                ),
-                mesh_use_embedded_materials=False,
-            )
-        )
-    msg = t[MARKER_ARRAY](markers=markers)
-    return bytes(ts.serialize_cdr(msg, MARKER_ARRAY))
+        c.i32(sec)  # header
+        c.u32(nanosec)
+        c.string(m["frame"])
+        c.string(m["ns"])
+        c.i32(i)  # id
+        c.i32(int(m["type"]))
+        c.i32(0)  # action: ADD
+        c.f64s([*map(float, m["xyz"]), 0.0, 0.0, 0.0, 1.0])  # pose
+        c.f64s([*map(float, m["scale"])])
+        c.f32s([*map(float, m["rgba"])])  # color
+        c.i32(0)  # lifetime (none)
+        c.u32(0)
+        c.u8(1)  # frame_locked
+        c.u32(len(m["points"]))
+        for p in m["points"]:
+            c.f64s([*map(float, p)])
+        c.u32(0)  # colors
+        c.string("")  # texture_resource
+        c.i32(sec)  # texture: its header, format and data (none)
+        c.u32(nanosec)
+        c.string("")
+        c.string("")
+        c.u32(0)
+        c.u32(0)  # uv_coordinates
+        c.string("")  # text
+        c.string("")  # mesh_resource
+        c.string("")  # mesh_file: filename, data (none)
+        c.u32(0)
+        c.u8(0)  # mesh_use_embedded_materials
+    return CDR_HEADER + bytes(c.buf)
 
 
 def string_message(text: str) -> bytes:

@@ -137,16 +137,76 @@ def test_the_workcell_markers_decode_in_a_ros2_reader() -> None:
     assert [bar.scale.x, bar.scale.y, bar.scale.z] == [0.04, 0.4, 0.06]
 
 
-def test_the_definitions_are_the_standard_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_definitions_are_the_standard_ones() -> None:
     """The writer registers its standard messages from its own texts: each
-    is the one rosbags' ROS 2 store generates, and the marker array the
-    scene's small store serializes is the whole store's, byte for byte."""
+    is the one rosbags' ROS 2 store generates."""
     full = scene.full_store()
     for msgtype in (scene.TF, scene.STRING, scene.MARKER_ARRAY):
         assert scene.definition(msgtype) == full.generate_msgdef(msgtype, ros_version=2)[0]
-    data = scene.workcell_markers(_cell_meta(), 5)
-    monkeypatch.setattr(scene, "_store", scene.full_store)
-    assert scene.workcell_markers(_cell_meta(), 5) == data
+
+
+def _rosbags_markers(items: list[dict[str, Any]], stamp_ns: int) -> bytes:
+    """The marker array of ``items`` as rosbags serializes it (the oracle)."""
+    ts = scene.full_store()
+    t = ts.types
+    stamp = t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    point, header = t["geometry_msgs/msg/Point"], t["std_msgs/msg/Header"]
+    none = np.zeros(0, np.uint8)
+    markers = [
+        t["visualization_msgs/msg/Marker"](
+            header=header(stamp=stamp, frame_id=m["frame"]),
+            ns=m["ns"],
+            id=i,
+            type=m["type"],
+            action=0,
+            pose=t["geometry_msgs/msg/Pose"](
+                position=point(*map(float, m["xyz"])),
+                orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
+            ),
+            scale=t["geometry_msgs/msg/Vector3"](*map(float, m["scale"])),
+            color=t["std_msgs/msg/ColorRGBA"](*map(float, m["rgba"])),
+            lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+            frame_locked=True,
+            points=[point(*map(float, p)) for p in m["points"]],
+            colors=[],
+            texture_resource="",
+            texture=t["sensor_msgs/msg/CompressedImage"](
+                header=header(stamp=stamp, frame_id=""), format="", data=none
+            ),
+            uv_coordinates=[],
+            text="",
+            mesh_resource="",
+            mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=none),
+            mesh_use_embedded_materials=False,
+        )
+        for i, m in enumerate(items)
+    ]
+    msg = t[scene.MARKER_ARRAY](markers=markers)
+    return bytes(ts.serialize_cdr(msg, scene.MARKER_ARRAY))
+
+
+def test_the_marker_arrays_are_rosbags_own_to_the_byte() -> None:
+    """The work-cell's markers and random arrows (odd names, empty and
+    long point lists): the scene's CDR is the one rosbags writes."""
+    rng = np.random.default_rng(7)
+    meta = _cell_meta()
+    items = scene._workcell_items(meta)
+    assert scene.workcell_markers(meta, 5) == _rosbags_markers(items, 5)
+    for n in range(40):
+        arrows = [
+            {
+                "frame": "f" * int(rng.integers(0, 9)),
+                "ns": "n" * int(rng.integers(0, 13)),
+                "type": int(rng.integers(0, 13)),
+                "xyz": rng.normal(size=3).tolist(),
+                "scale": rng.random(3).tolist(),
+                "rgba": rng.random(4).tolist(),
+                "points": rng.normal(size=(int(rng.integers(0, 4)), 3)).tolist(),
+            }
+            for _ in range(int(rng.integers(0, 4)))
+        ]
+        stamp = int(rng.integers(0, 2**31 * 10**9))
+        assert scene._marker_array(arrows, stamp) == _rosbags_markers(arrows, stamp), n
 
 
 def test_the_z_axis_shortcut_is_the_general_product(arms: dict[str, scene.Arm]) -> None:
