@@ -297,15 +297,10 @@ def mesh_vertices(path: str, scale: tuple[float, ...] = (1.0, 1.0, 1.0)) -> np.n
     return np.asarray(v, dtype=np.float64) * np.asarray(scale, dtype=np.float64)
 
 
-def _mesh_hull(path: str, scale: tuple[float, ...]) -> Any:
-    """A mesh file's hull (:func:`_hull`), made once a process for each
-    file as it is (its size and time), and shared by every model."""
-    st = Path(path).stat()
-    return _hull_of(path, scale, st.st_size, st.st_mtime_ns)
-
-
 @functools.cache
-def _hull_of(path: str, scale: tuple[float, ...], size: int, mtime_ns: int) -> Any:
+def _mesh_hull(path: str, scale: tuple[float, ...]) -> Any:
+    """A mesh file's hull (:func:`_hull`), made once a process and shared
+    by every model (the meshes ship with the package)."""
     import coal
 
     return _hull(coal, mesh_vertices(path, scale))
