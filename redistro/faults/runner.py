@@ -422,6 +422,11 @@ def _verdict(
 
     if since_step is not None:  # (wall-clock figures of a paced run say nothing)
         row["clock"] = "lockstep"
+        try:  # ticks the plant gave up waiting for (a node ended unseen: none due)
+            plant = json.loads((out_dir / "plant.json").read_text())
+            row["waits_missed"] = int(plant["lockstep"]["waits_missed"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
         for key in ("detection_ms", "detection_cycles"):
             row.pop(key, None)
     _freezes(sc, summary, nodes, after, detected_ns, row, timed=since_step is None)

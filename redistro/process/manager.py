@@ -132,7 +132,8 @@ class Manager:
         or ends its routine; the cycle's Routine and Idle ride in the block
         each tick publishes."""
         self._state_word[0] = CODE[new]
-        if self.block is not None and new in (State.ROUTINE, State.CLEANUP) and old != State.IDLE:
+        ends = new is State.CLEANUP  # (from any state: the plant's lockstep waits on it)
+        if self.block is not None and (ends or (new is State.ROUTINE and old is not State.IDLE)):
             with self.block.write() as d:
                 d["state"] = new.value
             self.block.read_into(self.mine.bytes)

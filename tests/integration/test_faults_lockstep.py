@@ -37,6 +37,8 @@ def test_scenario(table: dict[str, Any], name: str) -> None:
     check_row(name, row)
     if "all_frozen" in row:  # a session's: judged by plant step
         assert row.get("clock") == "lockstep", row
+        # every node's end seen by the plant at once: no tick waited out
+        assert row.get("waits_missed") == 0, row
 
 
 def test_the_table_leaves_the_timed_scenarios_to_real_time(table: dict[str, Any]) -> None:

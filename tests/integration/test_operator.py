@@ -272,6 +272,8 @@ def test_ctl_stop_ends_in_order_and_estop_brakes_the_group(
     freezes = load_json(out / "plant.json")["freezes"]
     braked = {f["robot"] for f in freezes if f["step"] >= sent_step}
     assert braked == {"r1", "r2"}, freezes
+    # each node's end (its Cleanup) seen by the plant at once: no tick waited out
+    assert load_json(out / "plant.json")["lockstep"]["waits_missed"] == 0
     assert f"operator command 1: {order}" in (out / "messages.log").read_text()
 
 
