@@ -368,6 +368,7 @@ def _loop_lockstep(
     _publish_status(bank, status, 0, dt_ns, t0 + 1, t0, 0, 0)
     gc.collect()
     gc.freeze()
+    gc.enable()  # (off while the process started)
     try:
         while not signal.sigpending() & stop_set:
             sim_ns = t0 + chassis.step_count * dt_ns

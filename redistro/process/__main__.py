@@ -6,12 +6,18 @@ pinocchio) is imported: a process-directed signal landing on such a thread
 would kill the process.
 """
 
+import gc
 import os
 import sys
 
 from redistro.ipc.signals import block_runtime_signals
 
 block_runtime_signals()
+# no collector passes while the modules load (a tenth of numpy's import):
+# a manager and a worker collect once, freeze and stay so before their
+# Routine, the plant before its loop; the others turn it back on once
+# their imports are done
+gc.disable()
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
@@ -50,18 +56,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.what == "logwriter":
         from redistro.log.writer import run_writer
 
+        gc.enable()
         return run_writer(args.fd, args.out, args.ready_fd)
     if args.what == "bridge":
         from redistro.errors import RedistroError
         from redistro.ros2bridge import run_bridge
 
+        gc.enable()
         try:
             return run_bridge(args.session)
         except RedistroError as exc:  # (beside a session: one line, the session goes on)
             print(f"redistro bridge: {exc}", file=sys.stderr)
             return 2
     if args.what == "plant":
-        from redistro.plant.process import run_plant
+        from redistro.plant.process import run_plant  # (its loop sees to the collector)
 
         return run_plant(
             args.session,
