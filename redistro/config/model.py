@@ -55,6 +55,9 @@ class SessionConfig:
     # realtime: every node ticks on its interval timer and the plant on the
     # wall clock; lockstep: the plant paces the nodes (redistro.plant.lockstep)
     clock: Literal["realtime", "lockstep"] = "realtime"
+    # lockstep's pace: 0, as fast as the CPUs allow; x > 0, at most x times
+    # real time (a run watched live, e.g. in redistro view --live)
+    lockstep_pace: float = field(default=0.0, metadata={"ge": 0, "le": 1000})
 
 
 @dataclass(frozen=True)

@@ -147,9 +147,10 @@ class Group:
     rung: int = 0  # waits woken by the bell
     unrung: int = 0  # ... and by its look anyway (LOOK_S): a phase no node rang for
     period_ns: int = 0  # the nodes' period: a paused task's ticks come no faster
+    pace_ns: int = 0  # session.lockstep_pace: no tick sooner after the last (0: at once)
     paused_word: Any = None  # the SSC's plan: the operator paused the task
     last_ns: int = 0  # when the last tick began
-    paced: int = 0  # ticks held back to the wall clock (the task paused)
+    paced: int = 0  # ticks held back to the wall clock (the task paused, or the pace)
 
     def nodes(self) -> list[_Node]:
         return [*self.escs, *([self.ssc] if self.ssc is not None else [])]
@@ -206,7 +207,9 @@ class Group:
         if self.logging:
             self._wait(self._logs_kept, "logs")
         if self.paused_word is not None and self.paused_word[0] and self.period_ns:
-            self._pace(self.last_ns + self.period_ns)
+            self._pace(self.last_ns + max(self.period_ns, self.pace_ns))
+        elif self.pace_ns:
+            self._pace(self.last_ns + self.pace_ns)
         self.last_ns = time.monotonic_ns()
         if self.bell is not None:  # (rings of the last tick after its waits: stale)
             while self.bell.try_acquire():
@@ -225,9 +228,10 @@ class Group:
         self._wait(self._commands_in, "commands")
 
     def _pace(self, due_ns: int) -> None:
-        """A paused task's tick waits for its time on the wall clock: the
-        operator's hand (a jog, a look at the arms) works in wall time, and
-        the group held still needs no CPU."""
+        """A tick held to the wall clock waits for its time: a paused task's
+        (the operator's hand, a jog, a look at the arms, works in wall time,
+        and the group held still needs no CPU), and with a pace every tick
+        (a run watched live)."""
         self.paced += 1
         while (now := time.monotonic_ns()) < due_ns:
             if self.pause is not None:
@@ -366,10 +370,13 @@ def _send(nodes: list[_Node]) -> None:
 class Conductor:
     """The plant's side of lockstep: which group runs, and when it ticks."""
 
-    def __init__(self, session_id: str, folder: Path | None, physics_hz: float) -> None:
+    def __init__(
+        self, session_id: str, folder: Path | None, physics_hz: float, pace: float = 0.0
+    ) -> None:
         self.session_id = session_id
         self.path = folder / NODES_FILE if folder is not None else None
         self.physics_hz = physics_hz
+        self.pace = pace  # session.lockstep_pace
         self.seen_ns = 0
         self.names: list[str] = []
         self.rate_hz = 0.0
@@ -411,6 +418,7 @@ class Conductor:
         g.pause = self.pause
         g.bell = self.bell
         g.period_ns = round(1e9 / self.rate_hz) if self.rate_hz else 0
+        g.pace_ns = round(g.period_ns / self.pace) if self.pace else 0
         self.group = g
         self.groups += 1
         self.names = []  # (a group runs once)

@@ -141,7 +141,8 @@ def _run_loop(
             from redistro.ipc import bell
             from redistro.plant.lockstep import Conductor
 
-            conductor = Conductor(session_id, folder, cfg.plant.physics_hz)
+            at_most = cfg.session.lockstep_pace
+            conductor = Conductor(session_id, folder, cfg.plant.physics_hz, at_most)
             if folder is not None:  # (a session's: the nodes ring it, plant/lockstep.py)
                 conductor.bell = bell.create(session_id)
             boost = _step_priority(cfg.scheduling.priorities)

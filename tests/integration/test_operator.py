@@ -93,15 +93,16 @@ def _attach(cls: Any, sid: str) -> Any:
 
 @contextmanager
 def running(
-    calibrated: Path, tmp: Path, task: str = SHORT
+    calibrated: Path, tmp: Path, task: str = SHORT, *sets: str
 ) -> Iterator[tuple[subprocess.Popen[str], str, Path]]:
-    """The task (the short main job), in lockstep, from a private runs
-    folder: (the session's process, its id, its run folder); killed if
-    still running."""
+    """The task (the short main job), in lockstep (``sets``: more config),
+    from a private runs folder: (the session's process, its id, its run
+    folder); killed if still running."""
     runs = copy_runs(calibrated, tmp)
     out = tmp / "run"
+    more = [a for kv in sets for a in ("--set", kv)]
     proc = subprocess.Popen(
-        [*REDISTRO, *LOCKSTEP, "--set", f"session.runs_dir={runs}", "session", task,
+        [*REDISTRO, *LOCKSTEP, *more, "--set", f"session.runs_dir={runs}", "session", task,
          "--out", str(out)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -289,16 +290,17 @@ def press(tab: Any, button: str, answer: str) -> str:
 
 
 def _slow_approach(tmp: Path) -> str:
-    """The short main job with an approach of 45 s: the page's Pause
-    lands while r2 moves to the hole, mostly, and before the task's end
-    even on a loaded host (once, with an approach of 20 s, the page passed
+    """The short main job with an approach of 20 s, run at real time
+    (``session.lockstep_pace=1``): the page's Pause lands while r2 moves to
+    the hole, mostly, and before the task's end even on a loaded host (once,
+    with an approach of 20 s run as fast as the CPUs allowed, the page passed
     on its Pause over 30 s after its Resume: the session had ended)."""
     import yaml
 
     task = yaml.safe_load((ROOT / SHORT).read_text())
     approach = task["segments"][0]
     assert approach["name"] == "approach", approach
-    approach["duration_s"], approach["goal"]["move_s"] = 50, 45
+    approach["duration_s"], approach["goal"]["move_s"] = 20, 15
     path = tmp / "peg_insertion_slow_approach.yaml"
     path.write_text(yaml.safe_dump(task, sort_keys=False))
     return str(path)
@@ -306,8 +308,9 @@ def _slow_approach(tmp: Path) -> str:
 
 def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_path: Path) -> None:
     """The live view of the peg insertion in headless Chromium. The
-    session runs as fast as the CPUs allow, so ``ctl pause`` holds it 1 s
-    into the approach while the page loads. Then, on the page: Resume; a
+    session runs in lockstep at real time, as one watched live would
+    (``session.lockstep_pace=1``); ``ctl pause`` holds it 1 s into the
+    approach while the page loads. Then, on the page: Resume; a
     click on Pause holds every robot (under 0.5 mm over 2 s of the plant's
     time); the +z jog button moves r1's tool 5 mm within 0.5 mm; Resume
     lets the task end ok with the peg in the hole."""
@@ -315,7 +318,8 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
     from tests import browser
 
     port = browser.free_port()
-    with running(calibrated, tmp_path, _slow_approach(tmp_path)) as (proc, sid, out):
+    task = _slow_approach(tmp_path)
+    with running(calibrated, tmp_path, task, "session.lockstep_pace=1") as (proc, sid, out):
         view = subprocess.Popen(
             [*REDISTRO, "view", "--live", sid, "--port", str(port)],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -345,6 +349,8 @@ def test_the_live_page_pauses_jogs_and_resumes_a_session(calibrated: Path, tmp_p
     summary = load_json(out / "summary.json")
     assert summary["result"] == "ok" and summary["inserted"] is True, summary.get("reason")
     assert summary["operator"] == {"accepted": 5, "refused": 0}, summary["operator"]
+    plant = load_json(out / "plant.json")  # (never faster than real time: paced)
+    assert plant["rtf"] <= 1.02 and plant["lockstep"]["paced_ticks"] > 0, plant["lockstep"]
 
 
 def test_off_loopback_the_page_asks_for_its_token(commanded: dict[str, Any]) -> None:

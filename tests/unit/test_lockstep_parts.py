@@ -261,6 +261,15 @@ def test_a_paused_task_ticks_on_the_wall_clock_and_a_running_one_at_once() -> No
     flag[0] = 0
     ticks(50)
     assert group.paced == 5 and len(steps) == 56  # running: no tick held back
+    # with a pace (session.lockstep_pace 4: a 5 ms tick's time is 1.25 ms of
+    # the wall clock), every tick no sooner than that after the last
+    group.period_ns, group.pace_ns = 5_000_000, 1_250_000
+    began = [group.last_ns]
+    for _ in range(20):
+        group.tick(lambda: None)
+        began.append(group.last_ns)  # (when each tick began)
+    gaps = np.diff(began)
+    assert (gaps >= group.pace_ns).all() and group.paced == 25, gaps
 
 
 def test_a_wait_sleeps_on_the_bell_and_looks_anyway_when_nobody_rings() -> None:
