@@ -164,7 +164,7 @@ def test_the_live_view_follows_a_running_session_and_ends_with_it(
     import time
 
     from tests import browser
-    from tests.helpers import REDISTRO, ROOT, read_session_id
+    from tests.helpers import REDISTRO, ROOT, attach_running, read_session_id
 
     runs = copy_runs(calibrated, tmp_path)
     session = subprocess.Popen(
@@ -176,8 +176,9 @@ def test_the_live_view_follows_a_running_session_and_ends_with_it(
     view = None
     try:
         sid = read_session_id(session)
+        attach_running(sid, "ssc", min_cycle=1, timeout=120).close()  # (started)
         deadline = time.monotonic() + 120.0
-        while run_cli("ctl", sid, "pause", timeout=60).returncode != 0:  # (not yet started)
+        while run_cli("ctl", sid, "pause", timeout=60).returncode != 0:  # (not yet taken)
             assert time.monotonic() < deadline and session.poll() is None, "no pause taken"
             time.sleep(0.2)  # (polling the session's start, with a deadline)
         view = subprocess.Popen(
