@@ -162,7 +162,6 @@ LOCKSTEP_MODULES = (
 # beside them: that worker runs one test at a time), to even the workers'
 # shares: the second's CPU is the suite's long pole
 IN_THE_REAL_TIME_WORKER = (
-    "::test_two_hands_carry_one_bar",
     "::test_a_campaign_finds_holes_2_to_3_mm_off",
     "::test_two_arms_insert_a_held_peg_into_a_held_block",
 )
