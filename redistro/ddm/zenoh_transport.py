@@ -93,8 +93,11 @@ RETRY_S = 0.2  # a client whose door is not up yet tries again this often
 
 
 def ssc_port(cfg: Config, group: str) -> int:
-    """Where the SSC's session listens: ``ddm.zenoh.port``, else derived."""
-    return cfg.ddm.zenoh.port or 36000 + zlib.crc32(f"zenoh/{group}".encode()) % 4000
+    """Where the SSC's session listens: ``ddm.zenoh.port``, else derived,
+    below the ESCs' socket ports and Linux's ephemeral ports (32768-60999:
+    a connection made anywhere on the host may take one of those as its
+    own, and the listen then fails with EADDRINUSE)."""
+    return cfg.ddm.zenoh.port or 13000 + zlib.crc32(f"zenoh/{group}".encode()) % 8000
 
 
 # -- users --

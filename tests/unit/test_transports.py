@@ -791,3 +791,20 @@ def test_a_tcp_self_connect_is_recognized() -> None:
         srv.listen(1)
         with socket.create_connection(srv.getsockname()) as c:
             assert not self_connected(c)
+
+
+def test_the_derived_ports_keep_out_of_the_ephemeral_range_and_of_each_other() -> None:
+    """Every derived TCP listening port (an ESC's socket ddm, the SSC's zenoh
+    session) lies below Linux's ephemeral ports, where no connection of the
+    host takes it; the two kinds never meet."""
+    from redistro.config import load_config
+    from redistro.ddm.sockets import esc_port
+    from redistro.ddm.zenoh_transport import ssc_port
+
+    cfg = load_config(None)
+    groups = [f"20261129T{k:06d}-{k * 7919 % 16**6:06x}" for k in range(2000)]
+    escs = {esc_port(cfg, g, r) for g in groups for r in ("r1", "r2")}
+    sscs = {ssc_port(cfg, g) for g in groups}
+    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    assert max(escs | sscs) < min(low, 32768) and min(escs | sscs) >= 1024
+    assert max(sscs) < min(escs), (max(sscs), min(escs))
