@@ -75,10 +75,11 @@ system-deps:
 run: install bytecode
 	$(BIN)/redistro session tasks/peg_insertion.yaml
 
-# As root, pytest runs two workers: the tests that start real-time sessions in
-# one, the unit tests and the front door's beside them in the other, whose
-# Python (tests/apart-python) has a /dev/shm and SysV IPC of its own.
-PYTEST_WORKERS := $(if $(filter 0,$(shell id -u)),--dist load --tx popen --tx popen//python=$(CURDIR)/tests/apart-python)
+# As root, pytest runs three workers: the tests that start real-time sessions
+# in one, the lockstep sessions in the second, whose Python (tests/apart-python)
+# has a /dev/shm and SysV IPC of its own, the unit tests and the front door's in
+# the third (tests/units-python: a network of its own too, below the others).
+PYTEST_WORKERS := $(if $(filter 0,$(shell id -u)),--dist load --tx popen --tx popen//python=$(CURDIR)/tests/apart-python --tx popen//python=$(CURDIR)/tests/units-python)
 
 test: install-test system-deps bytecode
 	$(BIN)/ruff check .

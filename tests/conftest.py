@@ -18,16 +18,17 @@ from redistro.ipc import signals
 
 SHM = Path("/dev/shm")
 
-# make test runs two pytest workers: the integration tests (real-time sessions)
-# in one, the unit tests and the front door's (CPU only) in the other, whose
-# Python is tests/apart-python (a /dev/shm and SysV IPC of its own). Each
-# worker keeps its sessions' locks in a runtime folder of its own: neither
-# reaps the other's sessions, nor takes a live one of the other's for dead.
+# make test runs three pytest workers: the real-time sessions in one, the
+# lockstep sessions in the second, whose Python is tests/apart-python (a
+# /dev/shm and SysV IPC of its own), the unit tests and the front door's (CPU
+# only) in the third, tests/units-python (a network of its own too, at nice
+# 10). Each worker keeps its sessions' locks in a runtime folder of its own:
+# none reaps another's sessions, nor takes a live one of another's for dead.
 WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
 RUNTIME = f"{tempfile.gettempdir()}/redistro-{os.getuid()}-test-{WORKER}"
 if WORKER:
     os.environ["REDISTRO_RUNTIME_DIR"] = RUNTIME
-APART = "apart-python"  # (the unit tests' worker's Python)
+PYTHONS = {"apart-python": "apart", "units-python": "units"}  # the workers' Pythons
 
 
 def redistro_shm_entries() -> set[str]:
@@ -135,13 +136,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=_rank)
 
 
-# the benchmarks' own tests last: by then the second worker's sessions are over
+# the benchmarks' own tests last: by then the second worker's sessions are
+# over; the third worker's lockstep sessions after its unit tests
 LAST = ("test_bench.py",)
 
 
 def _rank(item: pytest.Item) -> int:
     name = item.nodeid.split("::")[0].rsplit("/", 1)[-1]
-    if name in LAST:
+    if name in LAST or any(t in item.nodeid for t in IN_THE_UNITS_WORKER):
         return len(FIRST) + 1
     return FIRST.index(name) if name in FIRST else len(FIRST)
 
@@ -158,42 +160,48 @@ LOCKSTEP_MODULES = (
 )
 
 
-# lockstep sessions the first worker runs between its real-time ones (never
-# beside them: that worker runs one test at a time), to even the workers'
-# shares (11-29: the two ended at 623 and 628 s)
-IN_THE_REAL_TIME_WORKER = (
+# lockstep sessions the third worker runs after its unit tests (without them
+# it ended 250 s before the other two; 11-29, with them: 522 s, the others
+# 577 and 596)
+IN_THE_UNITS_WORKER = (
     "::test_a_campaign_finds_holes_2_to_3_mm_off",
     "::test_two_arms_insert_a_held_peg_into_a_held_block",
 )
 
 
-def _apart(nodeid: str) -> bool:
-    """Runs in the second worker: the unit tests, the front door's (its
-    refusals start no session) and the lockstep sessions; not the
-    transports' contract tests, whose zenoh drops records on a loaded host
-    (congestion control DROP), as a session's ddm would; nor the lockstep
-    sessions of ``IN_THE_REAL_TIME_WORKER``."""
+def _scope(nodeid: str) -> str:
+    """The worker a test runs in. ``units``: the unit tests, the front door's
+    (its refusals start no session) and the lockstep sessions of
+    ``IN_THE_UNITS_WORKER``; not the transports' contract tests, whose zenoh
+    drops records on a loaded host (congestion control DROP), as a session's
+    ddm would. ``apart``: the other lockstep sessions. ``sessions``: the rest
+    (real-time sessions)."""
     path = nodeid.split("::")[0]
-    if path.endswith("/test_transports.py") or any(t in nodeid for t in IN_THE_REAL_TIME_WORKER):
-        return False
+    if path.endswith("/test_transports.py"):
+        return "sessions"
     name = path.rsplit("/", 1)[-1]
-    return "integration/" not in path or name == "test_front_door.py" or name in LOCKSTEP_MODULES
+    unit = "integration/" not in path or name == "test_front_door.py"
+    if unit or any(t in nodeid for t in IN_THE_UNITS_WORKER):
+        return "units"
+    return "apart" if name in LOCKSTEP_MODULES else "sessions"
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
-    """With two workers (make test): the tests that start real-time sessions
-    in the first, the rest in the one whose Python is tests/apart-python (the
-    sessions' nodes run at real-time priority, above the unit tests)."""
+    """With three workers (make test as root): the tests that start
+    real-time sessions in the first; the lockstep sessions in the one whose
+    Python is tests/apart-python, the unit tests in the one whose Python is
+    tests/units-python (the sessions' nodes run at real-time priority, the
+    lockstep ones at the default, the unit tests below both)."""
     from xdist.scheduler import LoadScopeScheduling
 
     class Apart(LoadScopeScheduling):  # type: ignore[misc]
         def _split_scope(self, nodeid: str) -> str:
-            return "apart" if _apart(nodeid) else "sessions"
+            return _scope(nodeid)
 
         def _assign_work_unit(self, node: Any) -> None:
-            apart = str(getattr(node.gateway.spec, "python", "")).endswith(APART)
-            want = "apart" if apart else "sessions"
+            python = str(getattr(node.gateway.spec, "python", ""))
+            want = next((s for p, s in PYTHONS.items() if python.endswith(p)), "sessions")
             if want in self.workqueue:
                 self.workqueue.move_to_end(want, last=False)
             super()._assign_work_unit(node)
