@@ -46,6 +46,7 @@ from redistro.ipc import sched
 
 COMMAND_BYTES = 120  # about a command record
 REPLY_BYTES = 180  # about a feedback record
+READY_S = 20.0  # the forwarder's start-up, at most (a loaded host)
 
 
 def _percentiles(ns: list[int]) -> dict[str, float]:
@@ -104,13 +105,17 @@ def _replier(port: int, count: int, priority: int) -> int:
     return 0
 
 
-def _forwarder(efd: int, sock_fds: list[int], stamp_fd: int, count: int, priority: int) -> int:
+def _forwarder(
+    efd: int, sock_fds: list[int], stamp_fd: int, count: int, priority: int, ready_fd: int
+) -> int:
     socks = [socket.socket(fileno=fd) for fd in sock_fds]
     orders = (socks, socks[::-1])  # the robots in turn, as the SSC's ddm sends
     stamp = mmap.mmap(stamp_fd, 8)
     _real_time(priority)
     ep = select.epoll()
     ep.register(efd, select.EPOLLIN)
+    os.write(ready_fd, b"r")  # (the worker's stamps may come)
+    os.close(ready_fd)
     command = bytearray(COMMAND_BYTES)
     buf = bytearray(4 * REPLY_BYTES)
     timeout = 10.0
@@ -199,6 +204,7 @@ def _worker(
     stamp_fd = os.memfd_create("redistro-floor")  # the worker's stamp, shared
     os.ftruncate(stamp_fd, 8)
     stamp = mmap.mmap(stamp_fd, 8)
+    ready_r, ready_w = os.pipe()
     children: list[Any] = []
     try:
         conns = _repliers(listener, port, robots, count, priority, children)
@@ -206,19 +212,25 @@ def _worker(
         forwarder = subprocess.Popen(
             _module(
                 "--forward",
-                ",".join(str(v) for v in (efd, stamp_fd, *fds)),
+                ",".join(str(v) for v in (efd, stamp_fd, ready_w, *fds)),
                 "--count",
                 str(count),
                 "--priority",
                 str(priority),
             ),
-            pass_fds=(efd, stamp_fd, *fds),
+            pass_fds=(efd, stamp_fd, ready_w, *fds),
         )
         children.append(forwarder)
+        os.close(ready_w)
+        ready_w = -1
         for c in conns:
             c.close()
+        # the first stamp once the forwarder waits for it (a stamp before
+        # would be taken with the next, one exchange fewer)
+        if not select.select([ready_r], [], [], READY_S)[0] or not os.read(ready_r, 1):
+            raise SystemExit(f"floor: the forwarder was not ready within {READY_S:g} s")
         period = 1.0 / rate_hz
-        due = time.monotonic() + 0.5  # the forwarder's start-up
+        due = time.monotonic()
         for _ in range(count):
             due += period
             wait = due - time.monotonic()
@@ -235,8 +247,9 @@ def _worker(
                 child.wait()
         listener.close()
         stamp.close()
-        os.close(stamp_fd)
-        os.close(efd)
+        for fd in (stamp_fd, efd, ready_r, ready_w):
+            if fd >= 0:
+                os.close(fd)
     figures = [json.loads(out.strip().splitlines()[-1]) for out in outs]
     result = {
         # the worst robot's (one replier: its own)
@@ -267,8 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.reply:
         return _replier(a.reply, a.count, a.priority)
     if a.forward:
-        efd, stamp_fd, *sock_fds = (int(v) for v in a.forward.split(","))
-        return _forwarder(efd, sock_fds, stamp_fd, a.count, a.priority)
+        efd, stamp_fd, ready_fd, *sock_fds = (int(v) for v in a.forward.split(","))
+        return _forwarder(efd, sock_fds, stamp_fd, a.count, a.priority, ready_fd)
     return _worker(a.rate, a.seconds, a.priority, a.cpu_latency, max(1, min(16, a.robots)))
 
 
