@@ -136,14 +136,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=_rank)
 
 
-# the benchmarks' own tests last: by then the second worker's sessions are
-# over; the third worker's lockstep sessions after its unit tests
+# the benchmarks' own tests last: by then the unit tests are over
 LAST = ("test_bench.py",)
 
 
 def _rank(item: pytest.Item) -> int:
     name = item.nodeid.split("::")[0].rsplit("/", 1)[-1]
-    if name in LAST or any(t in item.nodeid for t in IN_THE_UNITS_WORKER):
+    if name in LAST:
         return len(FIRST) + 1
     return FIRST.index(name) if name in FIRST else len(FIRST)
 
@@ -160,28 +159,25 @@ LOCKSTEP_MODULES = (
 )
 
 
-# lockstep sessions the third worker runs after its unit tests (without them
-# it ended 250 s before the other two; 11-29, with them: 522 s, the others
-# 577 and 596)
-IN_THE_UNITS_WORKER = (
-    "::test_a_campaign_finds_holes_2_to_3_mm_off",
-    "::test_two_arms_insert_a_held_peg_into_a_held_block",
-)
+# a lockstep session the first worker runs between its real-time ones (never
+# beside them: that worker runs one test at a time), to even the workers'
+# shares
+IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block",)
 
 
 def _scope(nodeid: str) -> str:
-    """The worker a test runs in. ``units``: the unit tests, the front door's
-    (its refusals start no session) and the lockstep sessions of
-    ``IN_THE_UNITS_WORKER``; not the transports' contract tests, whose zenoh
-    drops records on a loaded host (congestion control DROP), as a session's
-    ddm would. ``apart``: the other lockstep sessions. ``sessions``: the rest
-    (real-time sessions)."""
+    """The worker a test runs in. ``units``: the unit tests and the front
+    door's (its refusals start no session); not the transports' contract
+    tests, whose zenoh drops records on a loaded host (congestion control
+    DROP), as a session's ddm would. ``apart``: the lockstep sessions, but
+    those of ``IN_THE_REAL_TIME_WORKER``. ``sessions``: the rest (real-time
+    sessions). No session runs in ``units``: its nice 10 starved a lockstep
+    session's plant past the drivers' I/O timeout before the first tick."""
     path = nodeid.split("::")[0]
-    if path.endswith("/test_transports.py"):
+    if path.endswith("/test_transports.py") or any(t in nodeid for t in IN_THE_REAL_TIME_WORKER):
         return "sessions"
     name = path.rsplit("/", 1)[-1]
-    unit = "integration/" not in path or name == "test_front_door.py"
-    if unit or any(t in nodeid for t in IN_THE_UNITS_WORKER):
+    if "integration/" not in path or name == "test_front_door.py":
         return "units"
     return "apart" if name in LOCKSTEP_MODULES else "sessions"
 
