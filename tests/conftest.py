@@ -189,10 +189,11 @@ def _scope(nodeid: str) -> str:
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """With three workers (make test as root): the tests that start
-    real-time sessions in the first; the lockstep sessions in the one whose
-    Python is tests/apart-python, the unit tests in the one whose Python is
-    tests/units-python (the sessions' nodes run at real-time priority, the
-    lockstep ones at the default, the unit tests below both)."""
+    real-time sessions (and ``IN_THE_REAL_TIME_WORKER``) in the first; the
+    lockstep sessions in the one whose Python is tests/apart-python, the
+    unit tests in the one whose Python is tests/units-python (the sessions'
+    nodes run at real-time priority, the lockstep ones at the default, the
+    unit tests below both)."""
     from xdist.scheduler import LoadScopeScheduling
 
     class Apart(LoadScopeScheduling):  # type: ignore[misc]
