@@ -22,6 +22,11 @@ the SSC's ddm sends a group's N commands: the floor under ``bench ddm
 
 Both are the worst replier's percentiles when there are several.
 
+- ``stamps``, ``exchanges``, ``coalesced``: the stamps the worker wrote, the
+  forwarder's exchanges, and the stamps it found beside another in one
+  wake-up (the worker late, its stamps back to back: the last is sent).
+  Every stamp is one or the other; a run ends on the last stamp taken.
+
 The caller holds the CPUs' wake-up latency as the nodes do
 (``--cpu-latency US``, ``scheduling.cpu_latency_us``). Run as
 ``python -m redistro.bench.floor --rate HZ --seconds S``; prints one JSON
@@ -89,11 +94,11 @@ def _replier(port: int, count: int, priority: int) -> int:
     cpu: list[int] = []
     latency: list[int] = []
     clock, now = time.thread_time_ns, time.monotonic_ns
-    timeout = 10.0  # the others' start-up, then half a second of silence ends it
+    # every exchange until the forwarder closes (its last stamp taken); ten
+    # seconds of silence end a run whose forwarder hangs
     for _ in range(count):
-        if not ep.poll(timeout):
+        if not ep.poll(10.0):
             break
-        timeout = 0.5
         c0 = clock()
         if not s.recv_into(buf):
             break
@@ -118,17 +123,18 @@ def _forwarder(
     os.close(ready_fd)
     command = bytearray(COMMAND_BYTES)
     buf = bytearray(4 * REPLY_BYTES)
-    timeout = 10.0
-    for k in range(count):
-        if not ep.poll(timeout):
-            break
-        timeout = 0.5
-        os.eventfd_read(efd)
+    taken = exchanges = 0
+    while taken < count and ep.poll(10.0):
+        # a wake-up that finds several stamps (the worker ran late and wrote
+        # them back to back) sends the last: one exchange, the rest counted
+        taken += os.eventfd_read(efd)
         command[:8] = stamp[:8]
-        for s in orders[k & 1]:
+        for s in orders[exchanges & 1]:
             s.send(command)
         for s in socks:
             s.recv_into(buf)
+        exchanges += 1
+    print(json.dumps({"exchanges": exchanges, "coalesced": taken - exchanges}), flush=True)
     return 0
 
 
@@ -219,6 +225,8 @@ def _worker(
                 str(priority),
             ),
             pass_fds=(efd, stamp_fd, ready_w, *fds),
+            stdout=subprocess.PIPE,
+            text=True,
         )
         children.append(forwarder)
         os.close(ready_w)
@@ -238,8 +246,7 @@ def _worker(
                 time.sleep(wait)
             stamp[:8] = time.monotonic_ns().to_bytes(8, "little")
             os.eventfd_write(efd, 1)
-        outs = [child.communicate(timeout=10.0)[0] for child in children[:-1]]
-        forwarder.wait(timeout=10.0)
+        outs = [child.communicate(timeout=20.0)[0] for child in children]
     finally:
         for child in children:
             if child.poll() is None:
@@ -250,11 +257,14 @@ def _worker(
         for fd in (stamp_fd, efd, ready_r, ready_w):
             if fd >= 0:
                 os.close(fd)
-    figures = [json.loads(out.strip().splitlines()[-1]) for out in outs]
+    *figures, sent = [json.loads(out.strip().splitlines()[-1]) for out in outs]
     result = {
         # the worst robot's (one replier: its own)
         "reply_cpu_us": _worst([f["cpu"] for f in figures]),
         "latency_us": _worst([f["latency"] for f in figures]),
+        "stamps": count,
+        "exchanges": sent["exchanges"],
+        "coalesced": sent["coalesced"],
         "robots": robots,
         "rate_hz": rate_hz,
         "seconds": seconds,
