@@ -122,11 +122,9 @@ def no_leaks() -> Iterator[None]:
         pytest.fail("; ".join(problems))
 
 
-# the longest lockstep tests first (the second worker's run ends sooner);
-# the operator's last, the live page's session paced to real time among
-# them: the first worker's benchmarks, its last tests, run beside that, not
-# beside a lockstep campaign (a polling bench's reader missed half its
-# records there)
+# the longest tests first in each worker (its run ends sooner): the lockstep
+# campaigns in the second, the operator's before the ESC sessions among the
+# spare ones; the first worker's benchmarks last (below)
 FIRST = (
     "test_lockstep.py",
     "test_peg_search.py",
@@ -168,6 +166,13 @@ LOCKSTEP_MODULES = (
 # shares
 IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block",)
 
+# sessions long in wall time and light in CPU (the live page paced to real
+# time, a plant slowed to a sixth, a self-calibration at real time) that the
+# first worker to run short of its own tests takes: the units worker, once
+# its tests are done, at nice 0 again (the CPUs otherwise stood a seventh
+# idle while the two session workers ran on alone)
+SPARE_MODULES = ("test_operator.py", "test_esc_session.py")
+
 
 def _scope(nodeid: str) -> str:
     """The worker a test runs in. ``units``: the unit tests and the front
@@ -175,7 +180,8 @@ def _scope(nodeid: str) -> str:
     tests, whose zenoh drops records on a loaded host (congestion control
     DROP), as a session's ddm would. ``apart``: the lockstep sessions, but
     those of ``IN_THE_REAL_TIME_WORKER``. ``sessions``: the rest (real-time
-    sessions). No session runs in ``units``: its nice 10 starved a lockstep
+    sessions). ``spare``: ``SPARE_MODULES``, for the worker that runs short
+    first. No session runs at the units' nice 10: it starved a lockstep
     session's plant past the drivers' I/O timeout before the first tick."""
     path = nodeid.split("::")[0]
     if path.endswith("/test_transports.py") or any(t in nodeid for t in IN_THE_REAL_TIME_WORKER):
@@ -183,7 +189,18 @@ def _scope(nodeid: str) -> str:
     name = path.rsplit("/", 1)[-1]
     if "integration/" not in path or name == "test_front_door.py":
         return "units"
+    if name in SPARE_MODULES:
+        return "spare"
     return "apart" if name in LOCKSTEP_MODULES else "sessions"
+
+
+@pytest.fixture(autouse=True)
+def _sessions_at_nice_0(request: pytest.FixtureRequest) -> None:
+    """A session test in the units worker (its nice 10) runs at nice 0, as
+    in the others (root may lower it; elsewhere it is 0 already)."""
+    if _scope(request.node.nodeid) != "units" and os.getpriority(os.PRIO_PROCESS, 0) > 0:
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, 0, 0)
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -193,7 +210,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     lockstep sessions in the one whose Python is tests/apart-python, the
     unit tests in the one whose Python is tests/units-python (the sessions'
     nodes run at real-time priority, the lockstep ones at the default, the
-    unit tests below both)."""
+    unit tests below both); ``spare`` to the first with two tests or fewer
+    left (that last one, by far)."""
     from xdist.scheduler import LoadScopeScheduling
 
     class Apart(LoadScopeScheduling):  # type: ignore[misc]
