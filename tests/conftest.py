@@ -194,11 +194,12 @@ def _scope(nodeid: str) -> str:
     return "apart" if name in LOCKSTEP_MODULES else "sessions"
 
 
-@pytest.fixture(autouse=True)
-def _sessions_at_nice_0(request: pytest.FixtureRequest) -> None:
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
     """A session test in the units worker (its nice 10) runs at nice 0, as
-    in the others (root may lower it; elsewhere it is 0 already)."""
-    if _scope(request.node.nodeid) != "units" and os.getpriority(os.PRIO_PROCESS, 0) > 0:
+    in the others, its module's fixtures too (root may lower it; elsewhere
+    it is 0 already)."""
+    if _scope(item.nodeid) != "units" and os.getpriority(os.PRIO_PROCESS, 0) > 0:
         with contextlib.suppress(OSError):
             os.setpriority(os.PRIO_PROCESS, 0, 0)
 
