@@ -170,8 +170,11 @@ IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block"
 # time, a plant slowed to a sixth, a self-calibration at real time) that the
 # first worker to run short of its own tests takes: the units worker, once
 # its tests are done, at nice 0 again (the CPUs otherwise stood a seventh
-# idle while the two session workers ran on alone)
-SPARE_MODULES = ("test_operator.py", "test_esc_session.py")
+# idle while the two session workers ran on alone). The operator's module
+# goes whole (its calibration fixture once), each ESC session test alone:
+# the session workers take the last of them as they run short
+SPARE_MODULES = ("test_operator.py",)
+SPARE_TESTS = ("test_esc_session.py",)
 
 
 def _scope(nodeid: str) -> str:
@@ -180,9 +183,10 @@ def _scope(nodeid: str) -> str:
     tests, whose zenoh drops records on a loaded host (congestion control
     DROP), as a session's ddm would. ``apart``: the lockstep sessions, but
     those of ``IN_THE_REAL_TIME_WORKER``. ``sessions``: the rest (real-time
-    sessions). ``spare``: ``SPARE_MODULES``, for the worker that runs short
-    first. No session runs at the units' nice 10: it starved a lockstep
-    session's plant past the drivers' I/O timeout before the first tick."""
+    sessions). ``spare``: ``SPARE_MODULES``, and ``spare <test>`` each of
+    ``SPARE_TESTS``, for the worker that runs short first. No session runs
+    at the units' nice 10: it starved a lockstep session's plant past the
+    drivers' I/O timeout before the first tick."""
     path = nodeid.split("::")[0]
     if path.endswith("/test_transports.py") or any(t in nodeid for t in IN_THE_REAL_TIME_WORKER):
         return "sessions"
@@ -191,6 +195,8 @@ def _scope(nodeid: str) -> str:
         return "units"
     if name in SPARE_MODULES:
         return "spare"
+    if name in SPARE_TESTS:
+        return f"spare {nodeid}"
     return "apart" if name in LOCKSTEP_MODULES else "sessions"
 
 
@@ -211,8 +217,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     lockstep sessions in the one whose Python is tests/apart-python, the
     unit tests in the one whose Python is tests/units-python (the sessions'
     nodes run at real-time priority, the lockstep ones at the default, the
-    unit tests below both); ``spare`` to the first with two tests or fewer
-    left (that last one, by far)."""
+    unit tests below both); the ``spare`` scopes, one by one, to whichever
+    has two tests or fewer left (the units worker first, by far)."""
     from xdist.scheduler import LoadScopeScheduling
 
     class Apart(LoadScopeScheduling):  # type: ignore[misc]
