@@ -2,30 +2,17 @@
 
 from __future__ import annotations
 
-import contextlib
-import os
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from tests.helpers import load_json, run_cli
 
-
-@pytest.fixture(autouse=True)
-def _above_the_other_workers() -> Iterator[None]:
-    """Each benchmark at nice -10 where that is allowed (root: make test's
-    three workers), its processes too: beside another worker's lockstep
-    campaign at nice 0, bench ipc's polling Local Data reader, at the
-    default scheduling, took 224 and 236 of 500 records."""
-    before = os.getpriority(os.PRIO_PROCESS, 0)
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, 0, -10)
-    try:
-        yield
-    finally:
-        os.setpriority(os.PRIO_PROCESS, 0, before)
+# beside another worker's lockstep campaign at nice 0, bench ipc's polling
+# Local Data reader, at the default scheduling, took 224 and 236 of 500
+# records
+pytestmark = pytest.mark.usefixtures("above_the_other_workers")
 
 
 def test_bench_ipc_reports_three_transports(tmp_path: Path) -> None:
