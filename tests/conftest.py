@@ -169,10 +169,10 @@ IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block"
 # sessions long in wall time and light in CPU (the live page paced to real
 # time, a plant slowed to a sixth, a self-calibration at real time) that the
 # first worker to run short of its own tests takes: the units worker, once
-# its tests are done, at nice 0 again (the CPUs otherwise stood a seventh
-# idle while the two session workers ran on alone). The operator's module
-# goes whole (its calibration fixture once), each ESC session test alone:
-# the session workers take the last of them as they run short
+# its tests are done, at nice 0 again (the CPUs otherwise stood idle some
+# 85 CPU-s a run while the two session workers ran on alone). The
+# operator's module goes whole (its calibration fixture once), each ESC
+# session test alone: the session workers take the last as they run short
 SPARE_MODULES = ("test_operator.py",)
 SPARE_TESTS = ("test_esc_session.py",)
 
