@@ -215,7 +215,8 @@ def above_the_other_workers() -> Iterator[None]:
     """The test at nice -10 where that is allowed (root: make test's three
     workers), the processes it starts too: a benchmark's figures, or
     threads handing records to each other, beside the other workers'
-    sessions at nice 0."""
+    sessions at nice 0. Not plant_rig's real-time ``above_the_load``: the
+    benchmarks' spinning processes would inherit it."""
     before = os.getpriority(os.PRIO_PROCESS, 0)
     with contextlib.suppress(OSError):
         os.setpriority(os.PRIO_PROCESS, 0, -10)
