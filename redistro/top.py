@@ -33,7 +33,7 @@ def sched_text(policy: int, priority: int, nice: int) -> str:
         return f"rr/{priority}"
     if name == "nice":
         return f"nice/{nice}"
-    return name
+    return "batch" if name == "SCHED_BATCH" else name
 
 
 def _cmdline(pid: int) -> list[str]:

@@ -66,7 +66,10 @@ class SchedulingConfig:
 
     policy: ``auto`` tries SCHED_RR and falls back to nice values; ``rr`` and
     ``nice`` ask for that one only (and report a refusal); ``none`` leaves the
-    default scheduler alone.
+    default scheduler alone; ``batch`` puts every process of the session at
+    SCHED_BATCH, no real-time service: for lockstep runs side by side (a
+    process woken does not preempt the one that woke it; a lockstep session
+    takes about a twentieth less CPU than at ``none``, docs/PERFORMANCE.md).
     lock_memory: mlockall in every process. Off by default: a locked process
     takes 10-17 ms (instead of about 2 ms) to die on this machine, which delays
     the manager's detection of a dead worker (docs/PERFORMANCE.md).
@@ -80,7 +83,7 @@ class SchedulingConfig:
         leaves the kernel's choice alone; refused (not root), it is reported.
     """
 
-    policy: Literal["auto", "rr", "nice", "none"] = "auto"
+    policy: Literal["auto", "rr", "nice", "none", "batch"] = "auto"
     priorities: dict[str, int] = field(
         default_factory=lambda: dict(PAPER_PRIORITIES),
         metadata={"ge": 1, "le": 99, "keys": tuple(PAPER_PRIORITIES)},

@@ -175,7 +175,8 @@ def _take_priority(cfg: Config) -> dict[str, Any]:
 
     policy = cfg.scheduling.policy
     prio = cfg.scheduling.priorities.get("plant", 1)
-    granted = sched.apply(prio, None, "rr" if policy in ("auto", "rr") else "none")
+    asked = "rr" if policy in ("auto", "rr") else "batch" if policy == "batch" else "none"
+    granted = sched.apply(prio, None, asked)
     if granted.policy == "default" and policy in ("auto", "nice"):
         granted = sched.apply(20, None, "nice")
     return granted.as_dict()

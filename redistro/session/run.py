@@ -58,6 +58,10 @@ def run_session(
     run first): what ``redistro bench group`` measures."""
     say = say or (lambda text: print(text, flush=True))
     task = preflight(cfg, task_path)
+    if cfg.scheduling.policy == "batch":  # (every process it starts inherits it)
+        from redistro.ipc import sched
+
+        sched.batch()
     start = None
     if cfg.session.clock == "lockstep":  # what a replay starts from (redistro replay)
         from redistro.session.start import start_state

@@ -43,7 +43,7 @@ def _replay(run: Path, runs: Path, tmp: Path, *sets: str) -> tuple[int, dict[str
     report = tmp / "replay.json"
     options = [a for kv in sets for a in ("--set", kv)]
     done = run_cli(
-        "--set", "scheduling.policy=none", "--set", f"session.runs_dir={runs}", *options,
+        "--set", "scheduling.policy=batch", "--set", f"session.runs_dir={runs}", *options,
         "replay", str(run), "--json", str(report), timeout=300,
     )  # fmt: skip
     assert done.returncode in (0, 1), done.stdout[-3000:] + done.stderr[-3000:]

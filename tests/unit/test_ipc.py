@@ -152,6 +152,24 @@ def test_scheduling_reports_what_was_granted() -> None:
     assert sched.cpus_of_mask(sched.cpu_mask([0, 3])) == [0, 3]
 
 
+def test_batch_puts_the_process_and_its_children_at_sched_batch() -> None:
+    """``scheduling.policy: batch``: SCHED_BATCH, whatever the priority asked,
+    and a child forked after it inherits it (a session's processes)."""
+    pid = os.fork()
+    if pid == 0:  # in a child: the test process keeps its own scheduling
+        g = sched.apply(16, None, "batch", False)
+        code = 0 if g.policy == "SCHED_BATCH" and g.priority == 0 and not g.refused else 1
+        if os.sched_getscheduler(0) != os.SCHED_BATCH:
+            code = 2
+        grandchild = os.fork()
+        if grandchild == 0:
+            os._exit(0 if os.sched_getscheduler(0) == os.SCHED_BATCH else 1)
+        _, st = os.waitpid(grandchild, 0)
+        os._exit(code or (3 if os.WEXITSTATUS(st) else 0))
+    _, status = os.waitpid(pid, 0)
+    assert os.WEXITSTATUS(status) == 0, os.WEXITSTATUS(status)
+
+
 def test_a_chore_runs_at_the_normal_policy_and_real_time_returns() -> None:
     pid = os.fork()
     if pid == 0:  # in a child: the test process keeps its own scheduling

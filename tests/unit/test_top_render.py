@@ -60,6 +60,7 @@ def test_the_scheduling_column_names_what_was_granted() -> None:
     assert sched_text(POLICY_CODES["SCHED_RR"], 19, 0) == "rr/19"
     assert sched_text(POLICY_CODES["nice"], 0, -9) == "nice/-9"
     assert sched_text(POLICY_CODES["default"], 0, 0) == "default"
+    assert sched_text(POLICY_CODES["SCHED_BATCH"], 0, 0) == "batch"
 
 
 def test_names_and_fault_texts_are_printed_as_they_are() -> None:
