@@ -143,6 +143,13 @@ def test_two_groups_share_one_network_and_nothing_else(calibrated: Path, tmp_pat
 
         # the nodes meet (the tasks then run ~12 s)
         wait_for(met, 120, "both groups' nodes to meet")
+        # one look over both doors while every node runs (once, taken after
+        # the forgeries on a loaded host, it found lab-b's task over)
+        seen = run_cli(
+            "--set", f"ddm.zenoh.users_file={users}", "top", "--once", "--json",
+            "--zenoh", f"tcp/127.0.0.1:{port['lab-a']}", "--zenoh", b_door,
+            timeout=60,
+        )  # fmt: skip
         b_feedback = zt.feedback_key("lab-b", "r2")
         # lab-a's credentials on lab-b's keys: refused by lab-b's SSC
         _publish_as(zt.user_of("esc.r1", "lab-a"), users, b_door, b_feedback, _forged(SENT))
@@ -150,11 +157,6 @@ def test_two_groups_share_one_network_and_nothing_else(calibrated: Path, tmp_pat
         _publish_as(
             zt.user_of("esc.r2", "lab-b"), users, b_door, b_feedback, _forged(SENT),
             arrived=lambda: exchange("ssc.lab-b", "forged") >= SENT,
-        )  # fmt: skip
-        seen = run_cli(
-            "--set", f"ddm.zenoh.users_file={users}", "top", "--once", "--json",
-            "--zenoh", f"tcp/127.0.0.1:{port['lab-a']}", "--zenoh", b_door,
-            timeout=60,
         )  # fmt: skip
         ends = {name: p.communicate(timeout=240) for name, p in nodes.items()}
     finally:

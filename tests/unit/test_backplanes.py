@@ -27,6 +27,7 @@ class Pair:
     port: BoardPort
     step: Any  # () -> None: the boards take one sample (and serve requests)
     stop: Any  # () -> None: the boards fall silent
+    serve: Any  # () -> None: the boards published again, their step unchanged
 
 
 @pytest.fixture(params=["shm", "can-virtual"])
@@ -43,9 +44,9 @@ def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
             silent = threading.Event()
             steps = [0]
 
-            def step() -> None:
+            def step(advance: int = 1) -> None:
                 if not silent.is_set():
-                    steps[0] += 1
+                    steps[0] += advance
                     for a, t in BOARDS.items():
                         rec = np.zeros((), BANKS[t][0])
                         rec["step"] = steps[0]
@@ -54,7 +55,7 @@ def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
 
             step()
             try:
-                yield Pair(bp, port, step, silent.set)
+                yield Pair(bp, port, step, silent.set, lambda: step(0))
             finally:
                 bp.close()
                 bank.close()
@@ -82,7 +83,7 @@ def pair(request: pytest.FixtureRequest) -> Iterator[Pair]:
         thread = threading.Thread(target=serve, daemon=True)
         thread.start()
         try:
-            yield Pair(bp, port, lambda: None, silent.set)
+            yield Pair(bp, port, lambda: None, silent.set, lambda: None)
         finally:
             done.set()
             thread.join()
@@ -130,6 +131,18 @@ def test_silent_boards_are_an_io_fault_within_the_timeout(pair: Pair) -> None:
         while time.monotonic() - t0 < 2:
             pair.backplane.read([16])
     assert time.monotonic() - t0 < TIMEOUT_S * 4 + 0.5
+
+
+def test_boards_served_without_a_step_are_no_fault(pair: Pair) -> None:
+    """In lockstep the plant serves the boards (presets, brakes) without a
+    physics step until the group's first tick: their step stays where it
+    is for longer than the I/O timeout, and that is no fault."""
+    first = int(pair.backplane.read([16])[16]["step"])
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < TIMEOUT_S * 6:
+        pair.serve()
+        assert int(pair.backplane.read([16])[16]["step"]) == first
+        time.sleep(TIMEOUT_S / 5)  # (the boards' pace: served every 10 ms)
 
 
 def test_corrupt_frames_are_counted_and_dropped() -> None:

@@ -27,7 +27,8 @@ class ShmBackplane(Backplane):
         self._out: dict[int, Any] = {}
         self._recs: dict[int, np.ndarray[Any, Any]] = {}
         self._views: dict[int, memoryview] = {}  # byte views of _recs (no per-read allocation)
-        self._last: dict[int, tuple[int, int]] = {}  # address -> (step, monotonic ns seen)
+        # address -> (its publishes, monotonic ns they last moved)
+        self._last: dict[int, tuple[int, int]] = {}
 
     def inventory(self) -> dict[int, BoardType]:
         return dict(zip(self.bank.addresses, self.bank.types, strict=True))
@@ -55,7 +56,7 @@ class ShmBackplane(Backplane):
                 block.read_into(self._views[a], budget_s=self.timeout_s)
             except TornReadTimeout:
                 raise IOFault(f"board {a}: register bank stuck mid-update") from None
-            self._fresh(a, int(rec["step"]), now)
+            self._fresh(a, block.seq, now, int(rec["step"]))
             out[a] = rec
         return out
 
@@ -91,6 +92,8 @@ class ShmBackplane(Backplane):
         at = int(BANKS[BoardType.ENCODER][0].fields["step"][1])  # type: ignore[index]
         first = addrs[0]
         step = views[first][at : at + 8].view("<u8")
+        seq_at = bank.board_offsets(first, "in")[0]  # (its publishes: see _fresh)
+        seq = bank.raw[seq_at : seq_at + 8].view("<u8")
         fallback = super().reader(views, image)
         fresh = self._fresh
         monotonic_ns = time.monotonic_ns
@@ -99,15 +102,19 @@ class ShmBackplane(Backplane):
             if read(p):  # a board mid-update: its snapshot the patient way (or an IOFault)
                 fallback()
                 return
-            fresh(first, int(step[0]), monotonic_ns())
+            fresh(first, int(seq[0]), monotonic_ns(), int(step[0]))
 
         return read_kernel
 
-    def _fresh(self, a: int, step: int, now: int) -> None:
-        """A board whose step has not moved for the I/O timeout is an IOFault."""
+    def _fresh(self, a: int, published: int, now: int, step: int) -> None:
+        """A board the plant has not published for the I/O timeout is an
+        IOFault. Its publishes (the seqlock's count), not its physics step:
+        in lockstep the plant serves the boards without stepping until the
+        group's first tick (a node slow to start on a loaded host once read
+        the same step 0 over 514 ms apart, inside its encoder preset)."""
         last = self._last.get(a)
-        if last is None or step != last[0]:
-            self._last[a] = (step, now)
+        if last is None or published != last[0]:
+            self._last[a] = (published, now)
         elif now - last[1] > self.timeout_s * 1e9:
             raise IOFault(
                 f"board {a}: no update for {(now - last[1]) / 1e6:.0f} ms "
