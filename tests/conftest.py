@@ -123,14 +123,15 @@ def no_leaks() -> Iterator[None]:
 
 
 # the longest tests first in each worker (its run ends sooner): the lockstep
-# campaigns in the second, the operator's before the ESC sessions among the
-# spare ones; the first worker's benchmarks last (below)
+# campaigns in the second; among the spare ones (below) the operator's,
+# then the moves, then the searches that find no hole; the first worker's
+# benchmarks last (below)
 FIRST = (
     "test_lockstep.py",
-    "test_peg_search.py",
-    "test_moves.py",
     "test_faults_lockstep.py",
+    "test_peg_search.py",
     "test_operator.py",
+    "test_moves.py",
 )
 
 
@@ -171,10 +172,12 @@ IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block"
 # first worker to run short of its own tests takes: the units worker, once
 # its tests are done, at nice 0 again (the CPUs otherwise stood idle some
 # 85 CPU-s a run while the two session workers ran on alone). The
-# operator's module goes whole (its calibration fixture once), each ESC
-# session test alone: the session workers take the last as they run short
+# operator's module goes whole (its calibration fixture once); each test of
+# SPARE_TESTS (a module, or a test's name) alone, and those are lockstep
+# sessions of 10-20 s: whichever worker runs short takes the next (the
+# lockstep worker once ran on 60 s after the others, 50 CPU-s idle)
 SPARE_MODULES = ("test_operator.py",)
-SPARE_TESTS = ("test_esc_session.py",)
+SPARE_TESTS = ("test_moves.py", "::test_a_hole_beyond_the_search_radius", "test_esc_session.py")
 
 
 def _scope(nodeid: str) -> str:
@@ -195,7 +198,7 @@ def _scope(nodeid: str) -> str:
         return "units"
     if name in SPARE_MODULES:
         return "spare"
-    if name in SPARE_TESTS:
+    if name in SPARE_TESTS or any(t in nodeid for t in SPARE_TESTS if t.startswith("::")):
         return f"spare {nodeid}"
     return "apart" if name in LOCKSTEP_MODULES else "sessions"
 
