@@ -177,7 +177,13 @@ IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block"
 # sessions of 10-20 s: whichever worker runs short takes the next (the
 # lockstep worker once ran on 60 s after the others, 50 CPU-s idle)
 SPARE_MODULES = ("test_operator.py",)
-SPARE_TESTS = ("test_moves.py", "::test_a_hole_beyond_the_search_radius", "test_esc_session.py")
+SPARE_TESTS = (
+    "test_moves.py",
+    "::test_a_hole_beyond_the_search_radius",
+    "::test_peg_insertion_over_each_transport[reflective]",  # (lockstep, Python path)
+    "::test_a_robot_left_at_or_past_its_limit",  # (lockstep)
+    "test_esc_session.py",
+)
 
 
 def _scope(nodeid: str) -> str:
