@@ -123,14 +123,16 @@ def no_leaks() -> Iterator[None]:
 
 
 # the longest tests first in each worker (its run ends sooner): the lockstep
-# campaigns in the second; among the spare ones (below) the operator's,
-# then the moves, then the searches that find no hole; the first worker's
-# benchmarks last (below)
+# campaigns in the second; the spare ones (below) longest first, the
+# operator's, the ESC sessions (up to a minute each), then the 10-20 s
+# lockstep ones (a minute-long one taken last once kept a worker 60 s
+# after the others); the first worker's benchmarks last (below)
 FIRST = (
     "test_lockstep.py",
     "test_faults_lockstep.py",
-    "test_peg_search.py",
     "test_operator.py",
+    "test_esc_session.py",
+    "test_peg_search.py",
     "test_moves.py",
 )
 
