@@ -388,7 +388,7 @@ class RobotDriver:
             for j, k in zip(js.tolist(), axes.tolist(), strict=True):
                 reqs.setdefault(a, []).append((k, enc.preset(k, int(values[j]))))
             enc.flush()
-        deadline = time.monotonic() + max(0.2, 10 * self.bp.timeout_s)
+        deadline = time.monotonic() + max(0.2, 10 * min(self.bp.timeout_s, 1.0))
         while True:
             recs = self.bp.read(list(reqs))
             if all(
@@ -397,6 +397,7 @@ class RobotDriver:
                 break
             if time.monotonic() > deadline:
                 raise IOFault(f"{self.name}: encoder preset not acknowledged in time")
+            time.sleep(0.0005)  # (the plant answers: leave it the CPU)
         self._raw[...] = values
         self._acc[:] = 0
         self._q_ref[...] = q

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from redistro.config import Config
 from redistro.config.hardware import RobotHardware
@@ -26,8 +26,20 @@ class EscContext:
     def driver(self, session_id: str) -> RobotDriver:
         """A robot-level driver over its own backplane connection (not yet opened)
         to the plant of ``session_id``."""
-        bp = open_backplane(self.cfg.plant, session_id)
-        return RobotDriver(self.hw, bp, self.cfg.plant.physics_hz)
+        plant = replace(self.cfg.plant, io_timeout_ms=1e3 * io_timeout_s(self.cfg))
+        bp = open_backplane(plant, session_id)
+        return RobotDriver(self.hw, bp, plant.physics_hz)
+
+
+def io_timeout_s(cfg: Config) -> float:
+    """How long a board may go unpublished before the driver calls it an I/O
+    fault: ``plant.io_timeout_ms``; in lockstep at least the start-up
+    timeout. There the plant is the clock: one held off the CPUs is slow,
+    not gone (serving the boards before the first tick, a lockstep plant
+    was once starved 565 ms on a loaded host); a dead one sends no tick
+    (the manager's tick timeout) and its owner sees it end."""
+    t = cfg.plant.io_timeout_ms / 1e3
+    return max(t, cfg.session.startup_timeout_s) if cfg.session.clock == "lockstep" else t
 
 
 def plant_session(spec: NodeSpec) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pytest
 
 from redistro.ipc.timer import IntervalTimer, LockstepTicks, tick_source
 from redistro.localdata.layout import FEEDBACK, GUARD, PLAN
@@ -308,3 +309,23 @@ def test_a_wait_sleeps_on_the_bell_and_looks_anyway_when_nobody_rings() -> None:
             ringer.close()
             plant.close()
             plant.unlink()
+
+
+def test_in_lockstep_a_board_may_go_unpublished_as_long_as_a_start_may_take() -> None:
+    """The drivers' I/O timeout: ``plant.io_timeout_ms`` in real time; in
+    lockstep at least the start-up timeout (a plant starved of CPU is slow,
+    not gone: it is the clock)."""
+    from redistro.config import load_config
+    from redistro.errors import ConfigError
+    from redistro.esc.common import io_timeout_s
+    from tests.helpers import ROOT
+
+    path = ROOT / "config/redistro.yaml"
+    cfg = load_config(path)
+    assert io_timeout_s(cfg) == cfg.plant.io_timeout_ms / 1e3 == 0.5
+    cfg = load_config(path, ["session.clock=lockstep", "session.startup_timeout_s=12"])
+    assert io_timeout_s(cfg) == 12.0
+    sets = ["session.clock=lockstep", "session.startup_timeout_s=2", "plant.io_timeout_ms=3000"]
+    assert io_timeout_s(load_config(path, sets)) == 3.0  # (the longer of the two)
+    with pytest.raises(ConfigError, match="io_timeout_ms"):  # (over its bound: refused)
+        load_config(path, ["plant.io_timeout_ms=20000"])
