@@ -125,7 +125,7 @@ def no_leaks() -> Iterator[None]:
 # the longest tests first in each worker (its run ends sooner): the lockstep
 # campaigns in the second; the spare ones (below) longest first, the
 # operator's, the ESC sessions (up to a minute each), then the 10-20 s
-# lockstep ones (a minute-long one taken last once kept a worker 60 s
+# lockstep ones (a minute-long one taken last once kept a worker 70 s
 # after the others); the first worker's benchmarks last (below)
 FIRST = (
     "test_lockstep.py",
@@ -175,9 +175,10 @@ IN_THE_REAL_TIME_WORKER = ("::test_two_arms_insert_a_held_peg_into_a_held_block"
 # its tests are done, at nice 0 again (the CPUs otherwise stood idle some
 # 85 CPU-s a run while the two session workers ran on alone). The
 # operator's module goes whole (its calibration fixture once); each test of
-# SPARE_TESTS (a module, or a test's name) alone, and those are lockstep
-# sessions of 10-20 s: whichever worker runs short takes the next (the
-# lockstep worker once ran on 60 s after the others, 50 CPU-s idle)
+# SPARE_TESTS (a module, or a test's name) alone: the ESC sessions (real
+# time, up to a minute) and lockstep sessions of 10-40 s. Whichever worker
+# runs short takes the next (the lockstep worker once ran on 60 s after the
+# others, 50 CPU-s idle)
 SPARE_MODULES = ("test_operator.py",)
 SPARE_TESTS = (
     "test_moves.py",

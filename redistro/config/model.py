@@ -67,9 +67,9 @@ class SchedulingConfig:
     policy: ``auto`` tries SCHED_RR and falls back to nice values; ``rr`` and
     ``nice`` ask for that one only (and report a refusal); ``none`` leaves the
     default scheduler alone; ``batch`` puts every process of the session at
-    SCHED_BATCH, no real-time service: for lockstep runs side by side (a
-    process woken does not preempt the one that woke it; a lockstep session
-    takes about a twentieth less CPU than at ``none``, docs/PERFORMANCE.md).
+    SCHED_BATCH, no real-time service: for lockstep runs (a process that
+    wakes does not preempt the one running; the short main job in lockstep
+    took 7 % less CPU than at ``none``, docs/PERFORMANCE.md).
     lock_memory: mlockall in every process. Off by default: a locked process
     takes 10-17 ms (instead of about 2 ms) to die on this machine, which delays
     the manager's detection of a dead worker (docs/PERFORMANCE.md).

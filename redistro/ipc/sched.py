@@ -84,10 +84,10 @@ def apply(
 
 
 def batch(refused: list[str] | None = None) -> str:
-    """The calling process at SCHED_BATCH (its children inherit it): the
-    scheduler does not let a process it wakes preempt it, nor one it wakes
-    up preempt another, so a chain of processes handing work on runs with
-    fewer switches. Returns the policy now held."""
+    """The calling process at SCHED_BATCH (its children inherit it): when it
+    wakes up it does not preempt the process running, it waits for that
+    one's slice, so a chain of processes handing work on (a lockstep tick)
+    runs with fewer switches. Returns the policy now held."""
     try:
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
         return "SCHED_BATCH"
