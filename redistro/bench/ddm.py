@@ -480,6 +480,7 @@ class _SscBench:
         self.seen = [0] * n
         self.sent = [0] * n
         self.cycle = 0
+        self.period_s = 0.0  # (the commands' period, once sent)
 
     def take(self, measure: bool) -> None:
         """Each robot's newest feedback, timed by its admission."""
@@ -539,6 +540,7 @@ class _SscBench:
             steps.add(time.thread_time_ns() - c0)
             poll.refresh()
         self.seq = seq
+        self.period_s = period_ns / 1e9
         return steps
 
     def finish(self, cmd: Any) -> None:
@@ -548,6 +550,13 @@ class _SscBench:
         from redistro.localdata.layout import SessionStatus
 
         ddm = self.ddm
+        # the last command's replies taken first, for a period: once the
+        # first ESC closes its link after the finished command, the exchange
+        # stops on every link (a lost link is a fault), and a reply still on
+        # its way would go untaken (r1 once two short of its commands)
+        end = time.monotonic() + self.period_s
+        while (left := end - time.monotonic()) > 0 and not ddm.lost:
+            self.turn(left, True)
         seq = self.seq + 1
         cmd["session_status"] = SessionStatus.FINISHED
         for i, w in enumerate(self.writers):
