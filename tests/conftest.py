@@ -124,7 +124,7 @@ def no_leaks() -> Iterator[None]:
 
 # the longest tests first in each worker (its run ends sooner): the lockstep
 # campaigns in the second; the spare ones (below) longest first, the
-# operator's, the ESC sessions (up to a minute each), then the 10-20 s
+# operator's, the ESC sessions (up to a minute each), then the 10-40 s
 # lockstep ones (a minute-long one taken last once kept a worker 70 s
 # after the others); the first worker's benchmarks last (below)
 FIRST = (
