@@ -90,6 +90,11 @@ def status_key(group: str, node: str) -> str:
 VIEWER = "top"  # the user ``redistro top --zenoh`` connects as
 STATUS_EVERY = 256  # ddm steps between two status reports (~1 s at 200 Hz, both ways)
 RETRY_S = 0.2  # a client whose door is not up yet tries again this often
+# A peer's records and its liveliness token's loss come in two of
+# zenoh-python's threads, so the loss can overtake the records the peer put
+# just before it closed: the link is lost once no record came for this long
+# after its token went (a suite's load delayed them past the loss).
+LOSS_GRACE_S = 0.1
 
 
 def ssc_port(cfg: Config, group: str) -> int:
@@ -377,6 +382,7 @@ class ZenohTransport(Transport):
         # ESC robot; an ESC: its SSC, under its own robot)
         self.seen: set[str] = set()
         self.lost: dict[str, str] = {}
+        self.leaving: dict[str, float] = {}  # robot -> when its token went
         self.settings = settings
         self.node = node
         self.gids = gids
@@ -546,10 +552,21 @@ class ZenohTransport(Transport):
             return
         if sample.kind == zenoh.SampleKind.PUT:
             self.seen.add(robot)
+            self.leaving.pop(robot, None)
             self.new_threads = True  # a peer's link: zenoh's threads for it
         elif robot in self.seen:
-            self.lost[robot] = "closed by the peer, or out of reach (its liveliness token went)"
+            self.leaving[robot] = time.monotonic()  # lost after LOSS_GRACE_S
         self._wake()
+
+    def _settle_losses(self) -> None:
+        """A peer whose token went LOSS_GRACE_S ago, with no record of
+        its left in the inbox, is a lost link (the ddm's thread)."""
+        if self.inbox:
+            return
+        now = time.monotonic()
+        for robot, since in list(self.leaving.items()):
+            if now - since >= LOSS_GRACE_S and self.leaving.pop(robot, None) is not None:
+                self.lost[robot] = "closed by the peer, or out of reach (its liveliness token went)"
 
     # -- the ddm's side --
 
@@ -585,6 +602,8 @@ class ZenohTransport(Transport):
         while inbox:
             out.append(inbox.popleft())
         if not out:
+            if self.leaving:
+                self._settle_losses()
             peers = set(self.peer_of.values())
             if peers and set(self.lost) >= peers:
                 why = "; ".join(f"{r}: {w}" for r, w in sorted(self.lost.items()))
@@ -630,6 +649,8 @@ class _ZenohLinks(Links):
 
     def lost_links(self) -> dict[int, str]:
         t = self.t
+        if t.leaving:
+            t._settle_losses()
         if t.kind != "ssc" or set(t.lost) >= set(t.peer_of.values()):
             return {}
         gid = {r: g for g, r in t.names.items()}

@@ -371,6 +371,37 @@ def test_a_closed_end_is_a_lost_link_once_its_records_are_in(kind: str) -> None:
         esc.close()
 
 
+def test_a_zenoh_token_loss_that_overtakes_records_waits_for_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The records and the token's loss come in two of zenoh-python's
+    threads: a loss taken first (delivered here before the records are
+    sent) leaves the link up for its grace, the records are taken, and then
+    the link is lost."""
+    import types
+
+    import zenoh
+
+    from redistro.ddm import zenoh_transport as zt
+
+    monkeypatch.setattr(zt, "LOSS_GRACE_S", 30.0)
+    ssc, esc = _zenoh_pair()
+    assert isinstance(ssc, zt.ZenohTransport)
+    try:
+        key = zt.alive_key(ssc.group, "esc.r1")
+        ssc._liveliness(types.SimpleNamespace(key_expr=key, kind=zenoh.SampleKind.DELETE))
+        assert ssc.receive() == [] and ssc.links.lost_links() == {}  # within its grace
+        esc.send(_feedback(1), 0)
+        esc.send(_feedback(2), 0)
+        assert [decode(r).seq for r in _collect(ssc, 2)] == [1, 2]
+        monkeypatch.setattr(zt, "LOSS_GRACE_S", 0.0)  # (its grace over)
+        with pytest.raises(TransportError, match="closed by the peer"):
+            ssc.receive()
+    finally:
+        ssc.close()
+        esc.close()
+
+
 def test_the_loopback_fds_wake_a_waiting_ddm() -> None:
     import select
 
